@@ -1,0 +1,90 @@
+"""Geodesy: a site's geodetic origin and the WGS84 <-> local ENU conversion.
+
+The site frame is East-North-Up with its origin at a geodetic point (latitude, longitude, height
+above the ellipsoid). Conversions go through ECEF exactly (no flat-earth approximation), so they stay
+right for any site size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .units import DEG
+
+# WGS84 ellipsoid
+WGS84_A = 6378137.0
+WGS84_F = 1.0 / 298.257223563
+WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
+
+
+def geodetic_to_ecef(lat_rad, lon_rad, h_m):
+    """Geodetic (rad, rad, m) -> ECEF (m). Broadcasts; returns shape (..., 3)."""
+    lat, lon, h = (np.asarray(v, dtype=float) for v in (lat_rad, lon_rad, h_m))
+    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
+    x = (n + h) * np.cos(lat) * np.cos(lon)
+    y = (n + h) * np.cos(lat) * np.sin(lon)
+    z = (n * (1.0 - WGS84_E2) + h) * np.sin(lat)
+    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+
+
+def ecef_to_geodetic(xyz):
+    """ECEF (m), shape (..., 3) -> (lat_rad, lon_rad, h_m), by Bowring's iteration (mm-exact)."""
+    xyz = np.asarray(xyz, dtype=float)
+    x, y, z = xyz[..., 0], xyz[..., 1], xyz[..., 2]
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    lat = np.arctan2(z, p * (1.0 - WGS84_E2))
+    for _ in range(6):
+        n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
+        h = p / np.cos(lat) - n
+        lat = np.arctan2(z, p * (1.0 - WGS84_E2 * n / (n + h)))
+    n = WGS84_A / np.sqrt(1.0 - WGS84_E2 * np.sin(lat) ** 2)
+    h = p / np.cos(lat) - n
+    return lat, lon, h
+
+
+@dataclass(frozen=True)
+class GeodeticOrigin:
+    """Origin of a site's ENU frame.
+
+    Attributes
+    ----------
+    lat : float
+        Geodetic latitude, rad.
+    lon : float
+        Longitude, rad.
+    height : float
+        Height above the WGS84 ellipsoid, m.
+    """
+
+    lat: float
+    lon: float
+    height: float = 0.0
+
+    @classmethod
+    def from_degrees(cls, lat_deg: float, lon_deg: float, height: float = 0.0) -> "GeodeticOrigin":
+        if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 360.0):
+            raise ValueError(f"geodetic origin out of range: lat={lat_deg}, lon={lon_deg} (degrees expected)")
+        return cls(lat_deg * DEG, lon_deg * DEG, height)
+
+    @property
+    def R_ecef_to_enu(self) -> np.ndarray:
+        sl, cl = math.sin(self.lat), math.cos(self.lat)
+        so, co = math.sin(self.lon), math.cos(self.lon)
+        return np.array([[-so, co, 0.0], [-sl * co, -sl * so, cl], [cl * co, cl * so, sl]])
+
+    def geodetic_to_enu(self, lat_rad, lon_rad, h_m=0.0) -> np.ndarray:
+        """Geodetic (rad) -> site ENU (m), shape (..., 3)."""
+        d = geodetic_to_ecef(lat_rad, lon_rad, h_m) - geodetic_to_ecef(self.lat, self.lon, self.height)
+        return d @ self.R_ecef_to_enu.T
+
+    def enu_to_geodetic(self, pos_enu):
+        """Site ENU (m), shape (..., 2 or 3) -> (lat_rad, lon_rad, h_m)."""
+        p = np.asarray(pos_enu, dtype=float)
+        if p.shape[-1] == 2:
+            p = np.concatenate([p, np.zeros(p.shape[:-1] + (1,))], axis=-1)
+        ecef = p @ self.R_ecef_to_enu + geodetic_to_ecef(self.lat, self.lon, self.height)
+        return ecef_to_geodetic(ecef)

@@ -1,0 +1,422 @@
+"""Indoor Location Competition 2.0 (Microsoft / XYZ10) traces and floor plans.
+
+Trace format: tab-separated text, often gzipped. ``#`` lines are a header of ``key:value`` pairs
+(startTime, SiteID, SiteName, FloorId, FloorName, Brand, Model, sensor specs, endTime). Data lines
+are ``unix_ms  TYPE_*  values...``:
+
+=================================  ==========================================================
+``TYPE_ACCELEROMETER ax ay az acc``  m/s^2 (calibrated)
+``TYPE_GYROSCOPE wx wy wz acc``      rad/s (calibrated)
+``TYPE_MAGNETIC_FIELD mx my mz acc`` uT (converted to tesla here)
+``TYPE_ROTATION_VECTOR x y z acc``   Android rotation vector (kept for comparison only)
+``TYPE_WIFI ssid bssid rssi f last`` one line per access point; lines sharing a timestamp form one
+                                     scan; ``f`` in MHz; ``last`` = last-seen Unix ms
+``TYPE_BEACON uuid major minor tx rssi dist mac last``  iBeacon; id = ``uuid_major_minor``
+``TYPE_WAYPOINT x y``                **ground truth**, floor-plan metres; kept apart from sensors
+=================================  ==========================================================
+
+Known types we do not use (the ``_UNCALIBRATED`` forms, ``TYPE_BLUE``/``TYPE_BLU4`` raw BLE adverts,
+``TYPE_DIST1``/``TYPE_DIST2``, ``TYPE_SENSOR_MAGNETIC_FIELD_ACCURACY_CHANGED``) are counted in the
+report as ``unused-record``; anything else as the problem ``unknown-record``.
+
+Policy for bad input (see :mod:`hybridloc.io.common`): malformed lines, non-finite numbers and RSSI
+out of range are problems (skipped and reported, or raised). Sensor samples out of time order are
+re-sorted and exact duplicate timestamps dropped, both noted in the report.
+
+Floor plans: ``geojson_map.json`` is in WGS84 lon/lat; its first feature (category ``floor``) is the
+floor outline and the others are shops. ``floor_info.json`` gives the map's width and height in
+metres. The floor-plan frame (the one waypoints use) maps the outline's lon/lat bounding box linearly
+onto ``[0, width] x [0, height]`` with x east and y north. Each floor has its own bounding box, so the
+floors' frames differ by up to a few metres (site1: F3 is 2.8 m taller than F1); each
+:class:`~hybridloc.types.Floor` keeps its own transform.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPolygon, Polygon, shape
+
+from ..geo import GeodeticOrigin
+from ..types import (
+    RSSI_MAX_DBM,
+    RSSI_MIN_DBM,
+    Floor,
+    FloorPlan,
+    ImuBlock,
+    RfScan,
+    Technology,
+    Waypoints,
+)
+from ..units import DEG, MHZ_TO_HZ, MS_TO_S, UT_TO_T
+from .common import DataFormatError, OnError, ReadReport, iter_lines
+
+SENSOR_TYPES = {
+    "TYPE_ACCELEROMETER": "acc",
+    "TYPE_GYROSCOPE": "gyr",
+    "TYPE_MAGNETIC_FIELD": "mag",
+    "TYPE_ROTATION_VECTOR": "rv",
+}
+UNUSED_TYPES = frozenset(
+    {
+        "TYPE_ACCELEROMETER_UNCALIBRATED",
+        "TYPE_GYROSCOPE_UNCALIBRATED",
+        "TYPE_MAGNETIC_FIELD_UNCALIBRATED",
+        "TYPE_BLUE",
+        "TYPE_BLU4",
+        "TYPE_DIST1",
+        "TYPE_DIST2",
+        "TYPE_SENSOR_MAGNETIC_FIELD_ACCURACY_CHANGED",
+    }
+)
+#: Plausible Unix time range for a recording, ms (2010-2100): catches seconds-vs-ms mix-ups.
+_UNIX_MS_RANGE = (1.26e12, 4.1e12)
+
+
+@dataclass(frozen=True, eq=False)
+class IlcTrace:
+    """One Indoor Location Competition walk.
+
+    Attributes
+    ----------
+    path : str
+    meta : dict
+        Header fields (``SiteID``, ``SiteName``, ``FloorId``, ``FloorName``, ``Brand``, ``Model``,
+        ``startTime``, ``endTime`` ...), strings as in the file.
+    imu : ImuBlock or None
+        Calibrated accelerometer, gyroscope and magnetometer (tesla) on the accelerometer's
+        timestamps (gyro and magnetometer interpolated when their stamps differ); None when the
+        trace has no accelerometer or gyroscope.
+    rotation_vector : tuple (t, quat_wxyz) or None
+        Android's fused attitude, for comparison only: times (N,) and unit quaternions (N, 4).
+    scans : tuple of RfScan
+        WiFi and BLE scans sorted by time.
+    waypoints : Waypoints
+        Ground truth, floor-plan frame. Never feed these to a method that claims "no survey".
+    report : ReadReport
+    """
+
+    path: str
+    meta: dict
+    imu: ImuBlock | None
+    rotation_vector: tuple[np.ndarray, np.ndarray] | None
+    scans: tuple[RfScan, ...]
+    waypoints: Waypoints
+    report: ReadReport
+
+    @property
+    def floor(self) -> str | None:
+        return self.meta.get("FloorName") or None
+
+    @property
+    def site(self) -> str | None:
+        return self.meta.get("SiteID") or None
+
+    @property
+    def device_model(self) -> str:
+        return " ".join(v for v in (self.meta.get("Brand", ""), self.meta.get("Model", "")) if v)
+
+    @property
+    def wifi_scans(self) -> tuple[RfScan, ...]:
+        return tuple(s for s in self.scans if s.technology is Technology.WIFI)
+
+
+def _floats(fields: list[str], n: int) -> list[float] | None:
+    try:
+        vals = [float(v) for v in fields[:n]]
+    except ValueError:
+        return None
+    return vals
+
+
+def iter_ilc_records(path: str | os.PathLike, report: ReadReport) -> Iterator[tuple[int, str, list[str]]]:
+    """Stream ``(line_number, type, fields)`` from a trace; fields[0] is the Unix ms timestamp.
+
+    Header lines are yielded with type ``"#"`` and their tab-separated ``key:value`` parts as fields.
+    Blank lines are skipped; a line without a timestamp and type is a ``malformed-line`` problem.
+    """
+    for lineno, line in iter_lines(path, report):
+        if not line.strip():
+            continue
+        parts = line.split("\t")
+        if parts[0].startswith("#"):
+            yield lineno, "#", [p for p in parts[1:] if p]
+            continue
+        if len(parts) < 2 or not parts[1].startswith("TYPE_"):
+            report.problem(lineno, "malformed-line", f"expected 'unix_ms<TAB>TYPE_...', got {line[:60]!r}")
+            continue
+        yield lineno, parts[1], [parts[0]] + parts[2:]
+
+
+def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTrace:
+    """Read one trace (plain or gzip). See the module docstring for the format and bad-input policy."""
+    path = str(path)
+    report = ReadReport(path, on_error)
+    meta: dict[str, str] = {}
+    sensors: dict[str, list[list[float]]] = {k: [] for k in SENSOR_TYPES.values()}
+    wifi: dict[float, dict[str, tuple[float, float, float]]] = {}
+    ble: dict[float, dict[str, float]] = {}
+    wps: list[tuple[float, float, float]] = []
+    for lineno, rtype, f in iter_ilc_records(path, report):
+        if rtype == "#":
+            for part in f:
+                if ":" in part:
+                    k, v = part.split(":", 1)
+                    meta[k.strip()] = v.strip()
+            continue
+        try:
+            t_ms = float(f[0])
+        except ValueError:
+            report.problem(lineno, "bad-timestamp", repr(f[0]))
+            continue
+        if not (_UNIX_MS_RANGE[0] <= t_ms <= _UNIX_MS_RANGE[1]):
+            report.problem(lineno, "bad-timestamp", f"{f[0]} is not a Unix time in milliseconds")
+            continue
+        t = t_ms * MS_TO_S
+        if rtype in SENSOR_TYPES:
+            vals = _floats(f[1:], 3) if len(f) >= 4 else None
+            if vals is None:
+                report.problem(lineno, "malformed-line", f"{rtype} needs 3 numbers")
+                continue
+            if not all(math.isfinite(v) for v in vals):
+                report.problem(lineno, "non-finite", rtype)
+                continue
+            sensors[SENSOR_TYPES[rtype]].append([t, *vals])
+        elif rtype == "TYPE_WIFI":
+            # ssid may be empty (or, rarely, contain tabs): take the last four fields from the end.
+            if len(f) < 6:
+                report.problem(lineno, "malformed-line", "TYPE_WIFI needs ssid, bssid, rssi, frequency, last_seen")
+                continue
+            bssid, rssi_s, freq_s, last_s = f[-4], f[-3], f[-2], f[-1]
+            try:
+                rssi, freq, last = float(rssi_s), float(freq_s), float(last_s)
+            except ValueError:
+                report.problem(lineno, "malformed-line", "TYPE_WIFI numbers")
+                continue
+            if not (math.isfinite(rssi) and RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM):
+                report.problem(lineno, "rssi-out-of-range", f"{rssi_s} dBm")
+                continue
+            bssid = bssid.strip().lower()
+            if not bssid:
+                report.problem(lineno, "malformed-line", "empty BSSID")
+                continue
+            scan = wifi.setdefault(t, {})
+            if bssid in scan:
+                report.note("duplicate-transmitter", 1, f"line {lineno}: {bssid} twice in one scan, strongest kept")
+                if scan[bssid][0] >= rssi:
+                    continue
+            scan[bssid] = (rssi, freq * MHZ_TO_HZ, max(0.0, (t_ms - last) * MS_TO_S))
+        elif rtype == "TYPE_BEACON":
+            if len(f) < 9:
+                report.problem(lineno, "malformed-line", "TYPE_BEACON needs uuid, major, minor, tx_power, rssi, distance, mac, last_seen")
+                continue
+            try:
+                rssi = float(f[5])
+            except ValueError:
+                report.problem(lineno, "malformed-line", "TYPE_BEACON rssi")
+                continue
+            if not (math.isfinite(rssi) and RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM):
+                report.problem(lineno, "rssi-out-of-range", f"{f[5]} dBm")
+                continue
+            ble.setdefault(t, {})[f"{f[1]}_{f[2]}_{f[3]}".lower()] = rssi
+        elif rtype == "TYPE_WAYPOINT":
+            vals = _floats(f[1:], 2) if len(f) >= 3 else None
+            if vals is None or not all(math.isfinite(v) for v in vals):
+                report.problem(lineno, "malformed-line", "TYPE_WAYPOINT needs two finite numbers")
+                continue
+            wps.append((t, vals[0], vals[1]))
+        elif rtype in UNUSED_TYPES:
+            report.note("unused-record")  # known and documented; not a problem
+        else:
+            report.problem(lineno, "unknown-record", rtype)
+
+    model = " ".join(v for v in (meta.get("Brand", ""), meta.get("Model", "")) if v)
+    streams = {k: _sorted_unique(np.asarray(v, dtype=float).reshape(-1, 4), k, report) for k, v in sensors.items()}
+    imu = _assemble_imu(streams, path, report)
+    rv = None
+    if len(streams["rv"]):
+        xyz = streams["rv"][:, 1:4]
+        w = np.sqrt(np.clip(1.0 - np.sum(xyz**2, axis=1), 0.0, None))
+        rv = (streams["rv"][:, 0].copy(), np.column_stack([w, xyz]))
+    scans = [
+        RfScan(t, Technology.WIFI, {k: v[0] for k, v in d.items()}, {k: v[1] for k, v in d.items()}, {k: v[2] for k, v in d.items()}, model)
+        for t, d in wifi.items()
+    ] + [RfScan(t, Technology.BLE, d, device_model=model) for t, d in ble.items()]
+    scans.sort(key=lambda s: (s.t, s.technology.value))
+    wps.sort()
+    wp = Waypoints(np.array([w[0] for w in wps]), np.array([[w[1], w[2]] for w in wps]).reshape(-1, 2), meta.get("FloorName") or None)
+    return IlcTrace(path, meta, imu, rv, tuple(scans), wp, report)
+
+
+def _sorted_unique(a: np.ndarray, name: str, report: ReadReport) -> np.ndarray:
+    """Sort samples by time (noting how many were out of order) and drop duplicate timestamps."""
+    if len(a) == 0:
+        return a
+    back = int(np.sum(np.diff(a[:, 0]) < 0))
+    if back:
+        report.note("out-of-order", back, f"{name}: {back} samples went back in time; re-sorted")
+        a = a[np.argsort(a[:, 0], kind="stable")]
+    dup = np.concatenate([[False], np.diff(a[:, 0]) == 0])
+    if dup.any():
+        report.note("duplicate-timestamp", int(dup.sum()), f"{name}: {int(dup.sum())} repeated timestamps dropped")
+        a = a[~dup]
+    return a
+
+
+def _interp_rows(t_src: np.ndarray, v_src: np.ndarray, t_dst: np.ndarray) -> np.ndarray:
+    if len(t_src) == len(t_dst) and np.array_equal(t_src, t_dst):
+        return v_src
+    return np.column_stack([np.interp(t_dst, t_src, v_src[:, i]) for i in range(v_src.shape[1])])
+
+
+def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport) -> ImuBlock | None:
+    acc, gyr, mag = streams["acc"], streams["gyr"], streams["mag"]
+    if len(acc) < 2 or len(gyr) < 2:
+        if len(acc) or len(gyr):
+            report.problem(None, "no-imu", "accelerometer or gyroscope missing")
+        return None
+    # Keep accelerometer epochs inside the gyro's span (interpolation, never extrapolation).
+    lo, hi = gyr[0, 0], gyr[-1, 0]
+    if len(mag) >= 2:
+        lo, hi = max(lo, mag[0, 0]), min(hi, mag[-1, 0])
+    keep = (acc[:, 0] >= lo) & (acc[:, 0] <= hi)
+    if (~keep).sum():
+        report.note("trimmed-edge", int((~keep).sum()), "accelerometer samples outside the gyro/magnetometer span")
+    acc = acc[keep]
+    if len(acc) < 2:
+        report.problem(None, "no-imu", "sensor streams do not overlap in time")
+        return None
+    t = acc[:, 0]
+    g = _interp_rows(gyr[:, 0], gyr[:, 1:4], t)
+    m = _interp_rows(mag[:, 0], mag[:, 1:4], t) * UT_TO_T if len(mag) >= 2 else None
+    if m is None:
+        report.note("no-magnetometer", 1, "heading will rely on the gyroscope only")
+    return ImuBlock(t, acc[:, 1:4], g, m, source=path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Floor plans
+# ----------------------------------------------------------------------------------------------
+_FLOOR_RE = re.compile(r"^(?:(?P<f>F|L)(?P<fn>\d+)|(?P<b>B)(?P<bn>\d+))$", re.IGNORECASE)
+
+#: Storey height assumed where the data gives none, m.
+DEFAULT_STOREY_HEIGHT = 5.0
+
+
+def floor_level(name: str) -> int:
+    """Ordinal of a floor name: F1/L1 -> 0, F2 -> 1, B1 -> -1; a plain integer is taken as is."""
+    m = _FLOOR_RE.match(name.strip())
+    if m and m.group("f"):
+        return int(m.group("fn")) - 1
+    if m and m.group("b"):
+        return -int(m.group("bn"))
+    try:
+        return int(name)
+    except ValueError:
+        raise ValueError(f"cannot tell the level of floor {name!r}") from None
+
+
+@dataclass(frozen=True)
+class LonLatToFloor:
+    """The linear map from a floor's lon/lat bounding box onto its plan ``[0, w] x [0, h]`` metres."""
+
+    lon0: float
+    lat0: float
+    lon1: float
+    lat1: float
+    width: float
+    height: float
+
+    def __call__(self, lonlat: np.ndarray) -> np.ndarray:
+        ll = np.asarray(lonlat, dtype=float)
+        x = (ll[..., 0] - self.lon0) / (self.lon1 - self.lon0) * self.width
+        y = (ll[..., 1] - self.lat0) / (self.lat1 - self.lat0) * self.height
+        return np.stack([x, y], axis=-1)
+
+    def origin(self) -> GeodeticOrigin:
+        """Geodetic position of the plan's (0, 0)."""
+        return GeodeticOrigin(self.lat0 * DEG, self.lon0 * DEG, 0.0)
+
+
+def _map_geometry(geom, fn):
+    return shapely.transform(geom, lambda xy: fn(xy))
+
+
+def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
+    """Read ``geojson_map.json`` + ``floor_info.json`` of one floor folder into a :class:`Floor`.
+
+    The outline is the floor's footprint and also its walkable area (shops are rooms one can enter;
+    their doors are not in the data, so shop outlines are kept as ``rooms``, not as walls). Walls are
+    the outline's boundary segments.
+    """
+    floor_dir = Path(floor_dir)
+    gj_path, info_path = floor_dir / "geojson_map.json", floor_dir / "floor_info.json"
+    try:
+        gj = json.loads(gj_path.read_text(encoding="utf-8"))
+        info = json.loads(info_path.read_text(encoding="utf-8"))["map_info"]
+        width, height = float(info["width"]), float(info["height"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise DataFormatError(floor_dir, None, f"cannot read floor plan: {exc}") from exc
+    if not (width > 0 and height > 0):
+        raise DataFormatError(info_path, None, "map width and height must be positive metres")
+    feats = gj.get("features") or []
+    outline_feats = [f for f in feats if (f.get("properties") or {}).get("category") == "floor"] or feats[:1]
+    if not outline_feats:
+        raise DataFormatError(gj_path, None, "no features")
+    outline_ll = shape(outline_feats[0]["geometry"])
+    lon0, lat0, lon1, lat1 = outline_ll.bounds
+    if not (-180 <= lon0 < lon1 <= 360 and -90 <= lat0 < lat1 <= 90):
+        raise DataFormatError(gj_path, None, f"outline bounds {outline_ll.bounds} are not WGS84 lon/lat degrees")
+    tf = LonLatToFloor(lon0, lat0, lon1, lat1, width, height)
+    outline = _map_geometry(outline_ll, tf)
+    if isinstance(outline, Polygon):
+        outline = MultiPolygon([outline])
+    outline = shapely.make_valid(outline)
+    if not isinstance(outline, MultiPolygon):
+        outline = MultiPolygon([g for g in getattr(outline, "geoms", [outline]) if isinstance(g, Polygon)])
+    rooms = []
+    for f in feats:
+        if f is outline_feats[0] or not f.get("geometry"):
+            continue
+        g = _map_geometry(shape(f["geometry"]), tf)
+        if isinstance(g, Polygon):
+            rooms.append((str((f.get("properties") or {}).get("name") or ""), g))
+    walls = []
+    for poly in outline.geoms:
+        for ring in [poly.exterior, *poly.interiors]:
+            c = np.asarray(ring.coords)
+            walls.extend(np.stack([c[:-1], c[1:]], axis=1))
+    name = str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
+    level = floor_level(name)
+    return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, outline, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf
+
+
+def read_ilc_site(site_dir: str | os.PathLike) -> FloorPlan:
+    """Read every floor folder of a site (those holding a ``geojson_map.json``) into a FloorPlan."""
+    site_dir = Path(site_dir)
+    floors, origin = [], None
+    for d in sorted(p for p in site_dir.iterdir() if (p / "geojson_map.json").is_file()):
+        fl, tf = read_ilc_floor(d)
+        floors.append(fl)
+        if origin is None or fl.level == 0:
+            origin = tf.origin()
+    if not floors:
+        raise DataFormatError(site_dir, None, "no floor folders with geojson_map.json")
+    floors.sort(key=lambda f: f.level)
+    return FloorPlan(site_dir.name, tuple(floors), (), origin)
+
+
+def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
+    """All trace files under a site or floor folder (``**/path_data_files/*.txt[.gz]``), sorted."""
+    root = Path(root)
+    if root.is_file():
+        return [root]
+    return sorted(p for p in root.rglob("*") if p.is_file() and p.parent.name == "path_data_files" and (p.name.endswith(".txt") or p.name.endswith(".txt.gz")))

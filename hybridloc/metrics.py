@@ -1,0 +1,181 @@
+"""Evaluation metrics shared by every ``hybridloc eval`` command and benchmark.
+
+* :func:`umeyama` / :func:`absolute_trajectory_error`: error after the best rigid (optionally
+  similarity) alignment, Umeyama (1991), in 2-D or 3-D.
+* :func:`return_to_start_error`: closed-loop error and percent of distance travelled, Ojeda &
+  Borenstein (2007) eqs 7-9.
+* :func:`error_at_points`: error at ground-truth points (e.g. waypoints) by interpolating the
+  estimate in time.
+* :func:`percentiles`, :func:`floor_hit_rate`, :func:`step_count_error`, :func:`summarize_errors`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares (R, t, s) minimising sum ||dst_i - (s R src_i + t)||^2 (Umeyama 1991).
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (N, d)
+        Corresponding points, d = 2 or 3, N >= d.
+
+    Returns
+    -------
+    R : ndarray, shape (d, d)
+        Proper rotation (det +1).
+    t : ndarray, shape (d,)
+    s : float
+        1 unless ``with_scale``.
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2:
+        raise ValueError(f"umeyama: shapes {src.shape} and {dst.shape} must match and be (N, d)")
+    n, d = src.shape
+    if n < 2:
+        raise ValueError("umeyama: need at least 2 points")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    # Cross-covariance Sigma = (1/n) sum xd xs^T; its SVD gives the rotation (Umeyama eqs 38-40).
+    U, D, Vt = np.linalg.svd(xd.T @ xs / n)
+    S = np.eye(d)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[-1, -1] = -1.0
+    R = U @ S @ Vt
+    var_s = (xs**2).sum() / n
+    s = float(np.trace(np.diag(D) @ S) / var_s) if with_scale and var_s > 0 else 1.0
+    t = mu_d - s * R @ mu_s
+    return R, t, s
+
+
+@dataclass(frozen=True)
+class ErrorSummary:
+    """Statistics of a set of position errors, metres."""
+
+    n: int
+    mean: float
+    rmse: float
+    median: float
+    p75: float
+    p90: float
+    p95: float
+    max: float
+
+    def __str__(self) -> str:
+        return (
+            f"n={self.n} mean={self.mean:.3f} rmse={self.rmse:.3f} p50={self.median:.3f} "
+            f"p75={self.p75:.3f} p90={self.p90:.3f} p95={self.p95:.3f} max={self.max:.3f}"
+        )
+
+
+def percentiles(errors: Sequence[float], qs: Sequence[float] = (50, 75, 95)) -> dict[float, float]:
+    """Percentiles (linear interpolation) of the finite errors; NaN when there are none."""
+    e = np.asarray(errors, dtype=float)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return {q: float("nan") for q in qs}
+    return {q: float(v) for q, v in zip(qs, np.percentile(e, qs))}
+
+
+def summarize_errors(errors: Sequence[float]) -> ErrorSummary:
+    e = np.asarray(errors, dtype=float)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        nan = float("nan")
+        return ErrorSummary(0, nan, nan, nan, nan, nan, nan, nan)
+    p = percentiles(e, (50, 75, 90, 95))
+    return ErrorSummary(int(e.size), float(e.mean()), float(np.sqrt((e**2).mean())), p[50], p[75], p[90], p[95], float(e.max()))
+
+
+@dataclass(frozen=True)
+class AteResult:
+    errors: np.ndarray  # (N,) per-sample position error after alignment, m
+    R: np.ndarray
+    t: np.ndarray
+    s: float
+    rmse: float
+    mean: float
+    aligned: np.ndarray  # (N, d) estimate after alignment
+
+
+def absolute_trajectory_error(est: np.ndarray, gt: np.ndarray, dims: int = 2, with_scale: bool = False) -> AteResult:
+    """Absolute trajectory error after the best rigid alignment of ``est`` onto ``gt``.
+
+    Parameters
+    ----------
+    est, gt : ndarray, shape (N, >= dims)
+        Time-synchronised positions, m.
+    dims : 2 or 3
+        Compare x, y only (2) or x, y, z (3).
+    """
+    if dims not in (2, 3):
+        raise ValueError("dims must be 2 or 3")
+    e = np.asarray(est, dtype=float)[:, :dims]
+    g = np.asarray(gt, dtype=float)[:, :dims]
+    R, t, s = umeyama(e, g, with_scale)
+    al = (s * (R @ e.T)).T + t
+    err = np.linalg.norm(al - g, axis=1)
+    return AteResult(err, R, t, s, float(np.sqrt((err**2).mean())), float(err.mean()), al)
+
+
+@dataclass(frozen=True)
+class ReturnToStart:
+    e_r: float  # ||end - start|| in the horizontal plane, m (Ojeda eq 7)
+    distance: float  # total horizontal path length D, m
+    e_p: float  # 100 e_r / D, percent (Ojeda eq 9)
+
+
+def return_to_start_error(pos: np.ndarray) -> ReturnToStart:
+    """Closed-loop error of one walk that ends where it started (Ojeda & Borenstein eqs 7, 9).
+
+    e_r = sqrt(x_r^2 + y_r^2) with (x_r, y_r) the end point minus the start point; D is the
+    horizontal distance travelled; E_p = 100 e_r / D. Average several walks' e_r for eq 8.
+    """
+    p = np.asarray(pos, dtype=float)[:, :2]
+    if len(p) < 2:
+        raise ValueError("need at least two positions")
+    e_r = float(np.linalg.norm(p[-1] - p[0]))
+    D = float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    return ReturnToStart(e_r, D, 100.0 * e_r / D if D > 0 else float("nan"))
+
+
+def interpolate_positions(t_est: np.ndarray, pos_est: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Linear interpolation of positions (N, d) at query times; NaN outside the estimate's span."""
+    t_est = np.asarray(t_est, dtype=float)
+    pos_est = np.asarray(pos_est, dtype=float)
+    tq = np.asarray(t_query, dtype=float)
+    out = np.column_stack([np.interp(tq, t_est, pos_est[:, k]) for k in range(pos_est.shape[1])])
+    outside = (tq < t_est[0]) | (tq > t_est[-1])
+    out[outside] = np.nan
+    return out
+
+
+def error_at_points(t_est: np.ndarray, pos_est: np.ndarray, t_true: np.ndarray, pos_true: np.ndarray, dims: int = 2) -> np.ndarray:
+    """Horizontal (dims=2) or 3-D error at each ground-truth point, the estimate interpolated in time.
+
+    Points outside the estimate's time span get NaN (not counted by :func:`summarize_errors`).
+    """
+    est = interpolate_positions(t_est, np.asarray(pos_est)[:, :dims], t_true)
+    return np.linalg.norm(est - np.asarray(pos_true, dtype=float)[:, :dims], axis=1)
+
+
+def floor_hit_rate(est_floor: Sequence, true_floor: Sequence) -> float:
+    """Fraction of entries where the estimated floor equals the truth (None counts as a miss)."""
+    if len(est_floor) != len(true_floor):
+        raise ValueError("floor sequences differ in length")
+    if len(true_floor) == 0:
+        return float("nan")
+    return float(np.mean([e is not None and e == t for e, t in zip(est_floor, true_floor)]))
+
+
+def step_count_error(n_detected: int, n_true: int) -> float:
+    """Relative step-count error (n_detected - n_true) / n_true (signed; multiply by 100 for %)."""
+    if n_true <= 0:
+        raise ValueError("n_true must be positive")
+    return (n_detected - n_true) / n_true

@@ -1,0 +1,534 @@
+"""Core data types shared by the library, the server and the clients.
+
+All types are frozen dataclasses; their numpy arrays are copied on construction and made read-only,
+so a value handed to another component can never change under it. Units and frames follow the
+conventions in :mod:`hybridloc` (SI, radians, float seconds on one clock, ENU site frame).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Mapping, Sequence
+
+import numpy as np
+import shapely
+from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry.base import BaseGeometry
+
+from .units import wrap_angle
+
+if TYPE_CHECKING:
+    from .geo import GeodeticOrigin
+
+#: Plausible received signal strength range, dBm. Real receivers report about -100 to -20 dBm;
+#: anything outside [-130, 0] is a unit or encoding error (e.g. UJIIndoorLoc's "100 = not seen").
+RSSI_MIN_DBM = -130.0
+RSSI_MAX_DBM = 0.0
+
+
+def _frozen_array(a, shape_tail: tuple[int, ...] | None = None, name: str = "array", ndim: int | None = None):
+    arr = np.array(a, dtype=float, copy=True)
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name}: expected {ndim}-D array, got shape {arr.shape}")
+    if shape_tail is not None and arr.shape[arr.ndim - len(shape_tail):] != shape_tail:
+        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), got {arr.shape}")
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_time(t: np.ndarray, name: str = "t") -> None:
+    if t.ndim != 1:
+        raise ValueError(f"{name}: expected 1-D time array, got shape {t.shape}")
+    if not np.all(np.isfinite(t)):
+        raise ValueError(f"{name}: non-finite timestamps")
+    if t.size > 1 and np.any(np.diff(t) <= 0):
+        k = int(np.argmax(np.diff(t) <= 0))
+        raise ValueError(f"{name}: timestamps must be strictly increasing (t[{k}]={t[k]!r} >= t[{k + 1}]={t[k + 1]!r})")
+
+
+# ----------------------------------------------------------------------------------------------
+# Inertial data
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class ImuBlock:
+    """A block of N inertial samples on one clock.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        Sample times, s, strictly increasing.
+    accel_body : ndarray, shape (N, 3)
+        Specific force in the body frame, m/s^2 (at rest it reads +g upward, e.g. (0, 0, +9.81)
+        for a z-up sensor lying flat).
+    gyro_body : ndarray, shape (N, 3)
+        Angular rate in the body frame, rad/s.
+    mag_body : ndarray, shape (N, 3) or None
+        Magnetic field in the body frame, tesla; None when the unit has no magnetometer.
+    source : str
+        Where the block came from (file name, device id), for messages.
+    """
+
+    t: np.ndarray
+    accel_body: np.ndarray
+    gyro_body: np.ndarray
+    mag_body: np.ndarray | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        t = _frozen_array(self.t, name="t", ndim=1)
+        _check_time(t)
+        acc = _frozen_array(self.accel_body, (3,), "accel_body", ndim=2)
+        gyr = _frozen_array(self.gyro_body, (3,), "gyro_body", ndim=2)
+        mag = None if self.mag_body is None else _frozen_array(self.mag_body, (3,), "mag_body", ndim=2)
+        for name, arr in (("accel_body", acc), ("gyro_body", gyr), ("mag_body", mag)):
+            if arr is not None and arr.shape[0] != t.shape[0]:
+                raise ValueError(f"{name}: {arr.shape[0]} rows but {t.shape[0]} timestamps")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "accel_body", acc)
+        object.__setattr__(self, "gyro_body", gyr)
+        object.__setattr__(self, "mag_body", mag)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Time from first to last sample, s."""
+        return float(self.t[-1] - self.t[0]) if len(self) > 1 else 0.0
+
+    @property
+    def rate_hz(self) -> float:
+        """Nominal sample rate, Hz: the inverse of the median sample interval (robust to gaps)."""
+        if len(self) < 2:
+            return float("nan")
+        return float(1.0 / np.median(np.diff(self.t)))
+
+    def slice(self, t0: float, t1: float) -> "ImuBlock":
+        """Samples with t0 <= t < t1."""
+        i0, i1 = np.searchsorted(self.t, [t0, t1], side="left")
+        return ImuBlock(
+            self.t[i0:i1],
+            self.accel_body[i0:i1],
+            self.gyro_body[i0:i1],
+            None if self.mag_body is None else self.mag_body[i0:i1],
+            self.source,
+        )
+
+
+# ----------------------------------------------------------------------------------------------
+# Steps
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=True)
+class StepEvent:
+    """One step (phone PDR) or stride (foot-mounted INS), the unit of dead reckoning.
+
+    The step moves the walker from the previous step's position by
+    ``(length * cos(heading), length * sin(heading))`` in the site frame.
+
+    Attributes
+    ----------
+    t : float
+        Time of the step (heel strike / end of stride), s.
+    length : float
+        Horizontal step length, m.
+    heading : float
+        Direction of travel, rad, counter-clockwise from East, in (-pi, pi].
+    sigma_length : float
+        Standard deviation of ``length``, m.
+    sigma_heading : float
+        Standard deviation of ``heading``, rad.
+    heading_change : float or None
+        Change of heading since the previous step, rad (what a gyro measures well even when the
+        absolute heading is poor); None when unknown.
+    sigma_heading_change : float or None
+        Its standard deviation, rad.
+    height_change : float
+        Vertical displacement over the step, m (foot INS; 0 for phones without a barometer).
+    sigma_height_change : float
+        Its standard deviation, m.
+    floor_change : int
+        Floors climbed (+) or descended (-) during the step; 0 almost always.
+    degraded : str
+        Empty when all sensors were healthy; otherwise a short reason, e.g. ``"no-mag"`` or
+        ``"mag-disturbed"`` (heading from gyro only), ``"gap"``.
+    """
+
+    t: float
+    length: float
+    heading: float
+    sigma_length: float
+    sigma_heading: float
+    heading_change: float | None = None
+    sigma_heading_change: float | None = None
+    height_change: float = 0.0
+    sigma_height_change: float = 0.0
+    floor_change: int = 0
+    degraded: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("t", "length", "heading", "sigma_length", "sigma_heading", "height_change", "sigma_height_change"):
+            v = getattr(self, name)
+            if not math.isfinite(v):
+                raise ValueError(f"StepEvent.{name} must be finite, got {v!r}")
+        if self.length < 0 or self.sigma_length < 0 or self.sigma_heading < 0 or self.sigma_height_change < 0:
+            raise ValueError("StepEvent: length and standard deviations must be >= 0")
+        object.__setattr__(self, "heading", wrap_angle(self.heading))
+        if self.heading_change is not None:
+            if not math.isfinite(self.heading_change):
+                raise ValueError("StepEvent.heading_change must be finite")
+            object.__setattr__(self, "heading_change", wrap_angle(self.heading_change))
+
+    @property
+    def displacement_enu(self) -> np.ndarray:
+        """Horizontal displacement of the step, shape (2,), m."""
+        return np.array([self.length * math.cos(self.heading), self.length * math.sin(self.heading)])
+
+    def displacement_covariance(self) -> np.ndarray:
+        """Covariance of the horizontal displacement, shape (2, 2), m^2.
+
+        First-order propagation of the stride and direction errors (Kourogi et al. 2006, eqs 11-14):
+        with d = L (cos psi, sin psi), J = [[cos psi, -L sin psi], [sin psi, L cos psi]] and
+        Sigma_d = J diag(sigma_L^2, sigma_psi^2) J^T.
+        """
+        c, s = math.cos(self.heading), math.sin(self.heading)
+        J = np.array([[c, -self.length * s], [s, self.length * c]])
+        return J @ np.diag([self.sigma_length**2, self.sigma_heading**2]) @ J.T
+
+
+# ----------------------------------------------------------------------------------------------
+# Radio
+# ----------------------------------------------------------------------------------------------
+class Technology(str, enum.Enum):
+    """Radio technology of a scan."""
+
+    WIFI = "wifi"
+    BLE = "ble"
+    RFID = "rfid"
+
+
+@dataclass(frozen=True, eq=False)
+class RfScan:
+    """One radio scan: what a receiver heard at one moment.
+
+    Attributes
+    ----------
+    t : float
+        Scan time, s.
+    technology : Technology
+    rssi_dbm : Mapping[str, float]
+        Transmitter id (BSSID, beacon MAC or UUID:major:minor, RFID tag/reader id) -> RSSI, dBm,
+        each in [RSSI_MIN_DBM, RSSI_MAX_DBM].
+    frequency_hz : Mapping[str, float]
+        Transmitter id -> carrier frequency, Hz, where known (WiFi); may be empty.
+    age_s : Mapping[str, float]
+        Transmitter id -> how old the reading was at ``t``, s (Android's ``last_seen``); may be empty.
+    device_model : str
+        Receiver model, for per-device RSSI offsets; empty when unknown.
+    """
+
+    t: float
+    technology: Technology
+    rssi_dbm: Mapping[str, float]
+    frequency_hz: Mapping[str, float] = field(default_factory=dict)
+    age_s: Mapping[str, float] = field(default_factory=dict)
+    device_model: str = ""
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.t):
+            raise ValueError(f"RfScan.t must be finite, got {self.t!r}")
+        object.__setattr__(self, "technology", Technology(self.technology))
+        rssi = {}
+        for k, v in dict(self.rssi_dbm).items():
+            v = float(v)
+            if not (RSSI_MIN_DBM <= v <= RSSI_MAX_DBM):
+                raise ValueError(f"RfScan: RSSI {v!r} dBm of {k!r} outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}]")
+            rssi[str(k)] = v
+        object.__setattr__(self, "rssi_dbm", MappingProxyType(rssi))
+        object.__setattr__(self, "frequency_hz", MappingProxyType({str(k): float(v) for k, v in dict(self.frequency_hz).items()}))
+        object.__setattr__(self, "age_s", MappingProxyType({str(k): float(v) for k, v in dict(self.age_s).items()}))
+
+    def __len__(self) -> int:
+        return len(self.rssi_dbm)
+
+
+# ----------------------------------------------------------------------------------------------
+# Absolute information
+# ----------------------------------------------------------------------------------------------
+class FixSource(str, enum.Enum):
+    GPS = "gps"
+    RFID = "rfid"
+    BLE = "ble"
+    WIFI = "wifi"
+    SURVEY = "survey"
+
+
+@dataclass(frozen=True, eq=False)
+class AbsoluteFix:
+    """An absolute position measurement in the site frame.
+
+    Attributes
+    ----------
+    t : float
+        Time of validity, s.
+    pos_enu : ndarray, shape (2,) or (3,)
+        Position, m.
+    cov : ndarray, shape (2, 2) or (3, 3)
+        Position covariance, m^2, symmetric positive definite.
+    source : FixSource
+    floor : str or None
+        Floor name as the site names it (``"F2"``, ``"B1"``, ``"0"``), None when unknown.
+    floor_prob : float
+        Probability that ``floor`` is right, in [0, 1].
+    """
+
+    t: float
+    pos_enu: np.ndarray
+    cov: np.ndarray
+    source: FixSource
+    floor: str | None = None
+    floor_prob: float = 1.0
+
+    def __post_init__(self) -> None:
+        p = _frozen_array(self.pos_enu, name="pos_enu", ndim=1)
+        n = p.shape[0]
+        if n not in (2, 3):
+            raise ValueError(f"AbsoluteFix.pos_enu must have 2 or 3 elements, got {n}")
+        c = _frozen_array(self.cov, (n, n), "cov", ndim=2)
+        if not (math.isfinite(self.t) and np.all(np.isfinite(p)) and np.all(np.isfinite(c))):
+            raise ValueError("AbsoluteFix: non-finite time, position or covariance")
+        if not np.allclose(c, c.T, atol=1e-9 * max(1.0, float(np.abs(c).max()))):
+            raise ValueError("AbsoluteFix.cov must be symmetric")
+        if np.linalg.eigvalsh(c).min() <= 0:
+            raise ValueError("AbsoluteFix.cov must be positive definite")
+        if not 0.0 <= self.floor_prob <= 1.0:
+            raise ValueError("AbsoluteFix.floor_prob must be in [0, 1]")
+        object.__setattr__(self, "pos_enu", p)
+        object.__setattr__(self, "cov", c)
+        object.__setattr__(self, "source", FixSource(self.source))
+
+    @property
+    def sigma(self) -> np.ndarray:
+        """Per-axis standard deviations, m."""
+        return np.sqrt(np.diag(self.cov))
+
+
+@dataclass(frozen=True, eq=False)
+class ContainmentRegion:
+    """Where the walker is with a stated probability: polygons on one floor.
+
+    Attributes
+    ----------
+    floor : str or None
+        Floor name; None when the floor is unknown.
+    area : shapely MultiPolygon
+        The region, site frame, metres (possibly several disjoint parts, with holes).
+    mass : float
+        Probability that the truth lies inside, in (0, 1] (0.95 for the usual region).
+    t : float
+        Time of validity, s (nan when timeless).
+    """
+
+    floor: str | None
+    area: MultiPolygon
+    mass: float
+    t: float = float("nan")
+
+    def __post_init__(self) -> None:
+        area = self.area
+        if isinstance(area, Polygon):
+            area = MultiPolygon([area])
+        elif isinstance(area, (list, tuple)):
+            area = MultiPolygon([Polygon(np.asarray(r)) if not isinstance(r, Polygon) else r for r in area])
+        if not isinstance(area, MultiPolygon):
+            raise TypeError(f"ContainmentRegion.area must be (Multi)Polygon, got {type(area).__name__}")
+        if not 0.0 < self.mass <= 1.0:
+            raise ValueError("ContainmentRegion.mass must be in (0, 1]")
+        object.__setattr__(self, "area", area)
+
+    def contains(self, xy: Sequence[float]) -> bool:
+        """True when the point (x, y) is inside (or on the edge of) the region."""
+        return bool(self.area.covers(shapely.Point(float(xy[0]), float(xy[1]))))
+
+    @property
+    def area_m2(self) -> float:
+        return float(self.area.area)
+
+
+# ----------------------------------------------------------------------------------------------
+# Floor plans
+# ----------------------------------------------------------------------------------------------
+class TransitionKind(str, enum.Enum):
+    STAIRS = "stairs"
+    LIFT = "lift"
+    ESCALATOR = "escalator"
+
+
+@dataclass(frozen=True, eq=False)
+class FloorTransition:
+    """A place where walkers change floor (both ends share the site-frame xy, approximately)."""
+
+    kind: TransitionKind
+    floor_from: str
+    floor_to: str
+    pos_from: tuple[float, float]
+    pos_to: tuple[float, float]
+
+
+@dataclass(frozen=True, eq=False)
+class Floor:
+    """One floor of a site.
+
+    Attributes
+    ----------
+    name : str
+        Floor name as the data names it (``"F1"``, ``"B1"``, ``"2"``).
+    level : int
+        Ordinal, 0 = ground; negative below ground.
+    height : float
+        Floor elevation above the site origin, m.
+    outline : MultiPolygon
+        The floor's footprint.
+    walkable : MultiPolygon
+        Where a person can be: the footprint minus solid obstacles (shops are walkable rooms).
+    walls : ndarray, shape (M, 2, 2)
+        Wall segments ``[[x0, y0], [x1, y1]]``, m (what a particle may not cross).
+    rooms : tuple of (name, Polygon)
+        Named units (shops, offices), for display and semantic labels.
+    """
+
+    name: str
+    level: int
+    height: float
+    outline: MultiPolygon
+    walkable: MultiPolygon
+    walls: np.ndarray
+    rooms: tuple[tuple[str, Polygon], ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "walls", _frozen_array(np.asarray(self.walls, dtype=float).reshape(-1, 2, 2), (2, 2), "walls", ndim=3))
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) of the outline, m."""
+        return tuple(float(v) for v in self.outline.bounds)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True, eq=False)
+class FloorPlan:
+    """A site's floors and the transitions between them, in the site frame."""
+
+    site: str
+    floors: tuple[Floor, ...]
+    transitions: tuple[FloorTransition, ...] = ()
+    #: Geodetic origin of the site frame, when known (needed for NMEA and WGS84 GeoJSON output).
+    origin: "GeodeticOrigin | None" = None
+
+    def floor(self, name: str) -> Floor:
+        for f in self.floors:
+            if f.name == name:
+                return f
+        raise KeyError(f"site {self.site!r} has no floor {name!r} (floors: {[f.name for f in self.floors]})")
+
+    @property
+    def floor_names(self) -> list[str]:
+        return [f.name for f in self.floors]
+
+
+# ----------------------------------------------------------------------------------------------
+# Trajectories and ground truth
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """A time series of positions in the site frame.
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        s, strictly increasing.
+    pos_enu : ndarray, shape (N, 3)
+        m (2-D inputs get z = 0).
+    floor : tuple of (str or None), length N, or None
+        Floor name per sample; None when unknown for the whole track.
+    sigma_enu : ndarray, shape (N, 3) or None
+        Per-axis standard deviations, m.
+    quat_wxyz : ndarray, shape (N, 4) or None
+        Body-to-nav attitude, when the source has one.
+    """
+
+    t: np.ndarray
+    pos_enu: np.ndarray
+    floor: tuple[str | None, ...] | None = None
+    sigma_enu: np.ndarray | None = None
+    quat_wxyz: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen_array(self.t, name="t", ndim=1)
+        _check_time(t)
+        p = np.asarray(self.pos_enu, dtype=float)
+        if p.ndim != 2 or p.shape[1] not in (2, 3):
+            raise ValueError(f"Trajectory.pos_enu must be (N, 2) or (N, 3), got {p.shape}")
+        if p.shape[1] == 2:
+            p = np.column_stack([p, np.zeros(len(p))])
+        if p.shape[0] != t.shape[0]:
+            raise ValueError(f"Trajectory: {p.shape[0]} positions but {t.shape[0]} timestamps")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "pos_enu", _frozen_array(p, (3,), "pos_enu"))
+        if self.floor is not None:
+            fl = tuple(None if f is None else str(f) for f in self.floor)
+            if len(fl) != len(t):
+                raise ValueError("Trajectory.floor must have one entry per sample")
+            object.__setattr__(self, "floor", fl)
+        if self.sigma_enu is not None:
+            s = np.asarray(self.sigma_enu, dtype=float)
+            if s.ndim == 2 and s.shape[1] == 2:
+                s = np.column_stack([s, np.zeros(len(s))])
+            s = _frozen_array(s, (3,), "sigma_enu", ndim=2)
+            if s.shape[0] != t.shape[0]:
+                raise ValueError("Trajectory.sigma_enu must have one row per sample")
+            object.__setattr__(self, "sigma_enu", s)
+        if self.quat_wxyz is not None:
+            q = _frozen_array(self.quat_wxyz, (4,), "quat_wxyz", ndim=2)
+            if q.shape[0] != t.shape[0]:
+                raise ValueError("Trajectory.quat_wxyz must have one row per sample")
+            object.__setattr__(self, "quat_wxyz", q)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def distance_travelled(self) -> float:
+        """Path length, m (3-D)."""
+        return float(np.linalg.norm(np.diff(self.pos_enu, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Waypoints:
+    """Ground-truth positions marked by a walker (kept apart from sensor data).
+
+    Attributes
+    ----------
+    t : ndarray, shape (N,)
+        s, sorted (not necessarily strictly: two marks may share a millisecond).
+    pos_enu : ndarray, shape (N, 2)
+        Site frame, m.
+    floor : str or None
+    """
+
+    t: np.ndarray
+    pos_enu: np.ndarray
+    floor: str | None = None
+
+    def __post_init__(self) -> None:
+        t = _frozen_array(self.t, name="t", ndim=1)
+        if t.size > 1 and np.any(np.diff(t) < 0):
+            raise ValueError("Waypoints.t must be sorted")
+        p = _frozen_array(self.pos_enu, (2,), "pos_enu", ndim=2) if len(t) else _frozen_array(np.zeros((0, 2)), (2,), "pos_enu")
+        if p.shape[0] != t.shape[0]:
+            raise ValueError("Waypoints: one position per time")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "pos_enu", p)
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])

@@ -1,0 +1,137 @@
+import gzip
+
+import numpy as np
+import pytest
+import shapely
+
+from hybridloc.io import detect_format
+from hybridloc.io.common import DataFormatError
+from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_site, read_ilc_trace
+
+HEADER = "#\tstartTime:1574559495255\n#\tSiteID:s1\tSiteName:test\tFloorId:f\tFloorName:F2\n#\tBrand:ACME\tModel:X1\n"
+
+
+def _sensor_lines(t0_ms: int, n: int, dt_ms: int = 20) -> str:
+    out = []
+    for i in range(n):
+        t = t0_ms + i * dt_ms
+        out.append(f"{t}\tTYPE_ACCELEROMETER\t0.1\t0.2\t9.8\t3")
+        out.append(f"{t}\tTYPE_GYROSCOPE\t0.01\t0.0\t0.0\t3")
+        out.append(f"{t}\tTYPE_MAGNETIC_FIELD\t20.0\t0.0\t-40.0\t3")
+    return "\n".join(out) + "\n"
+
+
+def _write(tmp_path, text: str, gz: bool = True, name: str = "trace.txt.gz"):
+    p = tmp_path / name
+    if gz:
+        with gzip.open(p, "wt", encoding="utf-8") as f:
+            f.write(text)
+    else:
+        p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_synthetic_trace_units_and_grouping(tmp_path):
+    body = HEADER + _sensor_lines(1574559495300, 50)
+    body += "1574559495400\tTYPE_WAYPOINT\t10.0\t20.0\n"
+    body += "1574559496000\tTYPE_WIFI\tnet\tAA:BB:CC:00:00:01\t-50\t2412\t1574559495000\n"
+    body += "1574559496000\tTYPE_WIFI\t\taa:bb:cc:00:00:02\t-70\t5180\t1574559496000\n"
+    body += "1574559496100\tTYPE_BEACON\tUUID\t1\t2\t-59\t-80\t3.2\tE0:00\t1574559496100\n"
+    body += "1574559496200\tTYPE_WAYPOINT\t11.0\t21.0\n"
+    tr = read_ilc_trace(_write(tmp_path, body))
+    assert tr.floor == "F2" and tr.device_model == "ACME X1"
+    assert len(tr.imu) == 50 and tr.imu.rate_hz == pytest.approx(50.0)
+    assert tr.imu.t[0] == pytest.approx(1574559495.3)
+    np.testing.assert_allclose(tr.imu.mag_body[0], [20e-6, 0, -40e-6])  # uT -> T
+    (wifi,) = tr.wifi_scans
+    assert dict(wifi.rssi_dbm) == {"aa:bb:cc:00:00:01": -50.0, "aa:bb:cc:00:00:02": -70.0}
+    assert wifi.frequency_hz["aa:bb:cc:00:00:01"] == pytest.approx(2.412e9)
+    assert wifi.age_s["aa:bb:cc:00:00:01"] == pytest.approx(1.0)
+    ble = [s for s in tr.scans if s.technology.value == "ble"]
+    assert list(ble[0].rssi_dbm) == ["uuid_1_2"]
+    assert len(tr.waypoints) == 2 and tr.report.ok
+
+
+def test_bad_lines_are_reported_with_line_numbers(tmp_path):
+    lines = HEADER + _sensor_lines(1574559495300, 20)
+    lines += "1574559495500\tTYPE_ACCELEROMETER\tnan\t0\t9.8\t3\n"
+    lines += "1574559495500\tTYPE_GYROSCOPE\tabc\t0\t0\t3\n"
+    lines += "garbage line without tabs\n"
+    lines += "1574559495500\tTYPE_FANCY_NEW\t1\n"
+    lines += "1574559495600\tTYPE_WIFI\tnet\taa:bb\t100\t2412\t1574559495600\n"
+    lines += "1574559495\tTYPE_WAYPOINT\t1\t2\n"  # seconds, not milliseconds
+    p = _write(tmp_path, lines)
+    tr = read_ilc_trace(p)
+    c = tr.report.counts
+    assert c["non-finite"] == 1 and c["malformed-line"] == 2 and c["unknown-record"] == 1
+    assert c["rssi-out-of-range"] == 1 and c["bad-timestamp"] == 1
+    assert len(tr.imu) == 20 and len(tr.waypoints) == 0
+    assert all(i.line is not None and i.path == str(p) for i in tr.report.issues)
+    with pytest.raises(DataFormatError, match=r"trace.txt.gz:\d+: non-finite"):
+        read_ilc_trace(p, on_error="raise")
+
+
+def test_out_of_order_and_duplicate_samples_are_fixed_and_noted(tmp_path):
+    a = _sensor_lines(1574559495300, 10).splitlines()
+    # swap two epochs and repeat one
+    body = HEADER + "\n".join(a[6:9] + a[0:6] + a[9:] + a[9:12]) + "\n"
+    tr = read_ilc_trace(_write(tmp_path, body))
+    assert np.all(np.diff(tr.imu.t) > 0) and len(tr.imu) == 10
+    assert tr.report.notes["out-of-order"] >= 1 and tr.report.notes["duplicate-timestamp"] >= 1
+    assert tr.report.ok  # fix-ups are not problems
+
+
+def test_truncated_gzip_keeps_prefix_and_reports(tmp_path):
+    p = _write(tmp_path, HEADER + _sensor_lines(1574559495300, 2000))
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    tr = read_ilc_trace(p)
+    assert tr.report.counts["truncated"] == 1
+    assert 10 < len(tr.imu) < 2000
+    with pytest.raises(DataFormatError, match="truncated"):
+        read_ilc_trace(p, on_error="raise")
+
+
+def test_detect_format(tmp_path):
+    assert detect_format(_write(tmp_path, HEADER + _sensor_lines(1574559495300, 3))) == "msft"
+    assert detect_format(_write(tmp_path, HEADER + _sensor_lines(1574559495300, 3), gz=False, name="x.txt")) == "msft"
+    q = tmp_path / "q.bin"
+    q.write_bytes(b"\x00\x01hello")
+    with pytest.raises(DataFormatError, match="unknown format"):
+        detect_format(q)
+
+
+def test_floor_level_names():
+    assert [floor_level(n) for n in ("F1", "F3", "B1", "B2", "L2", "4")] == [0, 2, -1, -2, 1, 4]
+    with pytest.raises(ValueError):
+        floor_level("roof")
+
+
+@pytest.mark.shared_data
+def test_every_site1_trace_loads(ilc_site1):
+    files = find_ilc_traces(ilc_site1)
+    assert len(files) >= 300
+    plan = read_ilc_site(ilc_site1)
+    assert plan.floor_names == ["F1", "F2", "F3"]
+    n_wp = 0
+    for f in files:
+        tr = read_ilc_trace(f)
+        assert tr.report.ok, f"{f}: {tr.report.summary()}"
+        assert tr.imu is not None and 45 < tr.imu.rate_hz < 55  # ~50 Hz phone sensors
+        assert len(tr.waypoints) >= 2
+        assert f.parent.parent.name == tr.floor
+        # Sensor epochs are Unix seconds inside the header's start/end window.
+        assert float(tr.meta["startTime"]) / 1000 - 1 <= tr.imu.t[0] <= tr.imu.t[-1] <= float(tr.meta["endTime"]) / 1000 + 1
+        n_wp += len(tr.waypoints)
+    assert n_wp >= 2000
+
+
+@pytest.mark.shared_data
+def test_waypoints_lie_on_their_floor_plan(ilc_site1):
+    """The floor-plan transform (lon/lat bbox -> map_info metres) puts ground truth inside the mall."""
+    plan = read_ilc_site(ilc_site1)
+    for floor in plan.floors:
+        files = find_ilc_traces(ilc_site1 / floor.name)[:15]
+        pts = np.vstack([read_ilc_trace(f).waypoints.pos_enu for f in files])
+        inside = shapely.covers(floor.outline.buffer(1.0), shapely.points(pts))
+        assert inside.mean() >= 0.98, f"{floor.name}: {inside.mean():.2%} of waypoints inside the outline"

@@ -1,0 +1,93 @@
+import math
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+
+from hybridloc.types import AbsoluteFix, ContainmentRegion, FixSource, ImuBlock, RfScan, StepEvent, Technology, Trajectory, Waypoints
+from hybridloc.units import bearing_deg_to_heading, heading_to_bearing_deg, wrap_angle
+
+
+def test_wrap_angle_half_open_interval():
+    assert wrap_angle(math.pi) == pytest.approx(math.pi)
+    assert wrap_angle(-math.pi) == pytest.approx(math.pi)
+    assert wrap_angle(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
+    w = wrap_angle(np.linspace(-20, 20, 101))
+    assert np.all((w > -math.pi) & (w <= math.pi))
+
+
+def test_heading_bearing_conventions():
+    # East is heading 0 / bearing 90; North is heading pi/2 / bearing 0.
+    assert heading_to_bearing_deg(0.0) == pytest.approx(90.0)
+    assert heading_to_bearing_deg(math.pi / 2) == pytest.approx(0.0)
+    assert bearing_deg_to_heading(180.0) == pytest.approx(-math.pi / 2)
+
+
+def test_imu_block_validates_and_is_read_only():
+    t = np.arange(10) * 0.02
+    a = np.tile([0, 0, 9.81], (10, 1))
+    blk = ImuBlock(t, a, np.zeros((10, 3)))
+    assert blk.rate_hz == pytest.approx(50.0)
+    with pytest.raises(ValueError):
+        blk.accel_body[0, 0] = 1.0
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ImuBlock(t[::-1], a, np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="rows"):
+        ImuBlock(t, a[:5], np.zeros((10, 3)))
+    assert len(blk.slice(0.05, 0.11)) == 3
+
+
+def test_step_event_covariance_matches_monte_carlo():
+    """Kourogi eqs 11-14: first-order covariance of (L cos psi, L sin psi) against sampling."""
+    s = StepEvent(t=1.0, length=0.7, heading=0.6, sigma_length=0.05, sigma_heading=0.05)
+    rng = np.random.default_rng(1)
+    L = 0.7 + 0.05 * rng.standard_normal(200_000)
+    psi = 0.6 + 0.05 * rng.standard_normal(200_000)
+    d = np.column_stack([L * np.cos(psi), L * np.sin(psi)])
+    emp = np.cov(d.T)
+    # First-order propagation is exact up to O(sigma_psi^2) relative terms (~0.25 % here) plus
+    # the sampling error of a covariance from 2e5 samples (~0.3 %): 3 % is a wide margin.
+    np.testing.assert_allclose(s.displacement_covariance(), emp, rtol=0.03, atol=2e-6)
+
+
+def test_step_event_rejects_nan_and_wraps():
+    with pytest.raises(ValueError):
+        StepEvent(0.0, float("nan"), 0.0, 0.1, 0.1)
+    with pytest.raises(ValueError):
+        StepEvent(0.0, -0.1, 0.0, 0.1, 0.1)
+    assert StepEvent(0.0, 0.5, 7.0, 0.1, 0.1).heading == pytest.approx(7.0 - 2 * math.pi)
+
+
+def test_rf_scan_range_and_immutability():
+    s = RfScan(1.0, "wifi", {"aa": -60, "bb": -80.5})
+    assert s.technology is Technology.WIFI and len(s) == 2
+    with pytest.raises(TypeError):
+        s.rssi_dbm["cc"] = -50  # type: ignore[index]
+    with pytest.raises(ValueError, match="outside"):
+        RfScan(1.0, "wifi", {"aa": 100})  # UJIIndoorLoc's "not detected" must never pass as dBm
+
+
+def test_absolute_fix_checks_covariance():
+    f = AbsoluteFix(2.0, [1.0, 2.0], np.diag([4.0, 9.0]), "wifi", "F1", 0.9)
+    assert f.source is FixSource.WIFI
+    np.testing.assert_allclose(f.sigma, [2.0, 3.0])
+    with pytest.raises(ValueError, match="positive definite"):
+        AbsoluteFix(2.0, [1.0, 2.0], np.diag([4.0, -1.0]), "wifi")
+    with pytest.raises(ValueError, match="symmetric"):
+        AbsoluteFix(2.0, [1.0, 2.0], [[1.0, 0.5], [0.0, 1.0]], "wifi")
+
+
+def test_containment_region():
+    r = ContainmentRegion("F1", Polygon([(0, 0), (4, 0), (4, 3), (0, 3)]), 0.95)
+    assert r.contains((1, 1)) and not r.contains((5, 1))
+    assert r.area_m2 == pytest.approx(12.0)
+
+
+def test_trajectory_and_waypoints():
+    tr = Trajectory([0.0, 1.0, 2.0], [[0, 0], [3, 4], [3, 0]])
+    assert tr.pos_enu.shape == (3, 3)
+    assert tr.distance_travelled == pytest.approx(9.0)
+    with pytest.raises(ValueError):
+        Trajectory([0.0, 1.0], [[0, 0, 0]])
+    with pytest.raises(ValueError, match="sorted"):
+        Waypoints([2.0, 1.0], [[0, 0], [1, 1]])
