@@ -187,15 +187,20 @@ class StepEvent:
         return np.array([self.length * math.cos(self.heading), self.length * math.sin(self.heading)])
 
     def displacement_covariance(self) -> np.ndarray:
-        """Covariance of the horizontal displacement, shape (2, 2), m^2.
+        """Covariance of the horizontal displacement, shape (2, 2), m^2 (Kourogi et al. 2006, eqs 11-14).
 
-        First-order propagation of the stride and direction errors (Kourogi et al. 2006, eqs 11-14):
-        with d = L (cos psi, sin psi), J = [[cos psi, -L sin psi], [sin psi, L cos psi]] and
-        Sigma_d = J diag(sigma_L^2, sigma_psi^2) J^T.
+        The step moves the walker by ``l d + e d_perp`` with d = (cos psi, sin psi) and
+        d_perp = (-sin psi, cos psi): the stride error along d has variance sigma_l^2 and the
+        direction error acts as a tangential error e of variance (l tan sigma_psi)^2, so
+        Sigma_d = [d d_perp] diag(sigma_l^2, (l tan sigma_psi)^2) [d d_perp]^T.
         """
         c, s = math.cos(self.heading), math.sin(self.heading)
-        J = np.array([[c, -self.length * s], [s, self.length * c]])
-        return J @ np.diag([self.sigma_length**2, self.sigma_heading**2]) @ J.T
+        A = np.array([[c, -s], [s, c]])
+        return A @ np.diag([self.sigma_length**2, (self.length * math.tan(min(self.sigma_heading, 1.5))) ** 2]) @ A.T
+
+    def propagate_position_covariance(self, C: np.ndarray) -> np.ndarray:
+        """Position covariance after the step from C before it (Kourogi eq 13: C_{i+1} = A_i R_i A_i^T)."""
+        return np.asarray(C, dtype=float) + self.displacement_covariance()
 
 
 # ----------------------------------------------------------------------------------------------

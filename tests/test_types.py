@@ -38,14 +38,14 @@ def test_imu_block_validates_and_is_read_only():
 
 
 def test_step_event_covariance_matches_monte_carlo():
-    """Kourogi eqs 11-14: first-order covariance of (L cos psi, L sin psi) against sampling."""
+    """Kourogi eqs 11-14: the tangent-line covariance of (L cos psi, L sin psi) against sampling."""
     s = StepEvent(t=1.0, length=0.7, heading=0.6, sigma_length=0.05, sigma_heading=0.05)
     rng = np.random.default_rng(1)
     L = 0.7 + 0.05 * rng.standard_normal(200_000)
     psi = 0.6 + 0.05 * rng.standard_normal(200_000)
     d = np.column_stack([L * np.cos(psi), L * np.sin(psi)])
     emp = np.cov(d.T)
-    # First-order propagation is exact up to O(sigma_psi^2) relative terms (~0.25 % here) plus
+    # The tangent-line approximation is exact up to O(sigma_psi^2) relative terms (~0.25 % here) plus
     # the sampling error of a covariance from 2e5 samples (~0.3 %): 3 % is a wide margin.
     np.testing.assert_allclose(s.displacement_covariance(), emp, rtol=0.03, atol=2e-6)
 
@@ -91,3 +91,9 @@ def test_trajectory_and_waypoints():
         Trajectory([0.0, 1.0], [[0, 0, 0]])
     with pytest.raises(ValueError, match="sorted"):
         Waypoints([2.0, 1.0], [[0, 0], [1, 1]])
+
+
+def test_position_covariance_grows_by_step_covariance():
+    s = StepEvent(t=1.0, length=1.0, heading=0.0, sigma_length=0.1, sigma_heading=0.1)
+    C = s.propagate_position_covariance(np.eye(2) * 0.01)
+    np.testing.assert_allclose(C, np.diag([0.01 + 0.01, 0.01 + math.tan(0.1) ** 2]))

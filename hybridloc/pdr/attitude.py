@@ -1,0 +1,250 @@
+"""Phone attitude and heading: a complementary (Mahony-type) filter with magnetic disturbance rejection.
+
+State: the body-to-nav quaternion ``q = (w, x, y, z)`` (nav = ENU with y toward magnetic North) and
+a gyro bias estimate. Each sample:
+
+1. **Gyro propagation**: q <- q * exp(0.5 (omega - b) dt).
+2. **Tilt correction** from the accelerometer: the error between measured up (a/|a|) and predicted
+   up (R^T e_z) drives omega as in Mahony et al. (2008), weighted down when | |a| - g | is large
+   (walking accelerations) so steps do not tilt the estimate.
+3. **Yaw correction** from the magnetometer, about the nav vertical only (so a disturbed field can
+   never tilt the attitude), applied only while the field looks clean (Harle's survey sec. V-B:
+   Kim & Park's magnitude/dip checks and Afzal et al.'s gyro-vs-magnetometer consistency):
+   * magnitude within ``mag_norm_tol`` of the reference field strength,
+   * dip (inclination) within ``mag_dip_tol`` of the reference dip,
+   * the magnetometer's heading change over ``consistency_window`` agrees with the gyro's within
+     ``consistency_tol``.
+   The references are learned from the first clean seconds and follow slowly afterwards.
+
+All per-sample arithmetic is plain Python floats: at 50 Hz this is several times faster than
+numpy on 3-vectors, and the filter is inherently sequential.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+from ..units import DEG, G0
+
+
+@dataclass
+class AttitudeConfig:
+    kp_acc: float = 1.0  # tilt correction gain, rad/s per unit error
+    ki_acc: float = 0.005  # gyro-bias integral gain (acc), rad/s^2 per unit error
+    k_mag: float = 0.3  # yaw correction rate, 1/s (time constant ~3 s)
+    acc_gate: float = 0.25  # relative | |a| - g | / g beyond which the tilt correction fades out
+    mag_norm_tol: float = 0.15  # relative deviation of |B| from the reference accepted as clean
+    mag_dip_tol: float = 8.0 * DEG  # dip deviation accepted as clean, rad
+    consistency_window: float = 0.5  # s
+    consistency_tol: float = 8.0 * DEG  # rad over the window
+    settle_time: float = 1.0  # s of clean field before the magnetometer corrects yaw again
+
+
+def quat_mul(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_normalize(q):
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def quat_to_rot(q):
+    """R_body_to_nav as three row tuples."""
+    w, x, y, z = q
+    return (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
+
+
+def rot_to_quat(R):
+    """Shepperd's method, R as nested sequences (body to nav)."""
+    tr = R[0][0] + R[1][1] + R[2][2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        return quat_normalize(((s / 4), (R[2][1] - R[1][2]) / s, (R[0][2] - R[2][0]) / s, (R[1][0] - R[0][1]) / s))
+    if R[0][0] > R[1][1] and R[0][0] > R[2][2]:
+        s = math.sqrt(1.0 + R[0][0] - R[1][1] - R[2][2]) * 2
+        return quat_normalize(((R[2][1] - R[1][2]) / s, s / 4, (R[0][1] + R[1][0]) / s, (R[0][2] + R[2][0]) / s))
+    if R[1][1] > R[2][2]:
+        s = math.sqrt(1.0 + R[1][1] - R[0][0] - R[2][2]) * 2
+        return quat_normalize(((R[0][2] - R[2][0]) / s, (R[0][1] + R[1][0]) / s, s / 4, (R[1][2] + R[2][1]) / s))
+    s = math.sqrt(1.0 + R[2][2] - R[0][0] - R[1][1]) * 2
+    return quat_normalize(((R[1][0] - R[0][1]) / s, (R[0][2] + R[2][0]) / s, (R[1][2] + R[2][1]) / s, s / 4))
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _norm(a):
+    return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+def triad(acc, mag):
+    """Initial body-to-nav quaternion from one accelerometer (up) and magnetometer (North) reading.
+
+    With no magnetometer the yaw is set so that the device's forward axis points East (heading 0).
+    """
+    an = _norm(acc)
+    up = (acc[0] / an, acc[1] / an, acc[2] / an)
+    if mag is not None and _norm(mag) > 0:
+        east = _cross(mag, up)
+        en = _norm(east)
+    else:
+        en = 0.0
+    if en < 1e-9:  # no (usable) magnetometer: pick any horizontal axis as East
+        ref = (0.0, 1.0, 0.0) if abs(up[1]) < 0.9 else (1.0, 0.0, 0.0)
+        north = _cross(up, _cross(ref, up))
+        nn = _norm(north)
+        north = (north[0] / nn, north[1] / nn, north[2] / nn)
+        east = _cross(north, up)
+    else:
+        east = (east[0] / en, east[1] / en, east[2] / en)
+        north = _cross(up, east)
+    # Rows of R_nav_to_body^T ... R_body_to_nav has rows = nav axes expressed in body.
+    R = (east, north, up)
+    return rot_to_quat(R)
+
+
+class AttitudeFilter:
+    """Streaming attitude estimator; call :meth:`update` once per sample."""
+
+    def __init__(self, config: AttitudeConfig | None = None):
+        self.cfg = config or AttitudeConfig()
+        self.q: tuple[float, float, float, float] | None = None
+        self.bias = [0.0, 0.0, 0.0]
+        self.t: float | None = None
+        self.mag_ref_norm: float | None = None
+        self.mag_ref_dip: float | None = None
+        self.mag_ok = False
+        self.mag_clean_since: float | None = None
+        self.has_mag = False
+        # (t, North's angle in nav) history for the gyro-vs-magnetometer consistency test
+        self._hist: deque = deque()
+        self.n_mag_rejected = 0
+        self.n_mag_used = 0
+
+    def initialise(self, t: float, acc, mag) -> None:
+        self.q = triad(acc, mag)
+        self.t = t
+        self.has_mag = mag is not None
+
+    def update(self, t: float, acc, gyr, mag=None) -> None:
+        """One sample: time (s), specific force (m/s^2), rate (rad/s), field (T) or None."""
+        if self.q is None:
+            self.initialise(t, acc, mag)
+            return
+        dt = t - self.t
+        self.t = t
+        if not (0.0 < dt < 1.0):  # a gap: re-level from the accelerometer, keep yaw
+            dt = min(max(dt, 0.0), 0.05)
+        cfg = self.cfg
+        q = self.q
+        R = quat_to_rot(q)
+        wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
+        # --- tilt correction (Mahony): e = a_hat x v, v = predicted up in body = third row of R
+        an = _norm(acc)
+        if an > 1e-6:
+            rel = abs(an - G0) / G0
+            w_acc = max(0.0, 1.0 - rel / cfg.acc_gate)
+            if w_acc > 0:
+                v = R[2]
+                e = _cross((acc[0] / an, acc[1] / an, acc[2] / an), v)
+                k = cfg.kp_acc * w_acc
+                wx += k * e[0]
+                wy += k * e[1]
+                wz += k * e[2]
+                ki = cfg.ki_acc * w_acc * dt
+                self.bias[0] -= ki * e[0]
+                self.bias[1] -= ki * e[1]
+                self.bias[2] -= ki * e[2]
+        # --- propagate: q <- q * exp(0.5 w dt)
+        ang = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
+        if ang > 1e-12:
+            s = math.sin(ang / 2) / (ang / dt)
+            dq = (math.cos(ang / 2), wx * s, wy * s, wz * s)
+        else:
+            dq = (1.0, wx * dt / 2, wy * dt / 2, wz * dt / 2)
+        q = quat_normalize(quat_mul(q, dq))
+        R = quat_to_rot(q)
+        # --- magnetometer yaw correction with disturbance rejection
+        if mag is not None:
+            self.has_mag = True
+            mn = _norm(mag)
+            m_nav = (
+                R[0][0] * mag[0] + R[0][1] * mag[1] + R[0][2] * mag[2],
+                R[1][0] * mag[0] + R[1][1] * mag[1] + R[1][2] * mag[2],
+                R[2][0] * mag[0] + R[2][1] * mag[1] + R[2][2] * mag[2],
+            )
+            if mn > 0:
+                dip = math.asin(max(-1.0, min(1.0, -m_nav[2] / mn)))
+                yaw_err = math.atan2(m_nav[0], m_nav[1])  # angle of measured North east of nav +y
+                self._hist.append((t, yaw_err))
+                while self._hist and t - self._hist[0][0] > cfg.consistency_window:
+                    self._hist.popleft()
+                if self.mag_ref_norm is None:
+                    self.mag_ref_norm, self.mag_ref_dip = mn, dip
+                clean = abs(mn - self.mag_ref_norm) <= cfg.mag_norm_tol * self.mag_ref_norm and abs(dip - self.mag_ref_dip) <= cfg.mag_dip_tol
+                if clean and len(self._hist) > 2:
+                    # The attitude already follows the gyro, so in a steady field the measured
+                    # North stays put in nav: any drift of it over the window is the field (or the
+                    # gyro) disagreeing, and the magnetometer is not trusted.
+                    mismatch = _wrap(yaw_err - self._hist[0][1])
+                    clean = abs(mismatch) <= cfg.consistency_tol
+                if clean:
+                    if self.mag_clean_since is None:
+                        self.mag_clean_since = t
+                    # References follow slowly (building steel shifts the "clean" field over time).
+                    a = min(1.0, dt / 30.0)
+                    self.mag_ref_norm += a * (mn - self.mag_ref_norm)
+                    self.mag_ref_dip += a * (dip - self.mag_ref_dip)
+                else:
+                    self.mag_clean_since = None
+                self.mag_ok = clean and (t - self.mag_clean_since) >= cfg.settle_time if self.mag_clean_since is not None else False
+                if self.mag_ok:
+                    self.n_mag_used += 1
+                    # Rotate about nav z by k*err*dt: q <- qz * q, turning measured North onto +y.
+                    d = cfg.k_mag * _wrap(yaw_err) * dt
+                    q = quat_normalize(quat_mul((math.cos(d / 2), 0.0, 0.0, math.sin(d / 2)), q))
+                else:
+                    self.n_mag_rejected += 1
+        else:
+            self.mag_ok = False
+        self.q = q
+
+    def forward_heading(self) -> float:
+        """Heading (rad, CCW from nav East) of the device's forward direction, horizontal.
+
+        Forward is the top edge of the screen when the phone is held flat (body +y) and the back of
+        the phone when it is held upright (body -z); their horizontal projections are summed so the
+        heading stays continuous as the phone tilts between the two.
+        """
+        R = quat_to_rot(self.q)
+        fx = R[0][1] - R[0][2]
+        fy = R[1][1] - R[1][2]
+        return math.atan2(fy, fx)
+
+    def vertical_accel(self, acc) -> float:
+        """Vertical (nav up) component of specific force minus g, m/s^2."""
+        R = quat_to_rot(self.q)
+        return R[2][0] * acc[0] + R[2][1] * acc[1] + R[2][2] * acc[2] - G0
+
+    def horizontal_accel(self, acc) -> tuple[float, float]:
+        R = quat_to_rot(self.q)
+        return (R[0][0] * acc[0] + R[0][1] * acc[1] + R[0][2] * acc[2], R[1][0] * acc[0] + R[1][1] * acc[1] + R[1][2] * acc[2])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi

@@ -1,0 +1,154 @@
+"""Phone PDR evaluation on waypoint-annotated traces (``hybridloc eval pdr-phone``).
+
+For each pair of consecutive waypoints (a *segment*):
+
+* **length error**: |PDR displacement between the two waypoint times| vs the true distance, relative;
+* **heading-change error**: the turn between consecutive segments, PDR vs truth (independent of the
+  unknown absolute heading offset between the magnetometer and the floor plan);
+* **error at waypoints** of a PDR-only track started at the first waypoint. The start heading is
+  the one thing PDR cannot know: it is set so that the PDR's first segment points along the true
+  first segment (the usual "known start pose" of PDR evaluation); every later waypoint is free.
+
+Step length is calibrated per device from known distances (:class:`~.steplength.LengthCalibrator`)
+with two-fold cross-fitting over traces: coefficients learned on one half of the traces score the
+other half, so no trace is scored with a model fitted to itself.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..io.msft import read_ilc_trace
+from ..types import StepEvent
+from ..units import wrap_angle
+from .phone import PhonePdr, PhonePdrConfig
+from .steplength import LengthCalibrator, StepFeatures, make_model
+
+#: Segments shorter than this are not scored for length or turn (a waypoint mark is ~0.5 m vague).
+MIN_SEGMENT_M = 3.0
+
+
+@dataclass
+class TraceRun:
+    name: str
+    steps: list[StepEvent]
+    features: list[StepFeatures]
+    wp_t: np.ndarray
+    wp_xy: np.ndarray
+
+
+@dataclass
+class PhoneEvalResult:
+    model: str
+    detector: str
+    coefs: list[list[float]]
+    length_rel_err: np.ndarray
+    turn_err_deg: np.ndarray
+    wp_err: np.ndarray
+    n_traces: int
+    n_segments: int
+    n_steps: int
+    walked_m: float
+    skipped: list[str] = field(default_factory=list)
+
+
+def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceRun], list[str]]:
+    """Run the PDR once per trace; the steps' features let any length model be applied afterwards."""
+    runs, skipped = [], []
+    for p in paths:
+        tr = read_ilc_trace(p)
+        if tr.imu is None or len(tr.waypoints) < 2:
+            skipped.append(f"{Path(p).name}: no IMU or fewer than 2 waypoints")
+            continue
+        pdr = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), config, heading0=0.0)
+        pdr.process(tr.imu)
+        runs.append(TraceRun(Path(p).name, list(pdr.steps), list(pdr.features), tr.waypoints.t, tr.waypoints.pos_enu))
+    return runs, skipped
+
+
+def _segments(run: TraceRun):
+    """(k, t0, t1, true length) of each waypoint segment long enough to score, with steps inside."""
+    ts = np.array([s.t for s in run.steps])
+    out = []
+    for k in range(len(run.wp_t) - 1):
+        t0, t1 = run.wp_t[k], run.wp_t[k + 1]
+        D = float(np.linalg.norm(run.wp_xy[k + 1] - run.wp_xy[k]))
+        idx = np.flatnonzero((ts > t0) & (ts <= t1))
+        out.append((k, t0, t1, D, idx))
+    return out
+
+
+def _track(run: TraceRun, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step times (with a start 1 s before the first step) and positions from lengths and headings."""
+    if not run.steps:
+        return np.array([run.wp_t[0]]), np.zeros((1, 2))
+    h = np.array([s.heading for s in run.steps])
+    t = np.concatenate([[min(run.steps[0].t - 1.0, run.wp_t[0])], [s.t for s in run.steps]])
+    d = np.column_stack([lengths * np.cos(h), lengths * np.sin(h)])
+    return t, np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
+
+
+def _interp(t, p, tq):
+    tq = np.clip(tq, t[0], t[-1])
+    return np.column_stack([np.interp(tq, t, p[:, 0]), np.interp(tq, t, p[:, 1])])
+
+
+def fit_model(runs: list[TraceRun], model_name: str):
+    cal = LengthCalibrator(make_model(model_name), forgetting=1.0)
+    for r in runs:
+        for _, _, _, D, idx in _segments(r):
+            if D >= MIN_SEGMENT_M and len(idx) >= 2:
+                cal.update([r.features[i] for i in idx], D, sigma_distance=0.5)
+    return cal.model
+
+
+def score(runs: list[TraceRun], model) -> tuple[list[float], list[float], list[float]]:
+    len_err, turn_err, wp_err = [], [], []
+    for r in runs:
+        L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
+        t, p = _track(r, L)
+        wp_est = _interp(t, p, r.wp_t)
+        true_dirs, est_dirs = [], []
+        for k, t0, t1, D, idx in _segments(r):
+            d_est = wp_est[k + 1] - wp_est[k]
+            d_true = r.wp_xy[k + 1] - r.wp_xy[k]
+            ok = D >= MIN_SEGMENT_M
+            if ok:
+                len_err.append(abs(float(np.linalg.norm(d_est)) - D) / D)
+            true_dirs.append(math.atan2(d_true[1], d_true[0]) if ok else None)
+            est_dirs.append(math.atan2(d_est[1], d_est[0]) if ok and np.linalg.norm(d_est) > 0.5 else None)
+        for k in range(1, len(true_dirs)):
+            if None not in (true_dirs[k], true_dirs[k - 1], est_dirs[k], est_dirs[k - 1]):
+                turn_t = wrap_angle(true_dirs[k] - true_dirs[k - 1])
+                turn_e = wrap_angle(est_dirs[k] - est_dirs[k - 1])
+                turn_err.append(abs(wrap_angle(turn_e - turn_t)) * 180 / math.pi)
+        # PDR-only track from the first waypoint, rotated so its first segment points the true way.
+        d_true = r.wp_xy[1] - r.wp_xy[0]
+        d_est = wp_est[1] - wp_est[0]
+        rot = math.atan2(d_true[1], d_true[0]) - math.atan2(d_est[1], d_est[0]) if np.linalg.norm(d_est) > 0.1 else 0.0
+        c, s = math.cos(rot), math.sin(rot)
+        aligned = (wp_est - wp_est[0]) @ np.array([[c, s], [-s, c]]) + r.wp_xy[0]
+        wp_err.extend(np.linalg.norm(aligned[1:] - r.wp_xy[1:], axis=1).tolist())
+    return len_err, turn_err, wp_err
+
+
+def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: PhonePdrConfig | None = None, runs=None) -> PhoneEvalResult:
+    config = config or PhonePdrConfig()
+    skipped: list[str] = []
+    if runs is None:
+        runs, skipped = collect_runs(paths, config)
+    folds = [runs[0::2], runs[1::2]]
+    L, T, W, coefs = [], [], [], []
+    for i in (0, 1):
+        model = fit_model(folds[1 - i], model_name)  # learned on the other half
+        coefs.append([float(c) for c in model.coef])
+        le, te, we = score(folds[i], model)
+        L += le
+        T += te
+        W += we
+    walked = sum(float(np.linalg.norm(np.diff(r.wp_xy, axis=0), axis=1).sum()) for r in runs)
+    return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped)

@@ -1,0 +1,331 @@
+"""Smartphone step-and-heading PDR: samples in, :class:`~hybridloc.types.StepEvent` out.
+
+Pipeline per sample (streaming: :meth:`PhonePdr.update` gives the same steps whether the data come
+in one block or one sample at a time):
+
+1. Attitude and heading (:mod:`.attitude`): gravity-aligned heading change whatever the phone's
+   orientation, magnetometer yaw correction only while the field is clean.
+2. |a| low-passed by a causal 2nd-order Butterworth (3 Hz: walking's step band is 1.4-2.5 Hz).
+3. Step candidates, one of two detector families (Harle's survey sec. III):
+   * ``"peak"``: local maxima of the filtered magnitude above an adaptive threshold (running mean
+     + ``k_sigma`` running std, and at least ``min_swing`` above the last valley), at least
+     ``min_step_interval`` apart;
+   * ``"autocorr"``: step-cycle detection from the normalised auto-correlation (Zee's NASC): the
+     step period tau* maximising NASC gates local maxima at least 0.6 tau* apart, without amplitude
+     thresholds.
+4. Walking classifier (both families): a candidate counts only while the signal is periodic (max
+   NASC over one-step lags >= ``nasc_walking``) and not idle (std >= ``idle_std``). Standing,
+   fidgeting and handling give no steps. Candidates seen while the classifier was still warming
+   up are released retroactively once it confirms walking, so the first steps of a walk are kept.
+5. Step length (:mod:`.steplength`) and heading = forward heading (circular mean over the step)
+   + walking offset (device heading vs walking direction; 0 for a phone held in front).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import signal
+
+from ..types import ImuBlock, StepEvent, Trajectory
+from ..units import DEG, wrap_angle
+from .attitude import AttitudeConfig, AttitudeFilter
+from .steplength import LengthModel, StepFeatures, WeinbergLength
+
+
+@dataclass
+class PhonePdrConfig:
+    detector: str = "peak"  # "peak" | "autocorr"
+    lowpass_hz: float = 3.0
+    min_step_interval: float = 0.28  # s (fastest walking ~3.5 steps/s)
+    max_step_interval: float = 1.6  # s; a longer pause starts a new walk
+    k_sigma: float = 0.4  # adaptive threshold: running mean + k_sigma * running std
+    min_swing: float = 0.8  # m/s^2 from the previous valley to the peak
+    idle_std: float = 0.35  # m/s^2; below this the phone is still
+    nasc_walking: float = 0.55  # Zee et al. use ~0.7 on raw data; ours is low-passed and per-step
+    nasc_window: float = 2.4  # s of signal for the auto-correlation
+    step_lag_range: tuple[float, float] = (0.3, 1.0)  # s, one step
+    walking_offset: float = 0.0  # rad, walking direction minus device forward heading
+    estimate_offset: bool = False  # estimate the offset from the horizontal acceleration's principal axis
+    sigma_mag_heading: float = 12.0 * DEG  # absolute heading from a clean indoor magnetometer
+    gyro_drift: float = 0.2 * DEG  # rad/s growth of heading uncertainty without the magnetometer
+    sigma_offset: float = 5.0 * DEG
+    sigma_turn_floor: float = 1.0 * DEG  # per-step heading-change noise
+    turn_scale_sigma: float = 0.03  # relative (gyro scale factor) heading-change error
+    attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
+
+
+@dataclass
+class PdrStats:
+    samples: int = 0
+    rejected_samples: dict = field(default_factory=dict)
+    candidates: int = 0
+    steps: int = 0
+    gaps: int = 0
+
+    def reject(self, reason: str) -> None:
+        self.rejected_samples[reason] = self.rejected_samples.get(reason, 0) + 1
+
+
+class PhonePdr:
+    """Streaming step-and-heading PDR for one phone."""
+
+    def __init__(self, rate_hz: float, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = None):
+        if not (5.0 <= rate_hz <= 1000.0):
+            raise ValueError(f"phone IMU rate {rate_hz} Hz is implausible (expected 5-1000 Hz)")
+        if config is not None and config.detector not in ("peak", "autocorr"):
+            raise ValueError(f"unknown step detector {config.detector!r}")
+        self.cfg = config or PhonePdrConfig()
+        self.rate = rate_hz
+        self.model = length_model or WeinbergLength()
+        self.att = AttitudeFilter(self.cfg.attitude)
+        b, a = signal.butter(2, self.cfg.lowpass_hz / (rate_hz / 2.0))
+        self._b, self._a = b.tolist(), a.tolist()
+        self._zi = None
+        self.stats = PdrStats()
+        n_hist = int(round((self.cfg.nasc_window + self.cfg.max_step_interval + 0.5) * rate_hz))
+        # per-sample history: (t, filtered |a|, vertical accel, cos fwd, sin fwd, ax_h, ay_h)
+        self._hist: deque = deque(maxlen=n_hist)
+        self._y1 = self._y2 = None  # previous two filtered values (for local maxima)
+        self._t1 = None
+        self._mean = None
+        self._var = 0.0
+        self._valley = math.inf
+        self._last_step_t: float | None = None
+        self._last_cand_t: float | None = None
+        self._pending: list[float] = []
+        self._last_t: float | None = None
+        self._prev_heading: float | None = None
+        self._heading0 = heading0  # if set, output headings are relative: heading0 + (psi - psi_first)
+        self._yaw_ref: float | None = None
+        self._mag_clean_t: float | None = None
+        self._degraded_next = ""
+        self._period = 0.55
+        self._offset = self.cfg.walking_offset
+        self.steps: list[StepEvent] = []
+        #: The features behind each emitted step (same order as ``steps``), for length calibration.
+        self.features: list[StepFeatures] = []
+
+    # ------------------------------------------------------------------
+    def update(self, t: float, acc, gyr, mag=None) -> list[StepEvent]:
+        """Feed one sample (s, m/s^2, rad/s, T or None); returns the steps it completed."""
+        if not (math.isfinite(t) and all(map(math.isfinite, acc)) and all(map(math.isfinite, gyr))):
+            self.stats.reject("non-finite")
+            return []
+        if mag is not None and not all(map(math.isfinite, mag)):
+            mag = None
+        if self._last_t is not None:
+            dt = t - self._last_t
+            if dt <= 0:
+                self.stats.reject("not-increasing-time")
+                return []
+            if dt > self.cfg.max_step_interval:
+                # A gap: whatever was in progress is lost; restart detection, keep attitude.
+                self.stats.gaps += 1
+                self._reset_detection()
+                self._degraded_next = "gap"
+        self._last_t = t
+        self.stats.samples += 1
+        att = self.att
+        att.update(t, acc, gyr, mag)
+        if att.mag_ok:
+            self._mag_clean_t = t
+        amag = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
+        # causal biquad (direct form II transposed), state carried across calls
+        if self._zi is None:
+            self._zi = [amag * v for v in signal.lfilter_zi(self._b, self._a).tolist()]
+        b, a, z = self._b, self._a, self._zi
+        y = b[0] * amag + z[0]
+        z[0] = b[1] * amag - a[1] * y + z[1]
+        z[1] = b[2] * amag - a[2] * y
+        fwd = att.forward_heading()
+        ah = att.horizontal_accel(acc)
+        self._hist.append((t, y, att.vertical_accel(acc), math.cos(fwd), math.sin(fwd), ah[0], ah[1]))
+        # running mean / variance over ~2 s (exponential)
+        alpha = 1.0 / (2.0 * self.rate)
+        if self._mean is None:
+            self._mean = y
+        d = y - self._mean
+        self._mean += alpha * d
+        self._var = (1 - alpha) * (self._var + alpha * d * d)
+        out: list[StepEvent] = []
+        if self._y1 is not None and self._y2 is not None:
+            if self._y1 < self._y2 and self._y1 <= y:
+                self._valley = min(self._valley, self._y1)
+            if self._y1 > self._y2 and self._y1 >= y:
+                out = self._candidate(self._t1, self._y1)
+        self._y2, self._y1, self._t1 = self._y1, y, t
+        return out
+
+    def _reset_detection(self) -> None:
+        self._pending.clear()
+        self._last_step_t = None
+        self._last_cand_t = None
+        self._valley = math.inf
+        self._hist.clear()
+        self._prev_heading = None
+
+    # ------------------------------------------------------------------
+    def _nasc(self) -> tuple[float, float]:
+        """Max normalised auto-correlation over one-step lags, and its lag (s)."""
+        n = int(self.cfg.nasc_window * self.rate)
+        if len(self._hist) < n:
+            return 0.0, self._period
+        x = np.fromiter((h[1] for h in list(self._hist)[-n:]), float, n)
+        x = x - x.mean()
+        lo, hi = (int(v * self.rate) for v in self.cfg.step_lag_range)
+        best, best_lag = -1.0, self._period
+        for m in range(lo, min(hi, n // 2) + 1):
+            a, b = x[:-m], x[m:]
+            den = math.sqrt(float(a @ a) * float(b @ b))
+            if den > 0:
+                r = float(a @ b) / den
+                if r > best:
+                    best, best_lag = r, m / self.rate
+        return best, best_lag
+
+    def _candidate(self, tp: float, yp: float) -> list[StepEvent]:
+        cfg = self.cfg
+        std = math.sqrt(self._var)
+        if std < cfg.idle_std:
+            self._valley = math.inf
+            return []
+        if cfg.detector == "peak":
+            if yp < self._mean + cfg.k_sigma * std or yp - self._valley < cfg.min_swing:
+                return []
+            min_dt = cfg.min_step_interval
+        else:  # autocorr: spacing from the step period only
+            min_dt = max(cfg.min_step_interval * 0.8, 0.6 * self._period)
+            if yp < self._mean:
+                return []
+        if self._last_cand_t is not None and tp - self._last_cand_t < min_dt:
+            return []
+        self.stats.candidates += 1
+        self._last_cand_t = tp
+        self._valley = math.inf
+        nasc, lag = self._nasc()
+        walking = nasc >= cfg.nasc_walking
+        if not walking:
+            self._pending = [p for p in self._pending if tp - p <= cfg.nasc_window] + [tp]
+            return []
+        self._period = lag
+        released = [p for p in self._pending if tp - p <= cfg.nasc_window and (self._last_step_t is None or p > self._last_step_t)]
+        self._pending = []
+        out = []
+        for ts in released + [tp]:
+            ev = self._emit(ts)
+            if ev is not None:
+                out.append(ev)
+        return out
+
+    def _emit(self, ts: float) -> StepEvent | None:
+        cfg = self.cfg
+        t_prev = self._last_step_t
+        if t_prev is None or ts - t_prev > cfg.max_step_interval:
+            t_prev = ts - self._period
+        dur = ts - t_prev
+        if dur <= 0:
+            return None
+        seg = [h for h in self._hist if t_prev < h[0] <= ts]
+        if not seg:
+            return None
+        av = [h[2] for h in seg]
+        c = sum(h[3] for h in seg)
+        s = sum(h[4] for h in seg)
+        fwd = math.atan2(s, c)
+        if cfg.estimate_offset and len(seg) >= 5:
+            self._update_offset(seg, fwd)
+        psi = wrap_angle(fwd + self._offset)
+        feats = StepFeatures(dur, max(av) - min(av))
+        L = self.model.length(feats)
+        if self._heading0 is not None:
+            if self._yaw_ref is None:
+                self._yaw_ref = psi
+            psi = wrap_angle(self._heading0 + psi - self._yaw_ref)
+        dpsi = None if self._prev_heading is None else wrap_angle(psi - self._prev_heading)
+        since_mag = math.inf if self._mag_clean_t is None else max(0.0, ts - self._mag_clean_t)
+        sig_h = math.hypot(cfg.sigma_mag_heading if since_mag < math.inf else math.pi / 2, cfg.gyro_drift * (since_mag if since_mag < math.inf else 0.0))
+        sig_h = min(math.hypot(sig_h, cfg.sigma_offset), math.pi)
+        degraded = self._degraded_next
+        if not self.att.has_mag:
+            degraded = degraded or "no-mag"
+        elif not self.att.mag_ok:
+            degraded = degraded or "mag-disturbed"
+        ev = StepEvent(
+            t=ts,
+            length=L,
+            heading=psi,
+            sigma_length=self.model.relative_sigma * L,
+            sigma_heading=sig_h,
+            heading_change=dpsi,
+            sigma_heading_change=None if dpsi is None else math.hypot(cfg.sigma_turn_floor, cfg.turn_scale_sigma * abs(dpsi)),
+            degraded=degraded,
+        )
+        self._degraded_next = ""
+        self._prev_heading = psi
+        self._last_step_t = ts
+        self.stats.steps += 1
+        self.steps.append(ev)
+        self.features.append(feats)
+        return ev
+
+    def _update_offset(self, seg, fwd: float) -> None:
+        """Walking direction from the principal axis of horizontal acceleration over the step.
+
+        The axis has a 180 degree ambiguity; it is resolved by continuity with the current offset
+        (which starts at ``walking_offset``), so a wrong start stays wrong: use with a sensible prior.
+        """
+        ax = np.array([h[5] for h in seg])
+        ay = np.array([h[6] for h in seg])
+        ax -= ax.mean()
+        ay -= ay.mean()
+        cxx, cyy, cxy = float(ax @ ax), float(ay @ ay), float(ax @ ay)
+        if cxx + cyy <= 0:
+            return
+        axis = 0.5 * math.atan2(2 * cxy, cxx - cyy)
+        off = wrap_angle(axis - fwd)
+        if abs(wrap_angle(off - self._offset)) > math.pi / 2:
+            off = wrap_angle(off + math.pi)
+        self._offset = wrap_angle(self._offset + 0.1 * wrap_angle(off - self._offset))
+
+    # ------------------------------------------------------------------
+    def process(self, imu: ImuBlock) -> list[StepEvent]:
+        """Feed a whole block; returns the steps it completed."""
+        out: list[StepEvent] = []
+        t = imu.t.tolist()
+        acc = imu.accel_body.tolist()
+        gyr = imu.gyro_body.tolist()
+        mag = imu.mag_body.tolist() if imu.mag_body is not None else None
+        upd = self.update
+        for i in range(len(t)):
+            r = upd(t[i], acc[i], gyr[i], mag[i] if mag is not None else None)
+            if r:
+                out.extend(r)
+        return out
+
+
+def run_phone_pdr(imu: ImuBlock, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = 0.0) -> tuple[list[StepEvent], PdrStats]:
+    """Batch wrapper: all steps of a recording. ``heading0`` makes headings relative to the first step."""
+    pdr = PhonePdr(imu.rate_hz, length_model, config, heading0)
+    steps = pdr.process(imu)
+    return steps, pdr.stats
+
+
+def dead_reckon(steps: list[StepEvent], x0: float = 0.0, y0: float = 0.0, t0: float | None = None) -> Trajectory:
+    """Positions after each step (Kourogi eq 12), starting at (x0, y0) at ``t0`` (default: 1 s before the first step)."""
+    if not steps:
+        t = [0.0 if t0 is None else t0]
+        return Trajectory(np.array(t), np.array([[x0, y0, 0.0]]), sigma_enu=np.zeros((1, 3)))
+    ts = [steps[0].t - 1.0 if t0 is None else min(t0, steps[0].t - 1e-3)] + [s.t for s in steps]
+    pos = np.zeros((len(steps) + 1, 3))
+    pos[0, :2] = (x0, y0)
+    sig = np.zeros((len(steps) + 1, 3))
+    C = np.zeros((2, 2))
+    for i, s in enumerate(steps, 1):
+        pos[i, :2] = pos[i - 1, :2] + s.displacement_enu
+        C = s.propagate_position_covariance(C)  # Kourogi eq 13
+        sig[i, :2] = np.sqrt(np.diag(C))
+    return Trajectory(np.array(ts), pos, sigma_enu=sig)
