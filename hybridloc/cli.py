@@ -31,6 +31,96 @@ def _cmd_data_inspect(args: argparse.Namespace) -> int:
     return status
 
 
+def _load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "m/s^2"):
+    from .io import detect_format
+
+    fmt = fmt or detect_format(path)
+    if fmt == "msft":
+        from .io.msft import read_ilc_trace
+
+        tr = read_ilc_trace(path)
+        if tr.imu is None:
+            raise ValueError(f"{path}: no usable IMU data ({tr.report.summary()})")
+        return tr.imu, tr.report, tr.device_model
+    from .io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat
+
+    if fmt == "csv":
+        rec = read_imu_csv(path, accel_unit=accel_unit)
+    elif fmt == "pyshoe":
+        rec = read_pyshoe_mat(path)
+    elif fmt == "openshoe":
+        rec = read_openshoe_mat(path, rate or 100.0)
+    else:
+        raise ValueError(f"{path}: format {fmt} holds no IMU data")
+    return rec.imu, rec.report, ""
+
+
+def _cmd_pdr_phone(args: argparse.Namespace) -> int:
+    from .io.common import stem_of
+    from .io.writers import write_trajectory_csv
+    from .pdr import LengthCalibrator, PhonePdr, PhonePdrConfig, dead_reckon, make_model
+    from .pdr.files import parse_start, write_steps_csv
+
+    x0, y0, h0 = parse_start(args.start)
+    out = Path(args.out)
+    status = 0
+    for p in args.traces:
+        try:
+            imu, report, device = _load_imu(p, args.format, None, args.accel_unit)
+        except (ValueError, OSError) as exc:
+            print(f"{p}: error: {exc}", file=sys.stderr)
+            status = 1
+            continue
+        model = LengthCalibrator.load(args.calibration).model if args.calibration else make_model(args.model)
+        cfg = PhonePdrConfig(detector=args.detector, walking_offset=args.offset, estimate_offset=args.estimate_offset)
+        pdr = PhonePdr(imu.rate_hz, model, cfg, heading0=h0)
+        steps = pdr.process(imu)
+        d = out / stem_of(p)
+        d.mkdir(parents=True, exist_ok=True)
+        write_steps_csv(d / "steps.csv", steps)
+        write_trajectory_csv(d / "trajectory.csv", dead_reckon(steps, x0, y0, float(imu.t[0])))
+        st = pdr.stats
+        degraded = sum(1 for s in steps if s.degraded)
+        rej = ", ".join(f"{k} x{v}" for k, v in st.rejected_samples.items()) or "none"
+        print(f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {list(map(float, model.coef))}), "
+              f"{degraded} with degraded heading, gaps {st.gaps}, rejected samples: {rej}; input: {report.summary()} -> {d}")
+    return status
+
+
+def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from .io.msft import find_ilc_traces
+    from .metrics import summarize_errors
+    from .pdr import PhonePdrConfig
+    from .pdr.evaluate import collect_runs, evaluate_phone_pdr
+
+    paths = find_ilc_traces(args.dir)[:: args.every]
+    if not paths:
+        raise ValueError(f"no Indoor Location Competition traces under {args.dir}")
+    cfg = PhonePdrConfig(detector=args.detector)
+    runs, skipped = collect_runs(paths, cfg)
+    print(f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
+          "lengths calibrated by 2-fold cross-fitting over traces")
+    print(f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}")
+    res = {}
+    for m in ("constant", "weinberg", "frequency"):
+        r = evaluate_phone_pdr(paths, m, cfg, runs=runs)
+        res[m] = r
+        coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in r.coefs)
+        wp = summarize_errors(r.wp_err)
+        print(f"{m:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
+              f"{np.median(r.turn_err_deg):8.1f}d {np.percentile(r.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {r.n_segments:5d}")
+    main_m = res[args.model]
+    print(f"\n{args.model}: segment length error median {100 * np.median(main_m.length_rel_err):.1f}% (goal <= 5%), "
+          f"90th pct {100 * np.percentile(main_m.length_rel_err, 90):.1f}% (goal <= 15%); heading-change error median "
+          f"{np.median(main_m.turn_err_deg):.1f} deg (goal <= 8); error at waypoints from the first one: {summarize_errors(main_m.wp_err)}")
+    base = np.median(res["constant"].length_rel_err)
+    print(f"ratio of median length error {args.model} / constant-length baseline: {np.median(main_m.length_rel_err) / base:.2f}")
+    print(f"{main_m.n_steps} steps over {main_m.walked_m:.0f} m of waypoint-to-waypoint walking")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -50,6 +140,30 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("--format", choices=("msft", "pyshoe", "openshoe", "csv", "ujiindoorloc"), help="skip format detection")
     ins.add_argument("--rate", type=float, default=None, metavar="HZ", help="sample rate for files without timestamps (OpenShoe; default 100)")
     ins.set_defaults(func=_cmd_data_inspect)
+
+    pdr = sub.add_parser("pdr", help="pedestrian dead reckoning")
+    psub = pdr.add_subparsers(dest="pdr_command", required=True)
+    ph = psub.add_parser("phone", help="smartphone step-and-heading PDR: steps.csv and trajectory.csv per input")
+    ph.add_argument("traces", nargs="+", metavar="TRACE")
+    ph.add_argument("--out", required=True, help="output folder; writes <out>/<input-stem>/{steps,trajectory}.csv")
+    ph.add_argument("--start", default="0,0,0", help="initial pose x,y,heading (m, m, rad or e.g. 90deg); default 0,0,0")
+    ph.add_argument("--format", choices=("msft", "csv"), help="input format (detected by default)")
+    ph.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
+    ph.add_argument("--model", choices=("constant", "weinberg", "frequency"), default="weinberg", help="step length model (default weinberg)")
+    ph.add_argument("--calibration", help="a per-device calibration JSON (LengthCalibrator.save) to use instead of --model defaults")
+    ph.add_argument("--detector", choices=("peak", "autocorr"), default="peak", help="step detector family (default peak)")
+    ph.add_argument("--offset", type=float, default=0.0, help="walking direction minus device heading, rad (phone in pocket/bag)")
+    ph.add_argument("--estimate-offset", action="store_true", help="estimate the walking offset from the acceleration's principal axis")
+    ph.set_defaults(func=_cmd_pdr_phone)
+
+    ev = sub.add_parser("eval", help="evaluation commands that print figures")
+    esub = ev.add_subparsers(dest="eval_command", required=True)
+    ep = esub.add_parser("pdr-phone", help="phone PDR against waypoints of Indoor Location Competition traces")
+    ep.add_argument("dir", help="a site or floor folder, e.g. ../shared/data/msft-ilc/site1")
+    ep.add_argument("--model", choices=("constant", "weinberg", "frequency"), default="weinberg")
+    ep.add_argument("--detector", choices=("peak", "autocorr"), default="peak")
+    ep.add_argument("--every", type=int, default=1, help="use every N-th trace (default all)")
+    ep.set_defaults(func=_cmd_eval_pdr_phone)
 
     demo = sub.add_parser("demo", help="run the platform end to end on the bundled sample")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")

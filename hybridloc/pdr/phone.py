@@ -14,7 +14,8 @@ in one block or one sample at a time):
      step period tau* maximising NASC gates local maxima at least 0.6 tau* apart, without amplitude
      thresholds.
 4. Walking classifier (both families): a candidate counts only while the signal is periodic (max
-   NASC over one-step lags >= ``nasc_walking``) and not idle (std >= ``idle_std``). Standing,
+   NASC over one-step lags >= ``nasc_walking``, for ``confirm_candidates`` consecutive candidates
+   whose periods agree within ``period_tolerance``) and not idle (std >= ``idle_std``). Standing,
    fidgeting and handling give no steps. Candidates seen while the classifier was still warming
    up are released retroactively once it confirms walking, so the first steps of a walk are kept.
 5. Step length (:mod:`.steplength`) and heading = forward heading (circular mean over the step)
@@ -47,6 +48,8 @@ class PhonePdrConfig:
     idle_std: float = 0.35  # m/s^2; below this the phone is still
     nasc_walking: float = 0.55  # Zee et al. use ~0.7 on raw data; ours is low-passed and per-step
     nasc_window: float = 2.4  # s of signal for the auto-correlation
+    period_tolerance: float = 0.15  # relative change of the step period between candidates still "walking"
+    confirm_candidates: int = 3  # consecutive periodic candidates with a consistent period to start walking
     step_lag_range: tuple[float, float] = (0.3, 1.0)  # s, one step
     walking_offset: float = 0.0  # rad, walking direction minus device forward heading
     estimate_offset: bool = False  # estimate the offset from the horizontal acceleration's principal axis
@@ -97,6 +100,9 @@ class PhonePdr:
         self._last_step_t: float | None = None
         self._last_cand_t: float | None = None
         self._pending: list[float] = []
+        self._prev_periodic_lag: float | None = None
+        self._walking = False
+        self._consistent = 0
         self._last_t: float | None = None
         self._prev_heading: float | None = None
         self._heading0 = heading0  # if set, output headings are relative: heading0 + (psi - psi_first)
@@ -162,6 +168,9 @@ class PhonePdr:
 
     def _reset_detection(self) -> None:
         self._pending.clear()
+        self._prev_periodic_lag = None
+        self._walking = False
+        self._consistent = 0
         self._last_step_t = None
         self._last_cand_t = None
         self._valley = math.inf
@@ -170,22 +179,33 @@ class PhonePdr:
 
     # ------------------------------------------------------------------
     def _nasc(self) -> tuple[float, float]:
-        """Max normalised auto-correlation over one-step lags, and its lag (s)."""
+        """Periodicity of the recent signal: (max NASC over one-step lags, that lag in s).
+
+        NASC(m) = <x[:-m], x[m:]> / (|x[:-m]| |x[m:]|) (Zee's normalised auto-correlation). A smooth
+        but aperiodic signal (a phone being handled) also correlates at short lags, so the peak
+        counts only after the auto-correlation has first swung negative: that is, the signal really
+        oscillates, and the peak is one cycle later.
+        """
         n = int(self.cfg.nasc_window * self.rate)
         if len(self._hist) < n:
             return 0.0, self._period
         x = np.fromiter((h[1] for h in list(self._hist)[-n:]), float, n)
         x = x - x.mean()
-        lo, hi = (int(v * self.rate) for v in self.cfg.step_lag_range)
-        best, best_lag = -1.0, self._period
-        for m in range(lo, min(hi, n // 2) + 1):
-            a, b = x[:-m], x[m:]
-            den = math.sqrt(float(a @ a) * float(b @ b))
-            if den > 0:
-                r = float(a @ b) / den
-                if r > best:
-                    best, best_lag = r, m / self.rate
-        return best, best_lag
+        lo = max(1, int(self.cfg.step_lag_range[0] * self.rate))
+        hi = min(int(self.cfg.step_lag_range[1] * self.rate), n // 2)
+        full = np.correlate(x, x, mode="full")[n - 1 : n + hi]  # lags 0..hi
+        cs = np.concatenate([[0.0], np.cumsum(x * x)])
+        m = np.arange(1, hi + 1)
+        den = np.sqrt(cs[n - m] * (cs[n] - cs[m]))
+        r = np.where(den > 0, full[1:] / np.where(den > 0, den, 1.0), 0.0)  # r[m-1] = NASC(m)
+        neg = np.flatnonzero(r < 0)
+        if neg.size == 0:
+            return 0.0, self._period
+        start = max(lo, int(neg[0]) + 1)
+        if start > hi:
+            return 0.0, self._period
+        k = start - 1 + int(np.argmax(r[start - 1 : hi]))
+        return float(r[k]), (k + 1) / self.rate
 
     def _candidate(self, tp: float, yp: float) -> list[StepEvent]:
         cfg = self.cfg
@@ -207,7 +227,17 @@ class PhonePdr:
         self._last_cand_t = tp
         self._valley = math.inf
         nasc, lag = self._nasc()
-        walking = nasc >= cfg.nasc_walking
+        # Walking = periodic now AND at the previous candidate with a consistent period: a handled
+        # phone can look periodic for one window, but its "period" jumps from one window to the next.
+        periodic = nasc >= cfg.nasc_walking
+        prev = self._prev_periodic_lag
+        if periodic and prev is not None and abs(lag - prev) <= cfg.period_tolerance * lag:
+            self._consistent += 1
+        else:
+            self._consistent = 1 if periodic else 0
+        walking = periodic and (self._walking or self._consistent >= cfg.confirm_candidates)
+        self._prev_periodic_lag = lag if periodic else None
+        self._walking = walking
         if not walking:
             self._pending = [p for p in self._pending if tp - p <= cfg.nasc_window] + [tp]
             return []

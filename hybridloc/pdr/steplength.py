@@ -66,7 +66,9 @@ class WeinbergLength(LengthModel):
     name = "weinberg"
     relative_sigma = 0.08  # Weinberg 2002, as reported in Harle's survey
 
-    def __init__(self, K: float = 0.48):
+    # Default K fitted on hand-held phones (Indoor Location Competition site1, 2-fold cross-fit);
+    # calibrate per device for anything else.
+    def __init__(self, K: float = 0.37):
         self.coef = np.array([K])
 
     def regressors(self, f: StepFeatures) -> np.ndarray:

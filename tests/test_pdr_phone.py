@@ -1,0 +1,200 @@
+"""Phone PDR on synthetic walks whose truth follows from the signal model, and on real traces."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hybridloc.pdr import LengthCalibrator, PhonePdr, PhonePdrConfig, WeinbergLength, dead_reckon, run_phone_pdr
+from hybridloc.pdr.attitude import AttitudeFilter, quat_to_rot, triad
+from hybridloc.pdr.steplength import StepFeatures
+from hybridloc.types import ImuBlock
+from hybridloc.units import DEG, G0
+
+RATE = 50.0
+B_FIELD, DIP = 45e-6, 45 * DEG
+
+
+def _rz(a):
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def synth_walk(rng, seconds=60.0, f_step=1.8, amp=2.5, heading=lambda t: 0.0 * t, noise=0.08, mag=True, still=0.0):
+    """Phone held flat (body y forward, z up) by a walker: vertical bounce at the step frequency.
+
+    Specific force in nav = (0, 0, g + amp sin(2 pi f t)); body = R^T f_nav with R = Rz(psi - pi/2),
+    so body +y points along the heading psi. One step per bounce cycle. ``still`` seconds of standing
+    come first.
+    """
+    t = np.arange(0.0, seconds + still, 1 / RATE)
+    psi = np.array([heading(max(0.0, x - still)) for x in t])
+    walking = t >= still
+    av = np.where(walking, amp * np.sin(2 * math.pi * f_step * (t - still)), 0.0)
+    acc, gyr, mg = np.zeros((len(t), 3)), np.zeros((len(t), 3)), np.zeros((len(t), 3))
+    dpsi = np.gradient(psi, t)
+    m_nav = np.array([0.0, B_FIELD * math.cos(DIP), -B_FIELD * math.sin(DIP)])
+    for i in range(len(t)):
+        R = _rz(psi[i] - math.pi / 2)
+        acc[i] = R.T @ np.array([0.0, 0.0, G0 + av[i]])
+        gyr[i] = [0.0, 0.0, dpsi[i]]
+        mg[i] = R.T @ m_nav
+    acc += noise * rng.standard_normal(acc.shape)
+    gyr += 0.003 * rng.standard_normal(gyr.shape)
+    mg += 0.3e-6 * rng.standard_normal(mg.shape)
+    n_true = int(math.floor(seconds * f_step))
+    return ImuBlock(t, acc, gyr, mg if mag else None), n_true
+
+
+def test_triad_recovers_attitude():
+    R_true = _rz(0.7)
+    acc = R_true.T @ [0, 0, G0]
+    mag = R_true.T @ [0, B_FIELD * math.cos(DIP), -B_FIELD * math.sin(DIP)]
+    np.testing.assert_allclose(np.array(quat_to_rot(triad(acc, mag))), R_true, atol=1e-9)
+
+
+def test_attitude_follows_gyro_about_gravity_whatever_the_tilt():
+    """Tilted phone turning about the vertical: the yaw change equals the integrated vertical rate."""
+    rng = np.random.default_rng(0)
+    tilt = np.array([[1, 0, 0], [0, math.cos(1.0), -math.sin(1.0)], [0, math.sin(1.0), math.cos(1.0)]])  # 57 deg pitch
+    f = AttitudeFilter()
+    rate = 0.5  # rad/s about nav up, for 3 s
+    heads = []
+    for i in range(201):
+        t = i / RATE
+        R = _rz(rate * min(t, 3.0)) @ tilt
+        w_nav = np.array([0, 0, rate if t < 3.0 else 0.0])
+        f.update(t, R.T @ [0, 0, G0], R.T @ w_nav + 1e-3 * rng.standard_normal(3), None)
+        heads.append(f.forward_heading())
+    turned = (heads[-1] - heads[0] + math.pi) % (2 * math.pi) - math.pi
+    assert turned == pytest.approx(rate * 3.0 - rate / RATE, abs=2 * DEG)
+
+
+def test_step_count_and_turn_on_synthetic_walk():
+    rng = np.random.default_rng(1)
+    # 60 s straight, a 90 degree left turn spread over 4 s in the middle.
+    turn = lambda t: (math.pi / 2) * min(max((t - 30.0) / 4.0, 0.0), 1.0)  # noqa: E731
+    imu, n_true = synth_walk(rng, heading=turn)
+    for det in ("peak", "autocorr"):
+        steps, stats = run_phone_pdr(imu, WeinbergLength(), PhonePdrConfig(detector=det))
+        # One step per bounce; at most the first and last cycles can be cut by the filters' edges.
+        assert abs(len(steps) - n_true) <= 2, (det, len(steps), n_true)
+        total_turn = sum(s.heading_change for s in steps[1:])
+        assert total_turn == pytest.approx(math.pi / 2, abs=2 * DEG)
+        assert all(s.sigma_length > 0 and s.sigma_heading > 0 for s in steps)
+
+
+def test_standing_gives_no_steps():
+    rng = np.random.default_rng(2)
+    still, _ = synth_walk(rng, seconds=60.0, amp=0.0)
+    assert len(run_phone_pdr(still)[0]) == 0
+
+
+def _handling(seed: int) -> ImuBlock:
+    """Smooth random (non-periodic) accelerations of 2 m/s^2 and rotations of ~1 rad/s, 60 s."""
+    rng = np.random.default_rng(seed)
+    n = int(60 * RATE)
+    t = np.arange(n) / RATE
+    k = np.exp(-0.5 * (np.arange(-25, 26) / 8.0) ** 2)
+    k /= np.sqrt((k**2).sum())
+    smooth = lambda: np.convolve(rng.standard_normal(n), k, mode="same")  # noqa: E731
+    acc = np.column_stack([2 * smooth(), 2 * smooth(), G0 + 2 * smooth()])
+    gyr = np.column_stack([smooth(), smooth(), smooth()])
+    return ImuBlock(t, acc, gyr)
+
+
+@pytest.mark.xfail(strict=True, reason="measured ~1.7 false steps/min averaged over these 6 handling minutes; goal <= 1 (issue 3)")
+def test_handling_gives_at_most_one_false_step_per_minute():
+    counts = [len(run_phone_pdr(_handling(seed))[0]) for seed in range(6)]
+    assert np.mean(counts) <= 1.0, counts
+
+
+def test_streaming_equals_batch():
+    rng = np.random.default_rng(3)
+    imu, _ = synth_walk(rng, seconds=20.0)
+    batch, _ = run_phone_pdr(imu)
+    pdr = PhonePdr(imu.rate_hz, heading0=0.0)
+    online = []
+    for i in range(len(imu)):
+        online += pdr.update(float(imu.t[i]), imu.accel_body[i].tolist(), imu.gyro_body[i].tolist(), imu.mag_body[i].tolist())
+    assert [s.t for s in online] == [s.t for s in batch]
+    assert [s.heading for s in online] == [s.heading for s in batch]
+
+
+def test_bad_samples_are_counted_and_gaps_flagged():
+    rng = np.random.default_rng(4)
+    imu, _ = synth_walk(rng, seconds=30.0)
+    pdr = PhonePdr(imu.rate_hz, heading0=0.0)
+    out = []
+    for i in range(len(imu)):
+        t = float(imu.t[i])
+        if 10.0 <= t < 12.0:
+            continue  # a 2 s gap
+        acc = imu.accel_body[i].tolist()
+        if i == 100:
+            acc[0] = float("nan")
+        out += pdr.update(t, acc, imu.gyro_body[i].tolist(), imu.mag_body[i].tolist())
+        if i == 200:
+            out += pdr.update(t, acc, imu.gyro_body[i].tolist(), None)  # duplicate time
+    assert pdr.stats.rejected_samples == {"non-finite": 1, "not-increasing-time": 1}
+    assert pdr.stats.gaps == 1
+    assert any(s.degraded == "gap" for s in out)
+    assert all(math.isfinite(s.heading) for s in out)
+
+
+def test_missing_magnetometer_is_reported_on_every_step():
+    rng = np.random.default_rng(5)
+    imu, _ = synth_walk(rng, seconds=20.0, mag=False)
+    steps, _ = run_phone_pdr(imu)
+    assert steps and all(s.degraded == "no-mag" for s in steps)
+
+
+def test_dead_reckon_covariance_grows():
+    rng = np.random.default_rng(6)
+    imu, _ = synth_walk(rng, seconds=20.0)
+    steps, _ = run_phone_pdr(imu)
+    tr = dead_reckon(steps, 5.0, 5.0)
+    assert tr.pos_enu[0, 0] == 5.0 and np.all(np.diff(tr.sigma_enu[:, 0]) >= 0)
+    # heading0 = 0: the straight walk goes East
+    assert tr.pos_enu[-1, 0] - 5.0 == pytest.approx(sum(s.length for s in steps), rel=0.01)
+
+
+def test_calibrator_recovers_weinberg_k(tmp_path):
+    rng = np.random.default_rng(7)
+    K = 0.42
+    cal = LengthCalibrator(WeinbergLength(0.3), forgetting=1.0)
+    for _ in range(40):
+        feats = [StepFeatures(0.55, float(b)) for b in rng.uniform(2.0, 8.0, 20)]
+        D = sum(K * f.bounce**0.25 for f in feats) + 0.05 * rng.standard_normal()
+        cal.update(feats, D, sigma_distance=0.05)
+    assert cal.model.coef[0] == pytest.approx(K, rel=0.01)
+    cal.save(tmp_path / "dev.json")
+    back = LengthCalibrator.load(tmp_path / "dev.json")
+    assert back.model.coef[0] == cal.model.coef[0] and back.n_segments == 40
+
+
+@pytest.mark.shared_data
+def test_real_traces_give_human_step_lengths(ilc_site1, tmp_path):
+    import subprocess
+    import sys
+
+    from hybridloc.pdr.evaluate import collect_runs
+
+    paths = sorted((ilc_site1 / "F1" / "path_data_files").glob("*.txt.gz"))[:8]
+    runs, _ = collect_runs(paths, PhonePdrConfig())
+    m_per_step = []
+    for r in runs:
+        ts = np.array([s.t for s in r.steps])
+        n = ((ts > r.wp_t[0]) & (ts <= r.wp_t[-1])).sum()
+        D = np.linalg.norm(np.diff(r.wp_xy, axis=0), axis=1).sum()
+        m_per_step.append(D / max(n, 1))
+    # Adult walking steps are 0.5-0.9 m; waypoint polylines cut corners, so allow 0.4-1.0 m.
+    assert 0.4 <= np.median(m_per_step) <= 1.0
+    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "phone", str(paths[0]), "--out", str(tmp_path), "--start", "3,4,90deg"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    d = tmp_path / paths[0].name.replace(".txt.gz", "")
+    assert (d / "steps.csv").read_text().splitlines()[0].startswith("t,length,heading,sigma_length,sigma_heading")
+    first = (d / "trajectory.csv").read_text().splitlines()[1].split(",")
+    assert float(first[1]) == 3.0 and float(first[2]) == 4.0
+    second = (d / "steps.csv").read_text().splitlines()[1].split(",")
+    assert float(second[2]) == pytest.approx(math.pi / 2, abs=1e-4)
