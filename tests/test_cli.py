@@ -31,3 +31,22 @@ def test_inspect_real_files(ilc_site1, pyshoe_dir, shared_data):
     assert "format      msft" in out and "waypoints" in out and "wifi" in out and "50.0 Hz" in out
     assert "format      pyshoe" in out and "200.1 Hz" in out and "authors" in out
     assert "19937 fingerprints" in out
+
+
+def test_eval_pdr_phone_on_bundled_sample_prints_figures():
+    from hybridloc.samples import ILC_SITE1_F1
+
+    r = _run("eval", "pdr-phone", str(ILC_SITE1_F1))
+    assert r.returncode == 0, r.stderr
+    for key in ("constant", "weinberg", "frequency", "segment length error median", "heading-change error median", "error at waypoints"):
+        assert key in r.stdout
+
+
+def test_pdr_phone_bad_input_is_a_clear_error(tmp_path):
+    p = tmp_path / "g.csv"
+    p.write_text("t,ax,ay,az,gx,gy,gz\n" + "\n".join(f"{i * 0.02:.2f},0,0,1.0,0,0,0" for i in range(100)))
+    r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"))
+    assert r.returncode == 1 and "looks like g" in r.stderr
+    r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"), "--accel-unit", "g")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "o" / "g" / "steps.csv").is_file()

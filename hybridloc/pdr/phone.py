@@ -89,7 +89,9 @@ class PhonePdr:
         self._b, self._a = b.tolist(), a.tolist()
         self._zi = None
         self.stats = PdrStats()
-        n_hist = int(round((self.cfg.nasc_window + self.cfg.max_step_interval + 0.5) * rate_hz))
+        # History long enough to release every candidate held while walking was being confirmed.
+        self._retain = self.cfg.nasc_window + self.cfg.confirm_candidates * self.cfg.step_lag_range[1]
+        n_hist = int(round((self._retain + self.cfg.max_step_interval + 0.5) * rate_hz))
         # per-sample history: (t, filtered |a|, vertical accel, cos fwd, sin fwd, ax_h, ay_h)
         self._hist: deque = deque(maxlen=n_hist)
         self._y1 = self._y2 = None  # previous two filtered values (for local maxima)
@@ -239,10 +241,10 @@ class PhonePdr:
         self._prev_periodic_lag = lag if periodic else None
         self._walking = walking
         if not walking:
-            self._pending = [p for p in self._pending if tp - p <= cfg.nasc_window] + [tp]
+            self._pending = [p for p in self._pending if tp - p <= self._retain] + [tp]
             return []
         self._period = lag
-        released = [p for p in self._pending if tp - p <= cfg.nasc_window and (self._last_step_t is None or p > self._last_step_t)]
+        released = [p for p in self._pending if tp - p <= self._retain and (self._last_step_t is None or p > self._last_step_t)]
         self._pending = []
         out = []
         for ts in released + [tp]:

@@ -1,0 +1,6 @@
+"""Run every benchmark: ``python -m benchmarks`` (``make bench``)."""
+
+from . import bench_phone_pdr
+
+if __name__ == "__main__":
+    bench_phone_pdr.main()
