@@ -179,3 +179,25 @@ def step_count_error(n_detected: int, n_true: int) -> float:
     if n_true <= 0:
         raise ValueError("n_true must be positive")
     return (n_detected - n_true) / n_true
+
+
+def pyshoe_align(est: np.ndarray, gt: np.ndarray, dist: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """PyShoe's alignment: shift both tracks to start at 0, then rotate the estimate about the vertical
+    so that its position at the first sample at least ``dist`` m (horizontally) from the start points
+    the same way as the truth's at that sample. Returns (estimate, truth), both (N, 3)."""
+    e = np.asarray(est, dtype=float) - est[0]
+    g = np.asarray(gt, dtype=float) - gt[0]
+    d = np.hypot(e[:, 0], e[:, 1])
+    far = np.flatnonzero(d >= dist)
+    k = int(far[0]) if far.size else min(300, len(e) - 1)
+    ang = np.arctan2(g[k, 1], g[k, 0]) - np.arctan2(e[k, 1], e[k, 0])
+    c, s = np.cos(ang), np.sin(ang)
+    out = e.copy()
+    out[:, 0], out[:, 1] = c * e[:, 0] - s * e[:, 1], s * e[:, 0] + c * e[:, 1]
+    return out, g
+
+
+def pyshoe_armse(est: np.ndarray, gt: np.ndarray, dims: int = 2) -> float:
+    """PyShoe's ARMSE: mean over samples of sqrt(mean over the ``dims`` axes of the squared error)."""
+    diff = np.asarray(est, dtype=float)[:, :dims] - np.asarray(gt, dtype=float)[:, :dims]
+    return float(np.mean(np.sqrt(np.mean(diff**2, axis=1))))

@@ -150,7 +150,8 @@ def _finite_rows(imu: np.ndarray, report: ReadReport) -> np.ndarray:
 def read_pyshoe_mat(path: str | os.PathLike, on_error: OnError = "skip") -> ImuRecording:
     """Read a PyShoe VICON trial (``imu`` N x 6, ``ts`` 1 x N, ``gt`` N x 3, ``trial_error`` ...).
 
-    ``truth`` is the VICON foot position at every IMU sample. ``extras`` keeps ``trial_error``
+    ``truth`` is the VICON foot position at every IMU sample, converted to a right-handed x-y-up
+    frame (the file's x and y swapped; see the comment in the code). ``extras`` keeps ``trial_error``
     (the authors' ARMSE per detector, metres, order shoe, ared, amvd, mbgtd, vicon),
     ``best_detector``, and the ``zv_<detector>_opt`` masks and ``G_<detector>_opt`` thresholds.
     Samples with NaN (in IMU or truth) are problems and dropped.
@@ -188,7 +189,10 @@ def read_pyshoe_mat(path: str | os.PathLike, on_error: OnError = "skip") -> ImuR
     for k, v in m.items():
         if k.startswith("G_") and np.size(v) == 1:
             extras[k] = float(np.asarray(v).ravel()[0])
-    truth = Trajectory(t, cols[1]) if gt is not None else None
+    # PyShoe's VICON positions match the output of its NED navigator with z negated, i.e. they are
+    # (north, east, up): a mirror image of ENU. Swapping x and y makes the truth right-handed ENU
+    # (up to a rotation about the vertical, which every evaluation aligns anyway).
+    truth = Trajectory(t, cols[1][:, [1, 0, 2]]) if gt is not None else None
     return ImuRecording(path, ImuBlock(t, imu_s[:, :3], imu_s[:, 3:], None, path), truth, report, extras)
 
 

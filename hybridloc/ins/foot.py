@@ -1,0 +1,225 @@
+"""Foot-mounted inertial navigation: the batch runner, DEDRIFT-I, and strides as StepEvents.
+
+:func:`run_foot_ins` wraps the step API of :class:`~.eskf.ErrorStateEkf`: initial alignment from
+the first still samples (roll, pitch from gravity; heading 0 unless given), then per sample a
+strapdown prediction and, during stance, a zero-velocity update (and optionally a zero-angular-rate
+update) through the one gated correction path.
+
+Bad input: NaN samples are skipped and counted; a time gap longer than ``max_gap`` s or a filter
+that keeps rejecting ZUPTs (``reinit_after`` stances in a row: it has diverged) re-initialises
+velocity and tilt at the next stance, and the event is counted. The covariance is kept symmetric
+positive definite by the Joseph form (tested).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..types import ImuBlock, StepEvent
+from ..units import wrap_angle
+from . import stance as stance_mod
+from .eskf import ErrorStateEkf, ImuNoise
+from .measurements import ZeroAngularRate, ZeroVelocity
+from .strapdown import NominalState, level_from_accel, quat_to_dcm
+
+
+@dataclass
+class FootInsConfig:
+    detector: str = "adaptive"  # one of stance.DETECTORS
+    detector_threshold: float | None = None  # the chosen detector's threshold (units per stance.py)
+    zupt_sigma: float = 0.01  # m/s
+    gate_zupt: bool = False  # chi-square gate on ZUPTs (see the module docstring)
+    zaru: bool = False
+    gravity: float | None = None  # m/s^2; None: measured from the initial still period
+    init_seconds: float = 0.5  # still period used for alignment (at most)
+    max_gap: float = 0.1  # s
+    reinit_after: int = 20  # rejected ZUPT samples in a row before re-initialising
+    noise: ImuNoise = field(default_factory=ImuNoise)
+
+
+@dataclass
+class FootInsResult:
+    t: np.ndarray
+    pos_enu: np.ndarray  # (N, 3), starting at the origin
+    vel_enu: np.ndarray
+    quat_wxyz: np.ndarray
+    sigma_pos: np.ndarray  # (N, 3)
+    stance: np.ndarray  # (N,) bool
+    P_pos: np.ndarray  # (N, 3, 3) position covariance
+    stats: dict
+
+
+def detect_stance(imu: ImuBlock, detector: str, threshold: float | None, g: float) -> np.ndarray:
+    a, w = imu.accel_body, imu.gyro_body
+    if detector == "adaptive":
+        return stance_mod.adaptive_shoe(a, w, imu.rate_hz, g=g, **({"decades": threshold} if threshold else {}))[1]
+    if detector == "shoe":
+        return stance_mod.shoe(a, w, threshold or 2e7, g=g)[1]
+    if detector == "ared":
+        return stance_mod.ared(w, threshold or 0.1)[1]
+    if detector == "amvd":
+        return stance_mod.amvd(a, threshold or 0.05, g=g)[1]
+    if detector == "mbgtd":
+        return stance_mod.gyro_minimum(w, threshold or math.radians(60), n=max(1, int(0.5 * imu.rate_hz)))[1]
+    raise ValueError(f"unknown stance detector {detector!r}; choose one of {stance_mod.DETECTORS}")
+
+
+def still_prefix(imu: ImuBlock, max_seconds: float) -> int:
+    """Number of leading samples (at least 2, at most ``max_seconds``) before the unit first moves:
+    |omega| < 0.2 rad/s and |a| within 0.3 m/s^2 of its median over the first 10 samples."""
+    n_max = max(2, min(int(max_seconds * imu.rate_hz), len(imu)))
+    a = np.linalg.norm(imu.accel_body[:n_max], axis=1)
+    w = np.linalg.norm(imu.gyro_body[:n_max], axis=1)
+    a0 = float(np.median(a[:10]))
+    moving = np.flatnonzero((w >= 0.2) | (np.abs(a - a0) >= 0.3) | ~np.isfinite(a))
+    return max(2, int(moving[0]) if moving.size else n_max)
+
+
+def _initial_state(imu: ImuBlock, n_init: int, heading: float) -> tuple[NominalState, float]:
+    f0 = np.nanmean(imu.accel_body[:n_init], axis=0)
+    q0 = level_from_accel(f0, heading)
+    return NominalState(np.zeros(3), np.zeros(3), q0, np.zeros(3), np.zeros(3)), float(np.linalg.norm(f0))
+
+
+def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.ndarray | None = None, heading0: float = 0.0) -> FootInsResult:
+    """Run the ZUPT-aided error-state EKF over a whole recording (``stance`` overrides the detector)."""
+    cfg = config or FootInsConfig()
+    n = len(imu)
+    if n < 10:
+        raise ValueError("too few IMU samples for a foot INS")
+    acc, gyr, t = imu.accel_body, imu.gyro_body, imu.t
+    finite = np.all(np.isfinite(acc), axis=1) & np.all(np.isfinite(gyr), axis=1)
+    rate = imu.rate_hz
+    x0, g_meas = _initial_state(imu, still_prefix(imu, cfg.init_seconds), heading0)
+    g = cfg.gravity or g_meas
+    if stance is None:
+        stance = detect_stance(imu, cfg.detector, cfg.detector_threshold, g)
+    stance = np.asarray(stance, bool) & finite
+    nz = cfg.noise
+    P0 = np.diag([1e-8] * 3 + [1e-6] * 3 + [(0.5 * math.pi / 180) ** 2] * 2 + [(0.1 * math.pi / 180) ** 2] + [nz.accel_bias_sigma0**2] * 3 + [nz.gyro_bias_sigma0**2] * 3)
+    P0[8, 8] = 1e-10  # heading is defined as heading0: no uncertainty at the start
+    kf = ErrorStateEkf(x0, P0, nz, g)
+    zupt = ZeroVelocity(cfg.zupt_sigma)
+    pos = np.zeros((n, 3))
+    vel = np.zeros((n, 3))
+    quat = np.zeros((n, 4))
+    Ppos = np.zeros((n, 3, 3))
+    quat[0] = x0.q
+    Ppos[0] = kf.P[:3, :3]
+    stats = {"nan_samples": int((~finite).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum())}
+    rejected_run = 0
+    reinit_pending = False
+    last_i = 0
+    zero3 = np.zeros(3)
+    for i in range(1, n):
+        if not finite[i]:
+            pos[i], vel[i], quat[i], Ppos[i] = pos[i - 1], vel[i - 1], quat[i - 1], Ppos[i - 1]
+            continue
+        dt = t[i] - t[last_i]
+        last_i = i
+        if dt > cfg.max_gap:
+            stats["gaps"] += 1
+            reinit_pending = True
+            dt = 1.0 / rate  # propagate one nominal step; the state is re-levelled at the next stance
+        kf.predict(acc[i], gyr[i], dt)
+        if stance[i]:
+            if reinit_pending:
+                # Re-initialise: zero velocity, tilt from gravity, keep position and heading.
+                R = quat_to_dcm(kf.x.q)
+                fwd = R[:, 0]
+                q = level_from_accel(acc[i], math.atan2(fwd[1], fwd[0]))
+                kf.x = NominalState(kf.x.p.copy(), zero3.copy(), q, kf.x.b_a.copy(), kf.x.b_g.copy())
+                kf.P[3:9, :] = 0.0
+                kf.P[:, 3:9] = 0.0
+                kf.P[3:6, 3:6] = np.eye(3) * 1e-4
+                kf.P[6:9, 6:9] = np.diag([1e-4, 1e-4, 1e-2])
+                stats["reinit"] += 1
+                reinit_pending = False
+                rejected_run = 0
+            c = kf.correct(zupt, zero3, gate=cfg.gate_zupt)
+            if not c.accepted:
+                stats["zupt_rejected"] += 1
+                rejected_run += 1
+                if rejected_run >= cfg.reinit_after:
+                    reinit_pending = True
+            else:
+                rejected_run = 0
+            if cfg.zaru:
+                kf.correct(ZeroAngularRate(gyr[i]), zero3)
+        pos[i], vel[i], quat[i] = kf.x.p, kf.x.v, kf.x.q
+        Ppos[i] = kf.P[:3, :3]
+    sig = np.sqrt(np.clip(np.einsum("nii->ni", Ppos), 0.0, None))
+    stats["P_min_eig"] = float(np.linalg.eigvalsh(kf.P).min())
+    stats["P_asym"] = float(np.abs(kf.P - kf.P.T).max())
+    return FootInsResult(t.copy(), pos, vel, quat, sig, stance, Ppos, stats)
+
+
+def dedrift_i(imu: ImuBlock, stance_instants: np.ndarray, g: float | None = None, heading0: float = 0.0) -> np.ndarray:
+    """Ojeda & Borenstein's DEDRIFT-I: plain strapdown with velocity reset and acceleration de-drifting.
+
+    At each stance instant T_s (one per step, e.g. from :func:`~.stance.gyro_minimum`) the foot is
+    at rest: the velocity is reset to zero, and the nav-frame acceleration read there (which should
+    be zero) is taken as drift and subtracted from the following samples. No filter, no covariance.
+    Returns positions (N, 3).
+    """
+    from .strapdown import mechanise
+
+    n = len(imu)
+    x, g_meas = _initial_state(imu, still_prefix(imu, 0.5), heading0)
+    g = g or g_meas
+    drift = np.zeros(3)
+    pos = np.zeros((n, 3))
+    acc, gyr, t = imu.accel_body, imu.gyro_body, imu.t
+    for i in range(1, n):
+        dt = t[i] - t[i - 1]
+        R = quat_to_dcm(x.q)
+        f = acc[i] - R.T @ drift  # remove the nav-frame drift measured at the last stance
+        x = mechanise(x, f, gyr[i], dt, g)
+        if stance_instants[i]:
+            a_nav = quat_to_dcm(x.q) @ acc[i]
+            a_nav[2] -= g
+            drift = a_nav
+            x.v = np.zeros(3)
+        pos[i] = x.p
+    return pos
+
+
+def strides(res: FootInsResult) -> list[StepEvent]:
+    """Slice the trajectory into strides: one StepEvent per stance phase after the first.
+
+    A stride runs from the middle of one stance phase to the middle of the next; its length and
+    heading are those of the horizontal displacement, its height change the vertical one. The
+    uncertainties come from the filter's position covariance at the two ends (their difference is
+    the uncertainty the stride added, Kourogi eq 13 read backwards), projected along and across the
+    stride direction.
+    """
+    st = res.stance.astype(np.int8)
+    edges = np.diff(np.concatenate([[0], st, [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    mids = [(s + e - 1) // 2 for s, e in zip(starts, ends) if e - s >= 2]
+    out: list[StepEvent] = []
+    prev_heading = None
+    for a, b in zip(mids[:-1], mids[1:]):
+        d = res.pos_enu[b] - res.pos_enu[a]
+        L = float(math.hypot(d[0], d[1]))
+        if L < 0.05:  # shuffling in place: not a stride
+            continue
+        psi = math.atan2(d[1], d[0])
+        u = np.array([math.cos(psi), math.sin(psi)])
+        v = np.array([-u[1], u[0]])
+        dC = res.P_pos[b][:2, :2] - res.P_pos[a][:2, :2]
+        var_l = max(float(u @ dC @ u), 1e-6)
+        var_c = max(float(v @ dC @ v), 1e-6)
+        sig_h = math.atan2(math.sqrt(var_c), L)
+        dz_var = max(float(res.P_pos[b][2, 2] - res.P_pos[a][2, 2]), 1e-6)
+        out.append(StepEvent(
+            t=float(res.t[b]), length=L, heading=psi, sigma_length=math.sqrt(var_l), sigma_heading=sig_h,
+            heading_change=None if prev_heading is None else wrap_angle(psi - prev_heading),
+            sigma_heading_change=None if prev_heading is None else math.sqrt(2) * sig_h,
+            height_change=float(d[2]), sigma_height_change=math.sqrt(dz_var),
+        ))
+        prev_heading = psi
+    return out

@@ -1,0 +1,88 @@
+"""Zero-velocity (stance) detectors for foot-mounted IMUs, each a function of an IMU block.
+
+Every detector returns ``(statistic, mask)``: the per-sample test statistic and the boolean stance
+mask (True = foot on the ground). Thresholds are in stated units. Windows are centred on the sample
+(a causal streaming version lags by half a window, ~12 ms at 200 Hz for W = 5).
+
+* :func:`amvd` (Godha & Lachapelle 2008, eq 1): moving variance of |a| over n samples (and |a| near
+  g) below ``threshold`` (m/s^2)^2.
+* :func:`gyro_minimum` (Ojeda & Borenstein 2007, eq 6): in each segment of n samples, the sample of
+  least |omega| if it is below Omega (rad/s): one instant per stance (what DEDRIFT-I needs).
+* :func:`ared`: angular-rate energy, mean |omega|^2 over W samples below ``threshold`` (rad/s)^2.
+* :func:`shoe` (Skog et al. 2010, the SHOE / GLRT detector, PyShoe's form):
+  T = 1/W sum ( |a - g a_bar/|a_bar||^2 / sigma_a^2 + |omega|^2 / sigma_w^2 ) below ``gamma``
+  (dimensionless). ``sigma_a`` (m/s^2) and ``sigma_w`` (rad/s) are the detector's noise scales.
+* :func:`adaptive_shoe`: the project default. SHOE with a threshold relative to the statistic's
+  local minimum over each gait cycle, so one setting serves walking, running and stairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import minimum_filter1d, uniform_filter1d
+
+from ..units import DEG, G0
+
+
+def _moving_mean(x: np.ndarray, w: int) -> np.ndarray:
+    return uniform_filter1d(x, size=w, axis=0, mode="nearest")
+
+
+def shoe(acc: np.ndarray, gyr: np.ndarray, gamma: float = 2e7, W: int = 5, sigma_a: float = 0.00098, sigma_w: float = 8.7266463e-5, g: float = G0):
+    """SHOE/GLRT statistic and mask (defaults: PyShoe's detector noise scales, its median-ish gamma)."""
+    a_bar = _moving_mean(acc, W)
+    u = a_bar / np.linalg.norm(a_bar, axis=1, keepdims=True)
+    ta = np.sum((acc - g * u) ** 2, axis=1) / sigma_a**2
+    tw = np.sum(gyr**2, axis=1) / sigma_w**2
+    T = _moving_mean(ta + tw, W)
+    return T, T < gamma
+
+
+def ared(gyr: np.ndarray, threshold: float = 0.1, W: int = 5):
+    T = _moving_mean(np.sum(gyr**2, axis=1), W)
+    return T, T < threshold
+
+
+def amvd(acc: np.ndarray, threshold: float = 0.05, n: int = 5, g: float = G0, magnitude_tol: float = 0.5):
+    """Godha eq 1: variance of |a| over n samples < threshold and | |a| - g | < magnitude_tol (m/s^2)."""
+    m = np.linalg.norm(acc, axis=1)
+    mean = _moving_mean(m, n)
+    var = _moving_mean(m * m, n) - mean * mean
+    return var, (var < threshold) & (np.abs(mean - g) < magnitude_tol)
+
+
+def gyro_minimum(gyr: np.ndarray, omega: float = 60 * DEG, n: int = 100):
+    """Ojeda eq 6: per segment of n samples, the least-|omega| sample if below omega (rad/s)."""
+    w = np.linalg.norm(gyr, axis=1)
+    mask = np.zeros(len(w), bool)
+    for s in range(0, len(w), n):
+        seg = w[s : s + n]
+        k = int(np.argmin(seg))
+        if seg[k] < omega:
+            mask[s + k] = True
+    return w, mask
+
+
+def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, sigma_a: float = 0.00098, sigma_w: float = 8.7266463e-5, g: float = G0,
+                  window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9):
+    """SHOE with a threshold that follows the gait: stance where log10 T is within ``decades`` of its
+    minimum over the surrounding ``window`` seconds (and T < ``gamma_max``), or where T < ``gamma_still``.
+
+    Why: the SHOE statistic at mid-stance spans four decades across gaits (PyShoe's per-trial optimal
+    gamma runs from 5e5 walking slowly to 1e9 running), so no fixed gamma serves walking, running
+    and stairs. Every gait cycle still has a stance at which T is near its local minimum, and the
+    swing is decades above it. A window of 1.2 s holds at least one full stride at any pace (a slow
+    walk's stride is ~1.2 s), so every stance is compared with its own cycle. ``gamma_still`` keeps a
+    long standing still (where the window has no swing to contrast) as stance; ``gamma_max`` keeps
+    the detector from calling the quietest moment of a swing-only stretch (e.g. a foot in the air) a
+    stance.
+    """
+    T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
+    logT = np.log10(np.maximum(T, 1e-30))
+    n = max(3, int(round(window * rate_hz)) | 1)
+    local_min = minimum_filter1d(logT, size=n, mode="nearest")
+    mask = ((logT <= local_min + decades) & (T < gamma_max)) | (T < gamma_still)
+    return T, mask
+
+
+DETECTORS = ("adaptive", "shoe", "ared", "amvd", "mbgtd")
