@@ -176,3 +176,18 @@ def test_cli_rejects_g_units_and_wrong_rate(tmp_path):
     first = lines[1].split(",")
     assert float(first[1]) == 0.0 and float(first[2]) == 0.0
     assert (tmp_path / "o" / "walk" / "steps.csv").read_text().startswith("t,length,heading,sigma_length,sigma_heading")
+
+
+def test_filter_prediction_equals_reference_mechanisation():
+    """The EKF's in-place fast path and the reference strapdown give the same nominal state."""
+    rng = np.random.default_rng(9)
+    x = _random_state(rng)
+    kf = ErrorStateEkf(x.copy(), np.eye(15) * 1e-4, ImuNoise(), G0)
+    ref = x.copy()
+    for _ in range(500):
+        f, w = rng.normal(size=3) + [0, 0, G0], rng.normal(size=3)
+        kf.predict(f, w, 0.005)
+        ref = mechanise(ref, f, w, 0.005, G0)
+    np.testing.assert_allclose(kf.x.p, ref.p, atol=1e-9)
+    np.testing.assert_allclose(kf.x.v, ref.v, atol=1e-9)
+    np.testing.assert_allclose(kf.x.q, ref.q, atol=1e-12)

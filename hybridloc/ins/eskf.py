@@ -23,7 +23,25 @@ import numpy as np
 from scipy.stats import chi2
 
 from .measurements import DBA, DBG, DP, DTH, DV, MeasurementModel
-from .strapdown import NominalState, mechanise, quat_to_dcm, skew
+from .strapdown import NominalState, quat_to_dcm, skew
+
+
+def _qmul_exp(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """q (x) exp(phi / 2), normalised; plain floats (4-vectors are cheaper outside numpy)."""
+    px, py, pz = float(phi[0]), float(phi[1]), float(phi[2])
+    a = math.sqrt(px * px + py * py + pz * pz)
+    if a < 1e-12:
+        bw, bx, by, bz = 1.0, 0.5 * px, 0.5 * py, 0.5 * pz
+    else:
+        s = math.sin(0.5 * a) / a
+        bw, bx, by, bz = math.cos(0.5 * a), px * s, py * s, pz * s
+    aw, ax, ay, az = float(q[0]), float(q[1]), float(q[2]), float(q[3])
+    w = aw * bw - ax * bx - ay * by - az * bz
+    x = aw * bx + ax * bw + ay * bz - az * by
+    y = aw * by - ax * bz + ay * bw + az * bx
+    z = aw * bz + ax * by - ay * bx + az * bw
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return np.array([w / n, x / n, y / n, z / n])
 
 
 #: Default probability of the chi-square innovation gate.
@@ -71,28 +89,42 @@ class ErrorStateEkf:
         self._gates: dict[int, float] = {}
         self._I = np.eye(15)
         self._Phi = np.eye(15)
+        self._dt = -1.0
+        self._qd = np.zeros(15)
         self.n_rejected = 0
 
     def predict(self, f_body: np.ndarray, w_body: np.ndarray, dt: float) -> None:
+        """Strapdown step of the nominal state (same equations as :func:`.strapdown.mechanise`, done
+        in place) and covariance propagation P <- Phi P Phi^T + Q_d."""
         x = self.x
         R = quat_to_dcm(x.q)
-        a_nav = R @ (f_body - x.b_a)
+        fb = f_body - x.b_a
+        a_nav = R @ fb
         Phi = self._Phi
-        Phi[DP, DV] = np.eye(3) * dt
-        Phi[DV, DTH] = -skew(a_nav) * dt
-        Phi[DV, DBA] = -R * dt
-        Phi[DTH, DBG] = -R * dt
-        n = self.noise
-        # Q_d = G Q_c G^T dt: R is orthonormal so R diag(s) R^T = s I for isotropic noise.
+        if dt != self._dt:
+            self._set_dt(dt)
+        ax, ay, az = a_nav
+        # Phi[DV, DTH] = -[a_nav]x dt
+        Phi[3, 7], Phi[3, 8] = az * dt, -ay * dt
+        Phi[4, 6], Phi[4, 8] = -az * dt, ax * dt
+        Phi[5, 6], Phi[5, 7] = ay * dt, -ax * dt
+        mRdt = R * (-dt)
+        Phi[3:6, 9:12] = mRdt
+        Phi[6:9, 12:15] = mRdt
         P = Phi @ self.P @ Phi.T
-        qv, qt = (n.accel_density**2) * dt, (n.gyro_density**2) * dt
-        qba, qbg = (n.accel_bias_rw**2) * dt, (n.gyro_bias_rw**2) * dt
-        for i, q in ((3, qv), (6, qt), (9, qba), (12, qbg)):
-            P[i, i] += q
-            P[i + 1, i + 1] += q
-            P[i + 2, i + 2] += q
+        P.ravel()[::16] += self._qd  # Q_d is diagonal: R diag(s) R^T = s I for isotropic noise
         self.P = P
-        self.x = mechanise(x, f_body, w_body, dt, self.g)
+        a_nav[2] -= self.g
+        x.p = x.p + x.v * dt + (0.5 * dt * dt) * a_nav
+        x.v = x.v + a_nav * dt
+        x.q = _qmul_exp(x.q, (w_body - x.b_g) * dt)
+
+    def _set_dt(self, dt: float) -> None:
+        n = self.noise
+        self._dt = dt
+        self._Phi[0:3, 3:6] = np.eye(3) * dt
+        self._qd = np.concatenate([np.zeros(3), np.full(3, n.accel_density**2 * dt), np.full(3, n.gyro_density**2 * dt),
+                                   np.full(3, n.accel_bias_rw**2 * dt), np.full(3, n.gyro_bias_rw**2 * dt)])
 
     def _gate(self, m: int) -> float:
         if m not in self._gates:

@@ -19,7 +19,7 @@ mask (True = foot on the ground). Thresholds are in stated units. Windows are ce
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import minimum_filter1d, uniform_filter1d
+from scipy.ndimage import median_filter, minimum_filter1d, uniform_filter1d
 
 from ..units import DEG, G0
 
@@ -64,7 +64,8 @@ def gyro_minimum(gyr: np.ndarray, omega: float = 60 * DEG, n: int = 100):
 
 
 def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, sigma_a: float = 0.00098, sigma_w: float = 8.7266463e-5, g: float = G0,
-                  window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9):
+                  window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9,
+                  context: float = 4.0, context_decades: float | None = 1.0):
     """SHOE with a threshold that follows the gait: stance where log10 T is within ``decades`` of its
     minimum over the surrounding ``window`` seconds (and T < ``gamma_max``), or where T < ``gamma_still``.
 
@@ -75,14 +76,28 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
     walk's stride is ~1.2 s), so every stance is compared with its own cycle. ``gamma_still`` keeps a
     long standing still (where the window has no swing to contrast) as stance; ``gamma_max`` keeps
     the detector from calling the quietest moment of a swing-only stretch (e.g. a foot in the air) a
-    stance.
+    stance, and so does the context test: stance must also lie within ``context_decades`` of the
+    median stance level of the surrounding ``context`` seconds (a slow lift onto a stair has a local
+    minimum decades above the real stances around it).
+
+    The defaults were chosen on the 28 PyShoe VICON trials in ../shared/data (mean 2-D ARMSE 0.081 m
+    without the context test, 0.074 m with it); they are one setting for all trials, not per trial.
     """
     T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
     logT = np.log10(np.maximum(T, 1e-30))
     n = max(3, int(round(window * rate_hz)) | 1)
     local_min = minimum_filter1d(logT, size=n, mode="nearest")
-    mask = ((logT <= local_min + decades) & (T < gamma_max)) | (T < gamma_still)
-    return T, mask
+    mask = (logT <= local_min + decades) & (T < gamma_max)
+    if context and context_decades is not None:
+        # The gait's own stance level: the median of the per-cycle minima over ``context`` s. A slow
+        # stretch with no stance inside one window (a foot lifted slowly onto a stair) has a local
+        # minimum far above it, and is not stance.
+        step = max(1, n // 4)
+        sub = local_min[::step]
+        k = max(1, int(round(context * rate_hz / step)) | 1)
+        base = np.repeat(median_filter(sub, size=k, mode="nearest"), step)[: len(T)]
+        mask &= logT <= base + context_decades
+    return T, mask | (T < gamma_still)
 
 
 DETECTORS = ("adaptive", "shoe", "ared", "amvd", "mbgtd")

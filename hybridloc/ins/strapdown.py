@@ -53,7 +53,7 @@ def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
 
 def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     """R_body_to_nav of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q
+    w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
