@@ -187,6 +187,83 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_map_build(args: argparse.Namespace) -> int:
+    from .radio.radiomap import BuildParams, build_radio_map
+    from .radio.sources import labelled_from_inputs
+
+    labelled, plan, site = labelled_from_inputs(args.format, args.inputs, args.floorplan)
+    if not labelled:
+        raise ValueError("no labelled scans in the inputs (surveys need at least two waypoints)")
+    params = BuildParams(cell=args.cell, max_age_s=args.max_age)
+    rmap = build_radio_map(labelled, site=args.site or site, plan=plan, params=params)
+    rmap.save(args.out)
+    fl = ", ".join(f"{f.name}: {len(f.cells)} cells, {len(f.tx)} transmitters" for f in rmap.floors.values())
+    print(f"radio map of {len(labelled)} labelled scans -> {args.out} ({fl}; device offsets {rmap.device_offsets})")
+    return 0
+
+
+def _cmd_locate(args: argparse.Namespace) -> int:
+    import csv
+    import math
+
+    from .io.common import stem_of
+    from .io.writers import region_feature, write_geojson
+    from .radio.locate import KnnLocator, ProbabilisticLocator
+    from .radio.radiomap import RadioMap
+    from .radio.sources import scans_to_locate
+
+    rmap = RadioMap.load(args.map)
+    if args.method == "knn":
+        if not rmap.references:
+            raise ValueError(f"{args.map} holds no reference scans for kNN; use --method prob")
+        knn = KnnLocator(rmap.references, k=args.k, max_age_s=args.max_age)
+    else:
+        prob = ProbabilisticLocator(rmap, max_age_s=args.max_age)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for p in args.inputs:
+        scans, _, extras = scans_to_locate(args.format, p)
+        results = knn.locate_many(scans) if args.method == "knn" else [prob.locate(s) for s in scans]
+        stem = stem_of(p)
+        feats = []
+        with open(out / f"{stem}.csv", "w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            extra_cols = ["building"] if args.format == "ujiindoorloc" else []
+            w.writerow(["t", "x", "y", "floor", "sigma_x", "sigma_y", "floor_prob", *extra_cols, "reason"])
+            n_fix = 0
+            for s, res in zip(scans, results):
+                if res.fix is None:
+                    w.writerow([f"{s.t:.3f}", "", "", "", "", "", "", *([""] * len(extra_cols)), res.reason])
+                    continue
+                n_fix += 1
+                fl = res.fix.floor or ""
+                extra = []
+                if args.format == "ujiindoorloc" and fl.startswith("b"):
+                    b, f_ = fl[1:].split("_f")
+                    fl, extra = f_, [b]
+                sx, sy = (math.sqrt(v) for v in (res.fix.cov[0, 0], res.fix.cov[1, 1]))
+                w.writerow([f"{s.t:.3f}", f"{res.fix.pos_enu[0]:.3f}", f"{res.fix.pos_enu[1]:.3f}", fl, f"{sx:.3f}", f"{sy:.3f}", f"{res.fix.floor_prob:.4f}", *extra, ""])
+                if res.region is not None:
+                    feats.append(region_feature(res.region))
+        write_geojson(out / f"{stem}.geojson", feats)
+        print(f"{p}: {len(scans)} scans, {n_fix} fixes -> {out / (stem + '.csv')}")
+    return 0
+
+
+def _cmd_map_show(args: argparse.Namespace) -> int:
+    from .radio.plot import plot_map
+
+    plot_map(args.map, args.out, args.tx)
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_eval_fingerprint(args: argparse.Namespace) -> int:
+    from .radio.evaluate import run_fingerprint_eval
+
+    return run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every)
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -232,6 +309,33 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--threshold", type=float, help="the detector's threshold in its units (see hybridloc.ins.stance)")
     ft.set_defaults(func=_cmd_pdr_foot)
 
+    mp = sub.add_parser("map", help="radio maps: build, show")
+    msub = mp.add_subparsers(dest="map_command", required=True)
+    mb = msub.add_parser("build", help="build a radio map from surveys (waypointed traces) or labelled fingerprints")
+    mb.add_argument("inputs", nargs="+", metavar="INPUT")
+    mb.add_argument("--format", choices=("msft", "ujiindoorloc", "csv"), required=True)
+    mb.add_argument("--floorplan", help="site folder or geojson_map.json of the floor plan (msft; found next to the traces by default)")
+    mb.add_argument("--out", required=True, metavar="MAP", help="radio map file (.npz)")
+    mb.add_argument("--site", help="site name stored in the map")
+    mb.add_argument("--cell", type=float, default=1.5, help="grid cell size, m (default 1.5)")
+    mb.add_argument("--max-age", type=float, default=8.0, help="leave out readings older than this at scan time, s (default 8)")
+    mb.set_defaults(func=_cmd_map_build)
+    ms = msub.add_parser("show", help="coverage and per-transmitter heat maps as a PNG")
+    ms.add_argument("map", metavar="MAP")
+    ms.add_argument("--out", required=True, metavar="PNG")
+    ms.add_argument("--tx", help="transmitter to draw (default: the most widely seen)")
+    ms.set_defaults(func=_cmd_map_show)
+
+    lo = sub.add_parser("locate", help="fingerprint positioning: a CSV of fixes and a GeoJSON of regions per input")
+    lo.add_argument("inputs", nargs="+", metavar="INPUT")
+    lo.add_argument("--map", required=True, metavar="MAP")
+    lo.add_argument("--format", choices=("msft", "ujiindoorloc", "csv"), required=True)
+    lo.add_argument("--out", required=True, metavar="DIR")
+    lo.add_argument("--method", choices=("knn", "prob"), default="knn", help="weighted kNN (default) or the probabilistic cell likelihood")
+    lo.add_argument("--k", type=int, default=5)
+    lo.add_argument("--max-age", type=float, default=8.0, help="ignore readings older than this at scan time, s (default 8)")
+    lo.set_defaults(func=_cmd_locate)
+
     ev = sub.add_parser("eval", help="evaluation commands that print figures")
     esub = ev.add_subparsers(dest="eval_command", required=True)
     ep = esub.add_parser("pdr-phone", help="phone PDR against waypoints of Indoor Location Competition traces")
@@ -244,6 +348,13 @@ def build_parser() -> argparse.ArgumentParser:
     ef = esub.add_parser("pdr-foot", help="foot INS against PyShoe VICON ground truth (ARMSE, return-to-start)")
     ef.add_argument("dir", help="folder of PyShoe .mat trials, e.g. ../shared/data/pyshoe-vicon")
     ef.set_defaults(func=_cmd_eval_pdr_foot)
+
+    efp = esub.add_parser("fingerprint", help="fingerprint positioning on UJIIndoorLoc and Indoor Location Competition data")
+    efp.add_argument("--uji", default="../shared/data/ujiindoorloc/trainingData.csv.gz", help="UJIIndoorLoc CSV ('' to skip)")
+    efp.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="Indoor Location Competition site folder ('' to skip)")
+    efp.add_argument("--folds", type=int, default=4, help="trace folds for the ILC leave-traces-out test")
+    efp.add_argument("--every", type=int, default=1, help="use every N-th ILC trace")
+    efp.set_defaults(func=_cmd_eval_fingerprint)
 
     demo = sub.add_parser("demo", help="run the platform end to end on the bundled sample")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")

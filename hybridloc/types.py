@@ -258,6 +258,9 @@ class RfScan:
     def __len__(self) -> int:
         return len(self.rssi_dbm)
 
+    def __reduce__(self):  # picklable (for worker processes) despite the read-only mapping views
+        return (RfScan, (self.t, self.technology, dict(self.rssi_dbm), dict(self.frequency_hz), dict(self.age_s), self.device_model))
+
 
 # ----------------------------------------------------------------------------------------------
 # Absolute information

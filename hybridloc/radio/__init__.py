@@ -1,0 +1,1 @@
+"""Radio maps, passive survey labelling, fingerprint positioning and similarity."""

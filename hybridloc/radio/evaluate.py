@@ -1,0 +1,144 @@
+"""Fingerprint evaluation (``hybridloc eval fingerprint``).
+
+* Indoor Location Competition site: every trace is labelled as a passive survey (PDR bridged between
+  its waypoints); traces are split into ``folds`` groups; each group is located with a radio map built
+  from all the others (all floors), and every held-out scan between two waypoints is scored against the
+  waypoints interpolated to its time.
+* UJIIndoorLoc: cross-validation grouped by user (every user's rows are located with the other users'
+  rows as references), with a plain 3-NN on raw dBm measured in the same run.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import shapely
+
+from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
+from ..pdr.phone import PhonePdr
+from ..pdr.steplength import make_model
+from ..types import RfScan, Technology
+from .locate import KnnLocator, LocateResult, ProbabilisticLocator
+from .radiomap import BuildParams, build_radio_map
+from .survey import LabelledScan, label_scans
+
+
+@dataclass
+class TraceData:
+    name: str
+    floor: str
+    labelled: list[LabelledScan]
+    wp_t: np.ndarray
+    wp_xy: np.ndarray
+    scans: list[RfScan]
+
+
+def load_site_surveys(site_dir: str | Path, every: int = 1, technology: str = "wifi") -> list[TraceData]:
+    out = []
+    for p in find_ilc_traces(site_dir)[::every]:
+        tr = read_ilc_trace(p)
+        if tr.imu is None or len(tr.waypoints) < 2:
+            continue
+        pdr = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), heading0=0.0)
+        steps = pdr.process(tr.imu)
+        scans = [s for s in tr.scans if s.technology.value == technology]
+        lab = label_scans(scans, steps, tr.waypoints, float(tr.imu.t[0]), source=p.name)
+        out.append(TraceData(p.name, tr.floor or "", lab, tr.waypoints.t, tr.waypoints.pos_enu, scans))
+    return out
+
+
+@dataclass
+class FingerprintScore:
+    errors: list[float] = field(default_factory=list)
+    floor_hits: list[bool] = field(default_factory=list)
+    region_hits: list[bool] = field(default_factory=list)
+    region_areas: list[float] = field(default_factory=list)
+    no_fix: int = 0
+
+    def add(self, res: LocateResult, truth_xy: np.ndarray, truth_floor: str) -> None:
+        if res.fix is None:
+            self.no_fix += 1
+            return
+        self.floor_hits.append(res.fix.floor == truth_floor)
+        self.errors.append(float(np.linalg.norm(res.fix.pos_enu[:2] - truth_xy)) if res.fix.floor == truth_floor else float("nan"))
+        if res.region is not None:
+            self.region_hits.append(res.region.floor == truth_floor and res.region.contains(truth_xy))
+            self.region_areas.append(res.region.area_m2)
+
+
+def evaluate_ilc(traces: list[TraceData], folds: int = 4, method: str = "prob", params: BuildParams | None = None, plan=None, **loc_kw) -> FingerprintScore:
+    score = FingerprintScore()
+    for f in range(folds):
+        train = [t for i, t in enumerate(traces) if i % folds != f]
+        test = [t for i, t in enumerate(traces) if i % folds == f]
+        refs = [ls for t in train for ls in t.labelled]
+        if method == "prob":
+            loc = ProbabilisticLocator(build_radio_map(refs, plan=plan, params=params), **loc_kw)
+        else:
+            loc = KnnLocator(refs, **loc_kw)
+        for t in test:
+            scans = [s for s in t.scans if t.wp_t[0] <= s.t <= t.wp_t[-1]]
+            if not scans:
+                continue
+            truth = np.column_stack([np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 0]), np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 1])])
+            results = [loc.locate(s) for s in scans] if method == "prob" else loc.locate_many(scans)
+            for res, xy in zip(results, truth):
+                score.add(res, xy, t.floor)
+    return score
+
+
+def evaluate_uji(path: str, k: int = 5) -> dict:
+    """Grouped-by-user cross-validation of weighted kNN (powed) against a plain 3-NN on raw dBm."""
+    from ..io.uji import read_uji
+    from .sources import uji_floor_name
+
+    d = read_uji(path)
+    keep = np.isfinite(d.rssi_dbm).any(axis=1)
+    labelled = [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in np.flatnonzero(keep)]
+    users = d.user[keep]
+    res = {"ours": ([], [], []), "plain": ([], [], [])}
+    for u in np.unique(users):
+        refs = [ls for ls, uu in zip(labelled, users) if uu != u]
+        test = [ls for ls, uu in zip(labelled, users) if uu == u]
+        for name, loc in (("ours", KnnLocator(refs, k=k, representation="powed")), ("plain", KnnLocator(refs, k=3, representation="raw"))):
+            out = loc.locate_many([t.scan for t in test])
+            e, fh, bh = res[name]
+            for t, r in zip(test, out):
+                bh.append(r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0])
+                fh.append(r.fix is not None and r.fix.floor == t.floor)
+                e.append(float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if r.fix is not None and r.fix.floor == t.floor else float("nan"))
+    return {n: {"errors": np.array(v[0]), "floor": float(np.mean(v[1])), "building": float(np.mean(v[2]))} for n, v in res.items()}
+
+
+def _fmt(e: np.ndarray) -> str:
+    e = e[np.isfinite(e)]
+    return f"mean {e.mean():.2f} m, median {np.median(e):.2f}, p75 {np.percentile(e, 75):.2f}, p95 {np.percentile(e, 95):.2f} (n={len(e)})"
+
+
+def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1) -> int:
+    if uji:
+        if not Path(uji).is_file():
+            raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
+        r = evaluate_uji(uji)
+        print(f"UJIIndoorLoc {uji}: cross-validation grouped by user (validationData.csv is not available here)")
+        for name, label in (("ours", "weighted 5-NN, powed"), ("plain", "plain 3-NN, raw dBm")):
+            v = r[name]
+            print(f"  {label:<22} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
+        eo, ep = r["ours"]["errors"], r["plain"]["errors"]
+        print(f"  ratio of mean error ours/plain: {np.nanmean(eo) / np.nanmean(ep):.2f}  (goal: floor >= 95 %, building 100 %, mean <= 6 m on the standard split)")
+    if ilc:
+        if not Path(ilc).is_dir():
+            raise ValueError(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")
+        traces = load_site_surveys(ilc, every)
+        plan = read_ilc_site(ilc)
+        print(f"Indoor Location Competition {ilc}: {len(traces)} traces as surveys, {folds}-fold leave-traces-out, WiFi only, per scan")
+        for method, kw, label in (("knn", {"k": 5, "max_age_s": 8.0}, "weighted 5-NN, powed"), ("prob", {"max_age_s": 8.0}, "cell likelihood")):
+            s = evaluate_ilc(traces, folds, method, plan=plan, params=BuildParams(max_age_s=8.0) if method == "prob" else None, **kw)
+            e = np.array(s.errors)
+            print(f"  {label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
+                  f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}")
+        print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
+    return 0

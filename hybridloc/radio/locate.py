@@ -1,0 +1,227 @@
+"""Fingerprint positioning: a probabilistic cell likelihood and weighted kNN, both answering with an
+:class:`~hybridloc.types.AbsoluteFix` and a 95 % :class:`~hybridloc.types.ContainmentRegion`.
+
+Probabilistic model (per floor f, cell c, observed transmitters O with readings r_j):
+
+    log L(c) = sum_{j in O} [ log pd(c,j) - 1/2 min(z_j^2, z_max^2) - log s(c,j) ]
+             + sum_{j not in O} log(1 - pd(c,j))
+
+with z_j = (r_j - mu(c,j)) / s(c,j), s^2 = sd^2 + sigma_meas^2. The second sum is the model for
+missing transmitters (a strong transmitter the map expects but the scan lacks counts against c);
+it is computed as a per-cell constant minus the observed terms, so a query costs O(|O| x cells).
+The quadratic is truncated at ``z_max`` (a Huber-like guard against a moved access point or a body
+in the way). Readings are treated as independent, which overcounts evidence from correlated
+transmitters; the log-likelihood is divided by a temperature ``tau`` (>= 1) so that the 95 % region
+is a 95 % region (``hybridloc eval fingerprint`` prints its hit rate).
+
+Floors: the posterior over cells of every floor is normalised jointly with a uniform prior per unit
+walkable area; the floor probability is each floor's share. The fix is the posterior mean and
+covariance on the most probable floor (plus the cell's own cell^2/12 spread); the region is the
+smallest set of that floor's cells holding 95 % of its posterior, as polygons.
+
+"No fix" answers (fix None, region None, a reason): no known transmitter in the scan, every reading at
+the detection floor, or a map of another site.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from scipy.special import logsumexp
+from sklearn.neighbors import KNeighborsClassifier, KNeighborsRegressor
+
+from ..types import AbsoluteFix, ContainmentRegion, FixSource, RfScan
+from .radiomap import FLOOR_DBM, RadioMap
+from .survey import LabelledScan
+
+#: Log-likelihood of hearing a transmitter the floor's map does not hold (p_d 0.005, weak reading).
+UNMAPPED_LOGLIK = math.log(0.005) - 0.5 * 9.0 - math.log(10.0)
+#: Value used for "not heard" in fingerprint vectors, dBm.
+MISSING_DBM = -110.0
+
+
+@dataclass
+class LocateResult:
+    fix: AbsoluteFix | None
+    region: ContainmentRegion | None
+    floor_probs: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+    n_known: int = 0
+
+
+@dataclass
+class _FloorCache:
+    name: str
+    col: np.ndarray  # (M,) map transmitter index -> this floor's column, -1 when not on this floor
+    cells: np.ndarray
+    mu_T: np.ndarray  # (m, n)
+    isd_T: np.ndarray  # (m, n) 1 / s
+    c0_T: np.ndarray  # (m, n) log pd - log(1 - pd) - log s
+    base: np.ndarray  # (n,) sum_j log(1 - pd)
+    log_area: float
+    cell: float
+
+
+class ProbabilisticLocator:
+    def __init__(self, rmap: RadioMap, sigma_meas: float = 3.0, z_max: float = 3.0, tau: float = 4.0, mass: float = 0.95,
+                 region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0):
+        self.map = rmap
+        self.sigma_meas = sigma_meas
+        self.z_max = z_max
+        self.tau = tau
+        self.mass = mass
+        self.region = region
+        self.max_age_s = max_age_s
+        self._floors = []
+        for f in rmap.floors.values():
+            keep = f.support >= min_support
+            f = FloorMapView(f, keep)
+            s = np.sqrt(f.sd.astype(np.float64) ** 2 + sigma_meas**2)
+            pd = f.pd.astype(np.float64)
+            c0 = np.log(pd) - missing_weight * np.log1p(-pd) - np.log(s)
+            col = np.full(len(rmap.transmitters), -1, dtype=np.int64)
+            col[f.tx] = np.arange(len(f.tx))
+            self._floors.append(_FloorCache(f.name, col, f.cells, np.ascontiguousarray(f.mu.T, dtype=np.float32), np.ascontiguousarray((1.0 / s).T, dtype=np.float32),
+                                            np.ascontiguousarray(c0.T, dtype=np.float32), missing_weight * np.log1p(-pd).sum(axis=1), math.log(len(f.cells) * f.cell_size**2), f.cell_size))
+
+    def locate(self, scan: RfScan, site: str | None = None) -> LocateResult:
+        if site is not None and self.map.site and site != self.map.site:
+            return LocateResult(None, None, reason=f"the map is of site {self.map.site!r}, not {site!r}")
+        tix = self.map.tx_index
+        off = self.map.device_offsets.get(scan.device_model, 0.0)
+        J, r = [], []
+        for k, v in scan.rssi_dbm.items():
+            if self.max_age_s is not None and scan.age_s.get(k, 0.0) > self.max_age_s:
+                continue
+            j = tix.get(k)
+            if j is not None:
+                J.append(j)
+                r.append(v - off)
+        if not J:
+            return LocateResult(None, None, reason="no known transmitter in the scan")
+        r = np.asarray(r, dtype=np.float32)
+        if float(r.max()) <= FLOOR_DBM + 1e-6:
+            return LocateResult(None, None, reason="every reading is at the detection floor", n_known=len(J))
+        J = np.asarray(J)
+        zz = np.float32(self.z_max**2)
+        logs, names = [], []
+        for fc in self._floors:
+            cj = fc.col[J]
+            here = cj >= 0
+            c = cj[here]
+            d = (r[here][:, None] - fc.mu_T[c]) * fc.isd_T[c]
+            q = np.minimum(d * d, zz)
+            ll = fc.base + (fc.c0_T[c] - 0.5 * q).sum(axis=0, dtype=np.float64)
+            # heard here but never mapped on this floor: as unlikely as the map allows anywhere
+            ll += (~here).sum() * UNMAPPED_LOGLIK
+            logs.append(ll / self.tau - fc.log_area)
+            names.append(fc.name)
+        ev = np.array([logsumexp(x) for x in logs])
+        fp = np.exp(ev - logsumexp(ev))
+        best = int(np.argmax(fp))
+        fc = self._floors[best]
+        w = np.exp(logs[best] - logs[best].max())
+        w /= w.sum()
+        mean = w @ fc.cells
+        dxy = fc.cells - mean
+        cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (fc.cell**2 / 12.0)
+        fix = AbsoluteFix(scan.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI if scan.technology.value == "wifi" else FixSource.BLE, fc.name, float(fp[best]))
+        region = None
+        if self.region:
+            order = np.argsort(-w)
+            k = int(np.searchsorted(np.cumsum(w[order]), self.mass)) + 1
+            sel = order[:k]
+            h = fc.cell / 2.0
+            boxes = shapely.box(fc.cells[sel, 0] - h, fc.cells[sel, 1] - h, fc.cells[sel, 0] + h, fc.cells[sel, 1] + h)
+            region = ContainmentRegion(fc.name, shapely.union_all(boxes), self.mass, scan.t)
+        return LocateResult(fix, region, dict(zip(names, fp.tolist())), n_known=len(J))
+
+
+class FloorMapView:
+    """The cells of a floor map selected by a mask (same attributes as FloorMap)."""
+
+    def __init__(self, f, keep: np.ndarray):
+        self.name, self.cell_size, self.tx = f.name, f.cell_size, f.tx
+        self.cells, self.mu, self.sd, self.pd = f.cells[keep], f.mu[keep], f.sd[keep], f.pd[keep]
+
+
+def fingerprint_matrix(scans: list[RfScan], tx_index: dict[str, int], offsets: dict[str, float] | None = None, max_age_s: float | None = None) -> np.ndarray:
+    """(n, m) matrix of readings in dBm with MISSING_DBM for transmitters not heard (or heard more
+    than ``max_age_s`` before the scan: a stale cached reading describes another place)."""
+    X = np.full((len(scans), len(tx_index)), MISSING_DBM, dtype=np.float32)
+    for i, s in enumerate(scans):
+        off = (offsets or {}).get(s.device_model, 0.0)
+        for k, v in s.rssi_dbm.items():
+            if max_age_s is not None and s.age_s.get(k, 0.0) > max_age_s:
+                continue
+            j = tx_index.get(k)
+            if j is not None:
+                X[i, j] = v - off
+    return X
+
+
+def powed(X: np.ndarray, beta: float = math.e) -> np.ndarray:
+    """Torres-Sospedra et al.'s "powed" representation: ((x - min) / -min)^beta, 0 for missing.
+
+    It compresses the weak, noisy end of the dBm scale so that strong readings dominate distances.
+    """
+    lo = MISSING_DBM
+    return np.clip((X - lo) / -lo, 0.0, None) ** beta
+
+
+class KnnLocator:
+    """Weighted k-nearest-neighbour positioning over labelled reference scans (scikit-learn).
+
+    Floor = majority vote of the k neighbours (weighted by inverse distance); position = inverse-distance
+    weighted mean of the neighbours on that floor; covariance = their weighted spread plus the labels'
+    own uncertainty; region = the union of discs of radius 2 sigma around them (a 95 % region for a
+    2-D Gaussian needs 2.45 sigma; the neighbours' spread already widens it).
+    """
+
+    def __init__(self, refs: list[LabelledScan], k: int = 5, representation: str = "powed", tx: list[str] | None = None, max_age_s: float | None = None):
+        if not refs:
+            raise ValueError("kNN needs reference scans")
+        self.refs = refs
+        txs = tx or sorted({k for r in refs for k in r.scan.rssi_dbm})
+        self.tx_index = {t: i for i, t in enumerate(txs)}
+        self.representation = representation
+        self.k = min(k, len(refs))
+        self.max_age_s = max_age_s
+        X = self._rep(fingerprint_matrix([r.scan for r in refs], self.tx_index, max_age_s=max_age_s))
+        self.pos = np.array([r.pos_enu for r in refs])
+        self.sig = np.array([r.sigma for r in refs])
+        self.floors = np.array([r.floor or "" for r in refs])
+        self.reg = KNeighborsRegressor(n_neighbors=self.k, weights="distance").fit(X, self.pos)
+        self.clf = KNeighborsClassifier(n_neighbors=self.k, weights="distance").fit(X, self.floors)
+
+    def _rep(self, X):
+        return powed(X) if self.representation == "powed" else X
+
+    def locate_many(self, scans: list[RfScan]) -> list[LocateResult]:
+        X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
+        known = (X > MISSING_DBM).sum(axis=1)
+        Xr = self._rep(X)
+        dist, idx = self.reg.kneighbors(Xr)
+        fprob = self.clf.predict_proba(Xr)
+        out = []
+        for i, s in enumerate(scans):
+            if known[i] == 0:
+                out.append(LocateResult(None, None, reason="no known transmitter in the scan"))
+                continue
+            b = int(np.argmax(fprob[i]))
+            fl = self.clf.classes_[b]
+            nb = idx[i][self.floors[idx[i]] == fl]
+            dd = dist[i][self.floors[idx[i]] == fl]
+            w = 1.0 / np.maximum(dd, 1e-9)
+            w /= w.sum()
+            mean = w @ self.pos[nb]
+            dxy = self.pos[nb] - mean
+            cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + 0.25)
+            fix = AbsoluteFix(s.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i][b]))
+            rad = 2.0 * math.sqrt(max(np.linalg.eigvalsh(cov).max(), 1e-6))
+            region = ContainmentRegion(fl or None, shapely.union_all(shapely.buffer(shapely.points(self.pos[nb]), rad)), 0.95, s.t)
+            out.append(LocateResult(fix, region, {str(c): float(p) for c, p in zip(self.clf.classes_, fprob[i])}, n_known=int(known[i])))
+        return out

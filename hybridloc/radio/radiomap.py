@@ -1,0 +1,364 @@
+"""Radio maps: what each transmitter looks like at each place of each floor of a site.
+
+Model
+-----
+Per floor, a grid of square cells (``cell`` m, default 1.5) clipped to the walkable area of the floor
+plan (or to the surveyed area plus a margin when there is no plan). For every cell c and transmitter
+j the map holds the RSSI mean mu[c, j] (dBm), its standard deviation sd[c, j] (dB) and the detection
+probability pd[c, j], plus the raw sample count per cell.
+
+Interpolation to unvisited cells: Gaussian-kernel regression of the per-cell statistics (kernel
+sigma ``bandwidth`` m, truncated at 3 sigma) with a prior of weight ``prior_weight`` samples pulling
+towards the transmitter's floor-wide mean. This is the posterior mean of a Gaussian process with a
+squared-exponential kernel under the usual Nadaraya-Watson approximation (each cell's neighbourhood
+treated as exchangeable), at a cost proportional to the data instead of cubic in it: a GP per
+transmitter is ~10^3 GPs of ~10^3-10^4 points per floor, which the 30 s build budget for 100,000 scans
+cannot afford. The uncertainty grows as the effective detection count n_d falls away from the data:
+sd^2 = shadow_sd^2 + s_floor^2 * prior_weight / (n_d + prior_weight), s_floor the floor-wide spread.
+
+Time: every sample is weighted by 0.5^(age / half_life) (age relative to the newest scan), so
+transmitters that move or vanish fade out and new ones appear as soon as they are seen; each
+transmitter keeps its last-seen time.
+
+Devices: RSSI offsets per device model are estimated after a first pass (median residual against the
+map) and removed before the final pass; the offsets are kept in the map for positioning.
+
+File format (one portable ``.npz`` file, see docs/radiomap.md): a JSON header under key ``meta``
+(format name, version, site, floors, grids, transmitter ids, device offsets, build parameters) and
+one array set per floor: ``<floor>/cells`` (n, 2) cell centres, ``<floor>/mu``, ``<floor>/sd``,
+``<floor>/pd`` (n, m) float32, ``<floor>/count`` (n,), ``<floor>/support`` (n,) n_eff.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import shapely
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from ..types import FloorPlan
+from .survey import LabelledScan
+
+FORMAT_NAME = "hybridloc-radiomap"
+FORMAT_VERSION = 1
+#: RSSI assumed for a transmitter at the edge of detection, dBm (prior mean for barely-seen cells).
+FLOOR_DBM = -100.0
+
+
+@dataclass
+class BuildParams:
+    cell: float = 1.5  # m
+    bandwidth: float = 2.0  # m, Gaussian kernel sigma
+    prior_weight: float = 0.5  # samples
+    shadow_sd: float = 5.0  # dB, spread of single readings around the local mean
+    margin: float = 6.0  # m around the data when there is no floor plan
+    min_samples: int = 3  # detections for a transmitter to enter the map
+    half_life_days: float = 90.0
+    estimate_device_offsets: bool = True
+    max_age_s: float | None = None  # readings older than this at scan time are left out (stale cache)
+
+
+@dataclass
+class FloorMap:
+    name: str
+    cells: np.ndarray  # (n, 2) cell centres, m
+    mu: np.ndarray  # (n, m) dBm
+    sd: np.ndarray  # (n, m) dB
+    pd: np.ndarray  # (n, m) detection probability
+    count: np.ndarray  # (n,) raw labelled scans per cell
+    support: np.ndarray  # (n,) effective (kernel-weighted) scans
+    cell_size: float
+    tx: np.ndarray  # (m_f,) indices into RadioMap.transmitters of this floor's columns
+    _tree: cKDTree | None = field(default=None, repr=False)
+
+    @property
+    def tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.cells)
+        return self._tree
+
+    def cell_polygon(self, i: int):
+        x, y = self.cells[i]
+        h = self.cell_size / 2
+        return shapely.box(x - h, y - h, x + h, y + h)
+
+
+@dataclass
+class RadioMap:
+    site: str
+    technology: str
+    transmitters: list[str]
+    floors: dict[str, FloorMap]
+    device_offsets: dict[str, float]
+    last_seen: np.ndarray  # (m,) newest time each transmitter was seen, s
+    built_at: float  # newest scan time used, s
+    params: BuildParams
+    floor_levels: dict[str, int] = field(default_factory=dict)
+    #: The labelled scans the map was built from (kept for kNN positioning and for rebuilding).
+    references: list[LabelledScan] = field(default_factory=list)
+
+    @property
+    def tx_index(self) -> dict[str, int]:
+        if not hasattr(self, "_tx_index"):
+            self._tx_index = {t: i for i, t in enumerate(self.transmitters)}
+        return self._tx_index
+
+    # ------------------------------------------------------------------ file format
+    def save(self, path: str | os.PathLike) -> None:
+        meta = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "site": self.site,
+            "technology": self.technology,
+            "transmitters": self.transmitters,
+            "floors": [{"name": f.name, "cell_size": f.cell_size, "level": self.floor_levels.get(f.name)} for f in self.floors.values()],
+            "device_offsets": self.device_offsets,
+            "built_at": self.built_at,
+            "params": self.params.__dict__,
+        }
+        arrays = {"meta": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8), "last_seen": self.last_seen}
+        arrays.update(_references_to_arrays(self.references, self.tx_index))
+        for f in self.floors.values():
+            k = f"floor{list(self.floors).index(f.name)}"
+            arrays[f"{k}/cells"] = f.cells.astype(np.float64)
+            arrays[f"{k}/mu"] = f.mu.astype(np.float32)
+            arrays[f"{k}/sd"] = f.sd.astype(np.float32)
+            arrays[f"{k}/pd"] = f.pd.astype(np.float32)
+            arrays[f"{k}/count"] = f.count.astype(np.int32)
+            arrays[f"{k}/support"] = f.support.astype(np.float32)
+            arrays[f"{k}/tx"] = f.tx.astype(np.int32)
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "RadioMap":
+        try:
+            z = np.load(path, allow_pickle=False)
+            meta = json.loads(bytes(z["meta"]).decode("utf-8"))
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"{path}: not a hybridloc radio map ({exc})") from exc
+        if meta.get("format") != FORMAT_NAME:
+            raise ValueError(f"{path}: not a hybridloc radio map (format {meta.get('format')!r})")
+        if int(meta.get("version", 0)) > FORMAT_VERSION:
+            raise ValueError(f"{path}: radio map version {meta['version']} is newer than this hybridloc understands ({FORMAT_VERSION})")
+        floors = {}
+        levels = {}
+        for i, fm in enumerate(meta["floors"]):
+            k = f"floor{i}"
+            floors[fm["name"]] = FloorMap(fm["name"], z[f"{k}/cells"], z[f"{k}/mu"], z[f"{k}/sd"], z[f"{k}/pd"], z[f"{k}/count"], z[f"{k}/support"],
+                                          float(fm["cell_size"]), z[f"{k}/tx"])
+            if fm.get("level") is not None:
+                levels[fm["name"]] = int(fm["level"])
+        txs = list(meta["transmitters"])
+        return cls(meta["site"], meta["technology"], txs, floors, {k: float(v) for k, v in meta["device_offsets"].items()},
+                   z["last_seen"], float(meta["built_at"]), BuildParams(**meta["params"]), levels, _references_from_arrays(z, txs, meta["technology"]))
+
+
+def _references_to_arrays(refs: list[LabelledScan], tix: dict[str, int]) -> dict[str, np.ndarray]:
+    """Reference scans as flat arrays: one row per reading (ref index, transmitter index, dBm, age)."""
+    fl_names = sorted({r.floor or "" for r in refs})
+    fl_idx = {f: i for i, f in enumerate(fl_names)}
+    ri, tj, val, age = [], [], [], []
+    extra: dict[str, int] = {}
+    for i, r in enumerate(refs):
+        for k, v in r.scan.rssi_dbm.items():
+            j = tix.get(k)
+            if j is None:  # a transmitter too rare for the map: keep it for kNN under an extra index
+                j = extra.setdefault(k, len(tix) + len(extra))
+            ri.append(i)
+            tj.append(j)
+            val.append(v)
+            age.append(r.scan.age_s.get(k, 0.0))
+    return {
+        "ref/t": np.array([r.scan.t for r in refs], float), "ref/pos": np.array([r.pos_enu for r in refs], float).reshape(-1, 2),
+        "ref/sigma": np.array([r.sigma for r in refs], float), "ref/floor": np.array([fl_idx[r.floor or ""] for r in refs], np.int32),
+        "ref/floor_names": np.frombuffer(json.dumps(fl_names).encode(), np.uint8), "ref/extra_tx": np.frombuffer(json.dumps(list(extra)).encode(), np.uint8),
+        "ref/device": np.frombuffer(json.dumps([r.scan.device_model for r in refs]).encode(), np.uint8),
+        "ref/i": np.array(ri, np.int32), "ref/j": np.array(tj, np.int32), "ref/rssi": np.array(val, np.float32), "ref/age": np.array(age, np.float32),
+    }
+
+
+def _references_from_arrays(z, txs: list[str], technology: str) -> list[LabelledScan]:
+    from ..types import RfScan
+
+    if "ref/t" not in z:
+        return []
+    names = txs + json.loads(bytes(z["ref/extra_tx"]).decode())
+    fl_names = json.loads(bytes(z["ref/floor_names"]).decode())
+    devices = json.loads(bytes(z["ref/device"]).decode())
+    t, pos, sig, fl = z["ref/t"], z["ref/pos"], z["ref/sigma"], z["ref/floor"]
+    ri, tj, val, age = z["ref/i"], z["ref/j"], z["ref/rssi"], z["ref/age"]
+    order = np.argsort(ri, kind="stable")
+    bounds = np.searchsorted(ri[order], np.arange(len(t) + 1))
+    out = []
+    for i in range(len(t)):
+        sel = order[bounds[i] : bounds[i + 1]]
+        rssi = {names[j]: float(v) for j, v in zip(tj[sel], val[sel])}
+        ages = {names[j]: float(a) for j, a in zip(tj[sel], age[sel])}
+        out.append(LabelledScan(RfScan(float(t[i]), technology, rssi, age_s=ages, device_model=devices[i]), pos[i], float(sig[i]), fl_names[fl[i]] or None))
+    return out
+
+
+# ---------------------------------------------------------------------- building
+def _grid_cells(points: np.ndarray, cell: float, margin: float, walkable=None) -> np.ndarray:
+    if walkable is not None:
+        x0, y0, x1, y1 = walkable.bounds
+    else:
+        x0, y0 = points.min(0) - margin
+        x1, y1 = points.max(0) + margin
+    xs = np.arange(x0 + cell / 2, x1, cell)
+    ys = np.arange(y0 + cell / 2, y1, cell)
+    gx, gy = np.meshgrid(xs, ys)
+    c = np.column_stack([gx.ravel(), gy.ravel()])
+    if walkable is not None:
+        c = c[shapely.contains_xy(walkable, c[:, 0], c[:, 1])]
+    else:
+        d, _ = cKDTree(points).query(c, k=1)
+        c = c[d <= margin]
+    return c
+
+
+def build_radio_map(labelled: list[LabelledScan], site: str = "", plan: FloorPlan | None = None, params: BuildParams | None = None,
+                    technology: str = "wifi") -> RadioMap:
+    """Build a radio map from labelled scans of one technology (see the module docstring)."""
+    p = params or BuildParams()
+    scans = [ls for ls in labelled if ls.scan.technology.value == technology]
+    if not scans:
+        raise ValueError(f"no labelled {technology} scans to build a map from")
+    t_new = max(ls.scan.t for ls in scans)
+    # transmitters with enough detections
+    counts: dict[str, int] = defaultdict(int)
+    last: dict[str, float] = {}
+    for ls in scans:
+        for k in ls.scan.rssi_dbm:
+            counts[k] += 1
+            last[k] = max(last.get(k, -math.inf), ls.scan.t)
+    txs = sorted(k for k, n in counts.items() if n >= p.min_samples)
+    if not txs:
+        raise ValueError("no transmitter was detected often enough to map")
+    tix = {k: i for i, k in enumerate(txs)}
+    offsets: dict[str, float] = {}
+    floors: dict[str, FloorMap] = {}
+    by_floor: dict[str, list[LabelledScan]] = defaultdict(list)
+    for ls in scans:
+        by_floor[ls.floor or "0"].append(ls)
+    for _pass in range(2 if p.estimate_device_offsets else 1):
+        floors = {}
+        for fname, fl_scans in by_floor.items():
+            walk = None
+            if plan is not None:
+                try:
+                    walk = plan.floor(fname).walkable
+                except KeyError:
+                    walk = None
+            floors[fname] = _build_floor(fname, fl_scans, tix, p, t_new, walk, offsets)
+        if _pass == 0 and p.estimate_device_offsets:
+            offsets = _device_offsets(floors, by_floor, tix)
+            if len(offsets) <= 1:  # one device model: its offset is the map itself; nothing to remove
+                offsets = {k: 0.0 for k in offsets}
+                break
+    levels = {}
+    if plan is not None:
+        for f in plan.floors:
+            levels[f.name] = f.level
+    return RadioMap(site, technology, txs, floors, offsets, np.array([last[k] for k in txs]), t_new, p, levels, list(scans))
+
+
+def _build_floor(name, fl_scans, tix, p: BuildParams, t_new, walkable, offsets) -> FloorMap:
+    pts = np.array([ls.pos_enu for ls in fl_scans])
+    cells = _grid_cells(pts, p.cell, p.margin, walkable)
+    if len(cells) == 0:
+        raise ValueError(f"floor {name}: no walkable cell near the data")
+    # Keep the cells the data informs: within 3 kernel sigmas (plus a cell) of a labelled scan.
+    d, _ = cKDTree(pts).query(cells, k=1)
+    cells = cells[d <= 3 * p.bandwidth + p.cell]
+    if len(cells) == 0:
+        raise ValueError(f"floor {name}: no walkable cell near the data")
+    tree = cKDTree(cells)
+    _, ci = tree.query(pts, k=1)
+    n_cells = len(cells)
+    # this floor's transmitters: those detected here at least min_samples times
+    det_count: dict[int, int] = defaultdict(int)
+    for ls in fl_scans:
+        for k in ls.scan.rssi_dbm:
+            j = tix.get(k)
+            if j is not None:
+                det_count[j] += 1
+    ftx = np.array(sorted(j for j, n in det_count.items() if n >= p.min_samples), dtype=np.int64)
+    col = {int(j): c for c, j in enumerate(ftx)}
+    m = len(ftx)
+    # per-sample weights: recency
+    age_days = (t_new - np.array([ls.scan.t for ls in fl_scans])) / 86400.0
+    w = 0.5 ** (np.maximum(age_days, 0.0) / p.half_life_days)
+    rows, cols, vals = [], [], []
+    for i, ls in enumerate(fl_scans):
+        off = offsets.get(ls.scan.device_model, 0.0)
+        for k, r in ls.scan.rssi_dbm.items():
+            if p.max_age_s is not None and ls.scan.age_s.get(k, 0.0) > p.max_age_s:
+                continue
+            j = tix.get(k)
+            c = col.get(j) if j is not None else None
+            if c is not None:
+                rows.append(i)
+                cols.append(c)
+                vals.append(r - off)
+    S = len(fl_scans)
+    vals_a = np.asarray(vals, float)
+    det = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(S, m))
+    rs = sparse.csr_matrix((vals_a, (rows, cols)), shape=(S, m))
+    rs2 = sparse.csr_matrix((vals_a**2, (rows, cols)), shape=(S, m))
+    # aggregate samples into cells: A (cells x samples) with recency weights
+    A = sparse.csr_matrix((w, (ci, np.arange(S))), shape=(n_cells, S))
+    n_c = np.asarray(A.sum(axis=1)).ravel()
+    D_c, R_c, R2_c = A @ det, A @ rs, A @ rs2
+    # Gaussian kernel between cells, truncated at 3 sigma (the diagonal is exp(0) = 1)
+    K = tree.sparse_distance_matrix(tree, 3 * p.bandwidth, output_type="coo_matrix")
+    Kw = sparse.csr_matrix((np.exp(-0.5 * (K.data / p.bandwidth) ** 2), (K.row, K.col)), shape=(n_cells, n_cells))
+    Kw = Kw + sparse.identity(n_cells, format="csr") - sparse.diags(Kw.diagonal())  # make sure the diagonal is 1
+    n_eff = Kw @ n_c
+    D_s = (Kw @ D_c).toarray().astype(np.float32)
+    R_s = (Kw @ R_c).toarray().astype(np.float32)
+    R2_s = (Kw @ R2_c).toarray().astype(np.float32)
+    tot_det = np.asarray(D_c.sum(axis=0)).ravel()
+    mu0 = np.where(tot_det > 0, np.asarray(R_c.sum(axis=0)).ravel() / np.maximum(tot_det, 1e-12), FLOOR_DBM)
+    var0 = np.where(tot_det > 1, np.asarray(R2_c.sum(axis=0)).ravel() / np.maximum(tot_det, 1e-12) - mu0**2, 100.0)
+    var0 = np.clip(var0, 9.0, 400.0).astype(np.float32)
+    a = np.float32(p.prior_weight)
+    # Far from detections the prior says: rarely seen (p_d 0.02); the RSSI prior is the transmitter's
+    # floor-wide mean. Near data both are the kernel-weighted local estimates.
+    pd = (D_s + a * np.float32(0.02)) / (n_eff[:, None].astype(np.float32) + a)
+    mu = (R_s + a * mu0.astype(np.float32)[None, :]) / (D_s + a)
+    # Spread: temporal/shadowing noise of a reading (``shadow_sd``) plus the uncertainty of the local
+    # mean, which falls back to the floor-wide spread where the data are thin.
+    var = np.float32(p.shadow_sd**2) + var0[None, :] * a / (D_s + a)
+    pd = np.clip(pd, 0.005, 0.995)
+    cnt = np.bincount(ci, minlength=n_cells)
+    return FloorMap(name, cells, mu.astype(np.float32), np.sqrt(var).astype(np.float32), pd.astype(np.float32), cnt, n_eff.astype(np.float32), p.cell, ftx)
+
+
+def _device_offsets(floors: dict[str, FloorMap], by_floor, tix) -> dict[str, float]:
+    """Median residual (reading - map mean at the labelled cell) per device model, dB."""
+    res: dict[str, list[float]] = defaultdict(list)
+    for fname, fl_scans in by_floor.items():
+        fm = floors[fname]
+        _, ci = fm.tree.query(np.array([ls.pos_enu for ls in fl_scans]), k=1)
+        col = {int(j): c for c, j in enumerate(fm.tx)}
+        for ls, c in zip(fl_scans, ci):
+            for k, r in ls.scan.rssi_dbm.items():
+                j = col.get(tix.get(k, -1))
+                if j is not None and fm.pd[c, j] > 0.5:
+                    res[ls.scan.device_model].append(r - float(fm.mu[c, j]))
+    med = {d: float(np.median(v)) for d, v in res.items() if v}
+    if not med:
+        return {}
+    ref = float(np.median(list(med.values())))
+    return {d: v - ref for d, v in med.items()}

@@ -1,0 +1,179 @@
+"""Radio maps, survey labelling, positioning, similarity: synthetic worlds with known truth + real data."""
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+
+from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
+from hybridloc.radio.radiomap import BuildParams, RadioMap, build_radio_map
+from hybridloc.radio.similarity import ProximityModel, cosine_shifted, jaccard
+from hybridloc.radio.survey import LabelledScan, label_scans
+from hybridloc.types import RfScan, StepEvent, Waypoints
+
+APS = {"ap1": (0.0, 0.0), "ap2": (30.0, 0.0), "ap3": (0.0, 30.0), "ap4": (30.0, 30.0), "ap5": (15.0, 15.0)}
+
+
+def rssi_at(xy, rng, noise=2.0):
+    """Log-distance path loss: -40 dBm at 1 m, exponent 3 (typical indoor), Gaussian noise."""
+    out = {}
+    for k, p in APS.items():
+        d = max(1.0, math.dist(xy, p))
+        r = -40.0 - 30.0 * math.log10(d) + noise * rng.standard_normal()
+        if r > -95:
+            out[k] = r
+    return out
+
+
+def synth_survey(rng, n=1500, t0=0.0):
+    pts = rng.uniform(0, 30, (n, 2))
+    return [LabelledScan(RfScan(t0 + i, "wifi", rssi_at(p, rng), device_model="phoneA"), p, 0.5, "F1") for i, p in enumerate(pts)]
+
+
+def test_survey_labelling_stretches_and_rotates_pdr_between_marks():
+    # PDR walks East 10 steps of 0.7 m (7 m); the marks say the walk went 10 m North.
+    steps = [StepEvent(t=1.0 + i, length=0.7, heading=0.0, sigma_length=0.05, sigma_heading=0.05) for i in range(10)]
+    wp = Waypoints(np.array([0.5, 10.0]), np.array([[5.0, 5.0], [5.0, 15.0]]), "F2")
+    scans = [RfScan(t, "wifi", {"a": -50.0}) for t in (0.2, 0.5, 5.5, 10.0, 12.0)]
+    lab = label_scans(scans, steps, wp, t_start=0.0)
+    assert [round(ls.scan.t, 1) for ls in lab] == [0.5, 5.5, 10.0]  # outside the marks: not labelled
+    np.testing.assert_allclose(lab[0].pos_enu, [5.0, 5.0], atol=1e-9)
+    np.testing.assert_allclose(lab[2].pos_enu, [5.0, 15.0], atol=1e-9)
+    assert lab[1].pos_enu[0] == pytest.approx(5.0, abs=1e-9) and 5.0 < lab[1].pos_enu[1] < 15.0
+    assert lab[0].sigma == pytest.approx(0.5) and lab[1].sigma > lab[0].sigma  # uncertainty peaks mid-way
+    assert all(ls.floor == "F2" for ls in lab)
+
+
+@pytest.fixture(scope="module")
+def world():
+    rng = np.random.default_rng(11)
+    refs = synth_survey(rng)
+    rmap = build_radio_map(refs, site="synth", params=BuildParams(cell=1.5, min_samples=3))
+    test_pts = rng.uniform(3, 27, (60, 2))
+    tests = [RfScan(10_000.0 + i, "wifi", rssi_at(p, rng), device_model="phoneA") for i, p in enumerate(test_pts)]
+    return refs, rmap, test_pts, tests
+
+
+def test_probabilistic_and_knn_locate_synthetic_world(world):
+    refs, rmap, pts, tests = world
+    for name, results in (("prob", [ProbabilisticLocator(rmap, tau=1.0).locate(s) for s in tests]), ("knn", KnnLocator(refs, k=5).locate_many(tests))):
+        err = np.array([np.linalg.norm(r.fix.pos_enu - p) for r, p in zip(results, pts)])
+        # 2 dB noise on a 30 dB/decade slope is ~15 % range error per AP; with 5 APs a few metres
+        # at most in a 30 m room.
+        assert np.median(err) < 3.0, (name, np.median(err))
+        hits = np.mean([r.region.contains(p) for r, p in zip(results, pts)])
+        assert hits >= 0.8, (name, hits)
+        assert all(r.fix.floor == "F1" and 0 < r.fix.floor_prob <= 1 for r in results)
+
+
+def test_no_fix_answers(world):
+    _, rmap, _, _ = world
+    loc = ProbabilisticLocator(rmap)
+    assert loc.locate(RfScan(1.0, "wifi", {"unknown": -50.0})).reason == "no known transmitter in the scan"
+    r = loc.locate(RfScan(1.0, "wifi", {"ap1": -100.0, "ap2": -100.0}))
+    assert r.fix is None and "floor" in r.reason
+    r = loc.locate(RfScan(1.0, "wifi", {"ap1": -50.0}), site="another-site")
+    assert r.fix is None and "site" in r.reason
+
+
+def test_map_file_round_trip(world, tmp_path):
+    _, rmap, _, tests = world
+    p = tmp_path / "m.npz"
+    rmap.save(p)
+    back = RadioMap.load(p)
+    assert back.transmitters == rmap.transmitters and back.site == "synth"
+    np.testing.assert_array_equal(back.floors["F1"].mu, rmap.floors["F1"].mu)
+    assert len(back.references) == len(rmap.references)
+    a = ProbabilisticLocator(rmap).locate(tests[0]).fix.pos_enu
+    b = ProbabilisticLocator(back).locate(tests[0]).fix.pos_enu
+    np.testing.assert_allclose(a, b)
+    (tmp_path / "bad.npz").write_bytes(b"not a map")
+    with pytest.raises(ValueError, match="not a hybridloc radio map"):
+        RadioMap.load(tmp_path / "bad.npz")
+
+
+def test_device_offset_is_estimated_and_removed():
+    rng = np.random.default_rng(12)
+    refs = synth_survey(rng, 1200)
+    # a second phone model reads 6 dB low
+    for ls in synth_survey(rng, 1200, t0=5000.0):
+        s = ls.scan
+        refs.append(LabelledScan(RfScan(s.t, "wifi", {k: v - 6.0 for k, v in s.rssi_dbm.items()}, device_model="phoneB"), ls.pos_enu, 0.5, "F1"))
+    rmap = build_radio_map(refs)
+    assert rmap.device_offsets["phoneB"] - rmap.device_offsets["phoneA"] == pytest.approx(-6.0, abs=1.0)
+
+
+def test_aging_fades_a_moved_transmitter():
+    rng = np.random.default_rng(13)
+    old = synth_survey(rng, 800, t0=0.0)
+    # 300 days later ap5 moved to (5, 25): new survey
+    APS_new = dict(APS, ap5=(5.0, 25.0))
+    new = []
+    for i, p in enumerate(rng.uniform(0, 30, (800, 2))):
+        r = {k: -40.0 - 30.0 * math.log10(max(1.0, math.dist(p, q))) + 2.0 * rng.standard_normal() for k, q in APS_new.items()}
+        new.append(LabelledScan(RfScan(300 * 86400.0 + i, "wifi", {k: v for k, v in r.items() if v > -95}), p, 0.5, "F1"))
+    rmap = build_radio_map(old + new, params=BuildParams(half_life_days=30.0))
+    f = rmap.floors["F1"]
+    c = int(np.flatnonzero(f.tx == rmap.tx_index["ap5"])[0])
+    near_new = f.tree.query([5.0, 25.0])[1]
+    near_old = f.tree.query([15.0, 15.0])[1]
+    assert f.mu[near_new, c] > f.mu[near_old, c]  # the map follows the new position
+
+
+def test_similarity_measures_and_learned_proximity():
+    a = RfScan(0, "wifi", {"x": -50.0, "y": -70.0})
+    assert cosine_shifted(a, a) == pytest.approx(1.0) and jaccard(a, a) == 1.0
+    b = RfScan(0, "wifi", {"z": -60.0})
+    assert cosine_shifted(a, b) == 0.0 and jaccard(a, b) == 0.0
+    rng = np.random.default_rng(14)
+    refs = synth_survey(rng, 600)
+    model = ProximityModel.fit(refs, radius=5.0, n_pairs=4000, rng=np.random.default_rng(1))
+    p_same = model.probability(RfScan(0, "wifi", rssi_at((10, 10), rng)), RfScan(1, "wifi", rssi_at((10.5, 10), rng)))
+    p_far = model.probability(RfScan(0, "wifi", rssi_at((2, 2), rng)), RfScan(1, "wifi", rssi_at((28, 28), rng)))
+    assert p_same > 2 * p_far
+    # calibration: on fresh random pairs the mean predicted probability matches the observed rate
+    fresh = synth_survey(np.random.default_rng(15), 400)
+    pr, obs = [], []
+    for i in range(0, 398, 2):
+        a, b = fresh[i], fresh[i + 1]
+        pr.append(model.probability(a.scan, b.scan))
+        obs.append(np.linalg.norm(a.pos_enu - b.pos_enu) < 5.0)
+    assert abs(np.mean(pr) - np.mean(obs)) < 0.1
+
+
+def test_cli_build_locate_show_on_bundled_sample(tmp_path):
+    import csv
+    import subprocess
+    import sys
+
+    from hybridloc.samples import ILC_SITE1_F1
+
+    traces = sorted((ILC_SITE1_F1 / "F1" / "path_data_files").glob("*.txt.gz"))
+    run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", *a], capture_output=True, text=True, timeout=300)  # noqa: E731
+    m = tmp_path / "f1.npz"
+    r = run("map", "build", "--format", "msft", *map(str, traces[:12]), "--out", str(m))
+    assert r.returncode == 0, r.stderr
+    r = run("locate", "--map", str(m), "--format", "msft", str(traces[13]), "--out", str(tmp_path / "loc"))
+    assert r.returncode == 0, r.stderr
+    stem = traces[13].name.replace(".txt.gz", "")
+    rows = list(csv.DictReader(open(tmp_path / "loc" / f"{stem}.csv")))
+    assert rows and list(rows[0])[:7] == ["t", "x", "y", "floor", "sigma_x", "sigma_y", "floor_prob"]
+    assert all(r["floor"] == "F1" for r in rows if r["x"])
+    assert (tmp_path / "loc" / f"{stem}.geojson").is_file()
+    r = run("map", "show", str(m), "--out", str(tmp_path / "m.png"))
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "m.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.shared_data
+def test_uji_knn_building_and_floor(shared_data):
+    from hybridloc.radio.sources import labelled_from_inputs
+
+    lab, _, _ = labelled_from_inputs("ujiindoorloc", [str(shared_data / "ujiindoorloc" / "trainingData.csv.gz")])
+    rng = np.random.default_rng(3)
+    idx = rng.permutation(len(lab))
+    refs, test = [lab[i] for i in idx[:6000]], [lab[i] for i in idx[6000:6400]]
+    out = KnnLocator(refs).locate_many([t.scan for t in test])
+    building = np.mean([o.fix.floor.split("_")[0] == t.floor.split("_")[0] for o, t in zip(out, test)])
+    assert building >= 0.99  # buildings are 100s of metres apart with their own access points
