@@ -67,7 +67,8 @@ class _FloorCache:
 
 class ProbabilisticLocator:
     def __init__(self, rmap: RadioMap, sigma_meas: float = 3.0, z_max: float = 3.0, tau: float = 4.0, mass: float = 0.95,
-                 region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0):
+                 region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0,
+                 prefilter: int | None = 400, n_prefilter_tx: int = 8):
         self.map = rmap
         self.sigma_meas = sigma_meas
         self.z_max = z_max
@@ -75,6 +76,8 @@ class ProbabilisticLocator:
         self.mass = mass
         self.region = region
         self.max_age_s = max_age_s
+        self.prefilter = prefilter
+        self.n_prefilter_tx = n_prefilter_tx
         self._floors = []
         for f in rmap.floors.values():
             keep = f.support >= min_support
@@ -108,25 +111,42 @@ class ProbabilisticLocator:
         J = np.asarray(J)
         zz = np.float32(self.z_max**2)
         logs, names = [], []
+        cells_used = []
         for fc in self._floors:
             cj = fc.col[J]
             here = cj >= 0
             c = cj[here]
-            d = (r[here][:, None] - fc.mu_T[c]) * fc.isd_T[c]
+            rh = r[here]
+            n_cells = fc.mu_T.shape[1]
+            cand = None
+            if self.prefilter and n_cells > self.prefilter and len(c) > self.n_prefilter_tx:
+                # Two stages (same model): the strongest readings alone rank the cells, and the full
+                # likelihood is evaluated on the best ``prefilter`` of them. The cells left out hold
+                # negligible posterior mass: a cell far from the strongest transmitters is unlikely.
+                top = np.argsort(-rh)[: self.n_prefilter_tx]
+                d = (rh[top][:, None] - fc.mu_T[c[top]]) * fc.isd_T[c[top]]
+                coarse = -np.minimum(d * d, zz).sum(axis=0, dtype=np.float64)  # fit of the strongest readings only
+                cand = np.argpartition(-coarse, self.prefilter)[: self.prefilter]
+                mu, isd, c0, base = fc.mu_T[c][:, cand], fc.isd_T[c][:, cand], fc.c0_T[c][:, cand], fc.base[cand]
+            else:
+                mu, isd, c0, base = fc.mu_T[c], fc.isd_T[c], fc.c0_T[c], fc.base
+            d = (rh[:, None] - mu) * isd
             q = np.minimum(d * d, zz)
-            ll = fc.base + (fc.c0_T[c] - 0.5 * q).sum(axis=0, dtype=np.float64)
+            ll = base + (c0 - 0.5 * q).sum(axis=0, dtype=np.float64)
             # heard here but never mapped on this floor: as unlikely as the map allows anywhere
             ll += (~here).sum() * UNMAPPED_LOGLIK
             logs.append(ll / self.tau - fc.log_area)
             names.append(fc.name)
+            cells_used.append(fc.cells if cand is None else fc.cells[cand])
         ev = np.array([logsumexp(x) for x in logs])
         fp = np.exp(ev - logsumexp(ev))
         best = int(np.argmax(fp))
         fc = self._floors[best]
+        cells = cells_used[best]
         w = np.exp(logs[best] - logs[best].max())
         w /= w.sum()
-        mean = w @ fc.cells
-        dxy = fc.cells - mean
+        mean = w @ cells
+        dxy = cells - mean
         cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (fc.cell**2 / 12.0)
         fix = AbsoluteFix(scan.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI if scan.technology.value == "wifi" else FixSource.BLE, fc.name, float(fp[best]))
         region = None
@@ -135,7 +155,7 @@ class ProbabilisticLocator:
             k = int(np.searchsorted(np.cumsum(w[order]), self.mass)) + 1
             sel = order[:k]
             h = fc.cell / 2.0
-            boxes = shapely.box(fc.cells[sel, 0] - h, fc.cells[sel, 1] - h, fc.cells[sel, 0] + h, fc.cells[sel, 1] + h)
+            boxes = shapely.box(cells[sel, 0] - h, cells[sel, 1] - h, cells[sel, 0] + h, cells[sel, 1] + h)
             region = ContainmentRegion(fc.name, shapely.union_all(boxes), self.mass, scan.t)
         return LocateResult(fix, region, dict(zip(names, fp.tolist())), n_known=len(J))
 

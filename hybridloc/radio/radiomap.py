@@ -227,6 +227,46 @@ def _grid_cells(points: np.ndarray, cell: float, margin: float, walkable=None) -
     return c
 
 
+@dataclass
+class _Readings:
+    """All readings of a set of scans as flat arrays (one Python pass; everything after is numpy)."""
+
+    scan: np.ndarray  # (R,) scan index
+    tx: np.ndarray  # (R,) global transmitter index
+    rssi: np.ndarray  # (R,) dBm
+    t: np.ndarray  # (S,) scan times
+    pos: np.ndarray  # (S, 2)
+    floor: np.ndarray  # (S,) floor index
+    device: np.ndarray  # (S,) device index
+    floors: list[str]
+    devices: list[str]
+    txs: list[str]
+
+
+def _collect(scans: list[LabelledScan], max_age_s: float | None) -> _Readings:
+    tix: dict[str, int] = {}
+    fl: dict[str, int] = {}
+    dv: dict[str, int] = {}
+    si, tj, rv = [], [], []
+    for i, ls in enumerate(scans):
+        ages = ls.scan.age_s if max_age_s is not None else None
+        for k, r in ls.scan.rssi_dbm.items():
+            if ages is not None and ages.get(k, 0.0) > max_age_s:
+                continue
+            j = tix.get(k)
+            if j is None:
+                j = tix[k] = len(tix)
+            si.append(i)
+            tj.append(j)
+            rv.append(r)
+    return _Readings(
+        np.asarray(si, np.int64), np.asarray(tj, np.int64), np.asarray(rv, np.float64),
+        np.array([ls.scan.t for ls in scans]), np.array([ls.pos_enu for ls in scans], float).reshape(-1, 2),
+        np.array([fl.setdefault(ls.floor or "0", len(fl)) for ls in scans]), np.array([dv.setdefault(ls.scan.device_model, len(dv)) for ls in scans]),
+        list(fl), list(dv), list(tix),
+    )
+
+
 def build_radio_map(labelled: list[LabelledScan], site: str = "", plan: FloorPlan | None = None, params: BuildParams | None = None,
                     technology: str = "wifi") -> RadioMap:
     """Build a radio map from labelled scans of one technology (see the module docstring)."""
@@ -234,100 +274,86 @@ def build_radio_map(labelled: list[LabelledScan], site: str = "", plan: FloorPla
     scans = [ls for ls in labelled if ls.scan.technology.value == technology]
     if not scans:
         raise ValueError(f"no labelled {technology} scans to build a map from")
-    t_new = max(ls.scan.t for ls in scans)
-    # transmitters with enough detections
-    counts: dict[str, int] = defaultdict(int)
-    last: dict[str, float] = {}
-    for ls in scans:
-        for k in ls.scan.rssi_dbm:
-            counts[k] += 1
-            last[k] = max(last.get(k, -math.inf), ls.scan.t)
-    txs = sorted(k for k, n in counts.items() if n >= p.min_samples)
-    if not txs:
+    rd = _collect(scans, p.max_age_s)
+    if rd.rssi.size == 0:
+        raise ValueError("the labelled scans hold no readings")
+    t_new = float(rd.t.max())
+    n_tx_all = len(rd.txs)
+    counts = np.bincount(rd.tx, minlength=n_tx_all)
+    last = np.full(n_tx_all, -np.inf)
+    np.maximum.at(last, rd.tx, rd.t[rd.scan])
+    keep_tx = np.flatnonzero(counts >= p.min_samples)
+    if keep_tx.size == 0:
         raise ValueError("no transmitter was detected often enough to map")
-    tix = {k: i for i, k in enumerate(txs)}
-    offsets: dict[str, float] = {}
+    # global map index of every kept transmitter, sorted by name for a stable file
+    order = sorted(keep_tx.tolist(), key=lambda j: rd.txs[j])
+    txs = [rd.txs[j] for j in order]
+    gmap = np.full(n_tx_all, -1, np.int64)
+    gmap[order] = np.arange(len(order))
+    keep = gmap[rd.tx] >= 0
+    R = _Readings(rd.scan[keep], gmap[rd.tx[keep]], rd.rssi[keep], rd.t, rd.pos, rd.floor, rd.device, rd.floors, rd.devices, txs)
+    dev_off = np.zeros(len(R.devices))
     floors: dict[str, FloorMap] = {}
-    by_floor: dict[str, list[LabelledScan]] = defaultdict(list)
-    for ls in scans:
-        by_floor[ls.floor or "0"].append(ls)
-    for _pass in range(2 if p.estimate_device_offsets else 1):
+    for _pass in range(2 if (p.estimate_device_offsets and len(R.devices) > 1) else 1):
         floors = {}
-        for fname, fl_scans in by_floor.items():
+        for fi, fname in enumerate(R.floors):
             walk = None
             if plan is not None:
                 try:
                     walk = plan.floor(fname).walkable
                 except KeyError:
                     walk = None
-            floors[fname] = _build_floor(fname, fl_scans, tix, p, t_new, walk, offsets)
-        if _pass == 0 and p.estimate_device_offsets:
-            offsets = _device_offsets(floors, by_floor, tix)
-            if len(offsets) <= 1:  # one device model: its offset is the map itself; nothing to remove
-                offsets = {k: 0.0 for k in offsets}
-                break
-    levels = {}
-    if plan is not None:
-        for f in plan.floors:
-            levels[f.name] = f.level
-    return RadioMap(site, technology, txs, floors, offsets, np.array([last[k] for k in txs]), t_new, p, levels, list(scans))
+            floors[fname] = _build_floor(fname, fi, R, dev_off, p, t_new, walk)
+        if _pass == 0 and len(R.devices) > 1:
+            dev_off = _device_offsets(floors, R)
+    offsets = {d: float(dev_off[i]) for i, d in enumerate(R.devices)}
+    levels = {f.name: f.level for f in plan.floors} if plan is not None else {}
+    return RadioMap(site, technology, txs, floors, offsets, last[order], t_new, p, levels, list(scans))
 
 
-def _build_floor(name, fl_scans, tix, p: BuildParams, t_new, walkable, offsets) -> FloorMap:
-    pts = np.array([ls.pos_enu for ls in fl_scans])
+def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: BuildParams, t_new: float, walkable) -> FloorMap:
+    sel_scans = np.flatnonzero(R.floor == fi)
+    pts = R.pos[sel_scans]
     cells = _grid_cells(pts, p.cell, p.margin, walkable)
-    if len(cells) == 0:
-        raise ValueError(f"floor {name}: no walkable cell near the data")
-    # Keep the cells the data informs: within 3 kernel sigmas (plus a cell) of a labelled scan.
-    d, _ = cKDTree(pts).query(cells, k=1)
-    cells = cells[d <= 3 * p.bandwidth + p.cell]
+    if len(cells):
+        # Keep the cells the data informs: within 3 kernel sigmas (plus a cell) of a labelled scan.
+        d, _ = cKDTree(pts).query(cells, k=1)
+        cells = cells[d <= 3 * p.bandwidth + p.cell]
     if len(cells) == 0:
         raise ValueError(f"floor {name}: no walkable cell near the data")
     tree = cKDTree(cells)
-    _, ci = tree.query(pts, k=1)
+    _, ci_local = tree.query(pts, k=1)
     n_cells = len(cells)
-    # this floor's transmitters: those detected here at least min_samples times
-    det_count: dict[int, int] = defaultdict(int)
-    for ls in fl_scans:
-        for k in ls.scan.rssi_dbm:
-            j = tix.get(k)
-            if j is not None:
-                det_count[j] += 1
-    ftx = np.array(sorted(j for j, n in det_count.items() if n >= p.min_samples), dtype=np.int64)
-    col = {int(j): c for c, j in enumerate(ftx)}
+    local = np.full(len(R.t), -1, np.int64)
+    local[sel_scans] = np.arange(len(sel_scans))
+    rsel = local[R.scan] >= 0
+    r_scan = local[R.scan[rsel]]
+    r_tx = R.tx[rsel]
+    r_val = R.rssi[rsel] - dev_off[R.device[sel_scans][r_scan]]
+    # this floor's transmitters: detected here at least min_samples times
+    cnt_tx = np.bincount(r_tx, minlength=len(R.txs))
+    ftx = np.flatnonzero(cnt_tx >= p.min_samples)
+    col = np.full(len(R.txs), -1, np.int64)
+    col[ftx] = np.arange(len(ftx))
+    k = col[r_tx] >= 0
+    r_scan, r_col, r_val = r_scan[k], col[r_tx[k]], r_val[k]
     m = len(ftx)
-    # per-sample weights: recency
-    age_days = (t_new - np.array([ls.scan.t for ls in fl_scans])) / 86400.0
+    S = len(sel_scans)
+    age_days = (t_new - R.t[sel_scans]) / 86400.0
     w = 0.5 ** (np.maximum(age_days, 0.0) / p.half_life_days)
-    rows, cols, vals = [], [], []
-    for i, ls in enumerate(fl_scans):
-        off = offsets.get(ls.scan.device_model, 0.0)
-        for k, r in ls.scan.rssi_dbm.items():
-            if p.max_age_s is not None and ls.scan.age_s.get(k, 0.0) > p.max_age_s:
-                continue
-            j = tix.get(k)
-            c = col.get(j) if j is not None else None
-            if c is not None:
-                rows.append(i)
-                cols.append(c)
-                vals.append(r - off)
-    S = len(fl_scans)
-    vals_a = np.asarray(vals, float)
-    det = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(S, m))
-    rs = sparse.csr_matrix((vals_a, (rows, cols)), shape=(S, m))
-    rs2 = sparse.csr_matrix((vals_a**2, (rows, cols)), shape=(S, m))
-    # aggregate samples into cells: A (cells x samples) with recency weights
-    A = sparse.csr_matrix((w, (ci, np.arange(S))), shape=(n_cells, S))
+    det = sparse.csr_matrix((np.ones(len(r_scan)), (r_scan, r_col)), shape=(S, m))
+    rs = sparse.csr_matrix((r_val, (r_scan, r_col)), shape=(S, m))
+    rs2 = sparse.csr_matrix((r_val**2, (r_scan, r_col)), shape=(S, m))
+    A = sparse.csr_matrix((w, (ci_local, np.arange(S))), shape=(n_cells, S))
     n_c = np.asarray(A.sum(axis=1)).ravel()
     D_c, R_c, R2_c = A @ det, A @ rs, A @ rs2
-    # Gaussian kernel between cells, truncated at 3 sigma (the diagonal is exp(0) = 1)
+    # Gaussian kernel between cells, truncated at 3 sigma, diagonal 1
     K = tree.sparse_distance_matrix(tree, 3 * p.bandwidth, output_type="coo_matrix")
     Kw = sparse.csr_matrix((np.exp(-0.5 * (K.data / p.bandwidth) ** 2), (K.row, K.col)), shape=(n_cells, n_cells))
-    Kw = Kw + sparse.identity(n_cells, format="csr") - sparse.diags(Kw.diagonal())  # make sure the diagonal is 1
+    Kw = Kw + sparse.identity(n_cells, format="csr") - sparse.diags(Kw.diagonal())
     n_eff = Kw @ n_c
     D_s = (Kw @ D_c).toarray().astype(np.float32)
     R_s = (Kw @ R_c).toarray().astype(np.float32)
-    R2_s = (Kw @ R2_c).toarray().astype(np.float32)
     tot_det = np.asarray(D_c.sum(axis=0)).ravel()
     mu0 = np.where(tot_det > 0, np.asarray(R_c.sum(axis=0)).ravel() / np.maximum(tot_det, 1e-12), FLOOR_DBM)
     var0 = np.where(tot_det > 1, np.asarray(R2_c.sum(axis=0)).ravel() / np.maximum(tot_det, 1e-12) - mu0**2, 100.0)
@@ -341,24 +367,31 @@ def _build_floor(name, fl_scans, tix, p: BuildParams, t_new, walkable, offsets) 
     # mean, which falls back to the floor-wide spread where the data are thin.
     var = np.float32(p.shadow_sd**2) + var0[None, :] * a / (D_s + a)
     pd = np.clip(pd, 0.005, 0.995)
-    cnt = np.bincount(ci, minlength=n_cells)
+    cnt = np.bincount(ci_local, minlength=n_cells)
     return FloorMap(name, cells, mu.astype(np.float32), np.sqrt(var).astype(np.float32), pd.astype(np.float32), cnt, n_eff.astype(np.float32), p.cell, ftx)
 
 
-def _device_offsets(floors: dict[str, FloorMap], by_floor, tix) -> dict[str, float]:
-    """Median residual (reading - map mean at the labelled cell) per device model, dB."""
-    res: dict[str, list[float]] = defaultdict(list)
-    for fname, fl_scans in by_floor.items():
+def _device_offsets(floors: dict[str, FloorMap], R: _Readings) -> np.ndarray:
+    """Median residual (reading - map mean at the labelled cell, where p_d > 0.5) per device model,
+    relative to the median device, dB."""
+    res_dev, res_val = [], []
+    for fi, fname in enumerate(R.floors):
         fm = floors[fname]
-        _, ci = fm.tree.query(np.array([ls.pos_enu for ls in fl_scans]), k=1)
-        col = {int(j): c for c, j in enumerate(fm.tx)}
-        for ls, c in zip(fl_scans, ci):
-            for k, r in ls.scan.rssi_dbm.items():
-                j = col.get(tix.get(k, -1))
-                if j is not None and fm.pd[c, j] > 0.5:
-                    res[ls.scan.device_model].append(r - float(fm.mu[c, j]))
-    med = {d: float(np.median(v)) for d, v in res.items() if v}
-    if not med:
-        return {}
-    ref = float(np.median(list(med.values())))
-    return {d: v - ref for d, v in med.items()}
+        sel = np.flatnonzero(R.floor == fi)
+        _, ci = fm.tree.query(R.pos[sel], k=1)
+        cell_of = np.full(len(R.t), -1, np.int64)
+        cell_of[sel] = ci
+        col = np.full(len(R.txs), -1, np.int64)
+        col[fm.tx] = np.arange(len(fm.tx))
+        c = cell_of[R.scan]
+        j = col[R.tx]
+        ok = (c >= 0) & (j >= 0)
+        c, j, sc = c[ok], j[ok], R.scan[ok]
+        strong = fm.pd[c, j] > 0.5
+        res_val.append(R.rssi[ok][strong] - fm.mu[c[strong], j[strong]])
+        res_dev.append(R.device[sc[strong]])
+    dev = np.concatenate(res_dev) if res_dev else np.zeros(0, int)
+    val = np.concatenate(res_val) if res_val else np.zeros(0)
+    med = np.array([np.median(val[dev == d]) if np.any(dev == d) else np.nan for d in range(len(R.devices))])
+    ref = np.nanmedian(med) if np.isfinite(med).any() else 0.0
+    return np.nan_to_num(med - ref)
