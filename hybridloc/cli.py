@@ -222,8 +222,13 @@ def _cmd_locate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for p in args.inputs:
-        scans, _, extras = scans_to_locate(args.format, p)
-        results = knn.locate_many(scans) if args.method == "knn" else [prob.locate(s) for s in scans]
+        scans, site = scans_to_locate(args.format, p)
+        if site and rmap.site and site != rmap.site:
+            from .radio.locate import LocateResult
+
+            results = [LocateResult(None, None, reason=f"the map is of site {rmap.site!r}, this input of {site!r}") for _ in scans]
+        else:
+            results = knn.locate_many(scans) if args.method == "knn" else [prob.locate(s) for s in scans]
         stem = stem_of(p)
         feats = []
         with open(out / f"{stem}.csv", "w", newline="", encoding="utf-8") as f:

@@ -103,7 +103,7 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
     for u in np.unique(users):
         refs = [ls for ls, uu in zip(labelled, users) if uu != u]
         test = [ls for ls, uu in zip(labelled, users) if uu == u]
-        for name, loc in (("ours", KnnLocator(refs, k=k, representation="powed")), ("plain", KnnLocator(refs, k=3, representation="raw"))):
+        for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw"))):
             out = loc.locate_many([t.scan for t in test])
             e, fh, bh = res[name]
             for t, r in zip(test, out):
@@ -124,7 +124,7 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1) -> 
             raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
         r = evaluate_uji(uji)
         print(f"UJIIndoorLoc {uji}: cross-validation grouped by user (validationData.csv is not available here)")
-        for name, label in (("ours", "weighted 5-NN, powed"), ("plain", "plain 3-NN, raw dBm")):
+        for name, label in (("ours", "weighted 5-NN, powed-rel"), ("plain", "plain 3-NN, raw dBm")):
             v = r[name]
             print(f"  {label:<22} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
         eo, ep = r["ours"]["errors"], r["plain"]["errors"]

@@ -68,7 +68,7 @@ class _FloorCache:
 class ProbabilisticLocator:
     def __init__(self, rmap: RadioMap, sigma_meas: float = 3.0, z_max: float = 3.0, tau: float = 4.0, mass: float = 0.95,
                  region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0,
-                 prefilter: int | None = 400, n_prefilter_tx: int = 8):
+                 prefilter: int | None = 400, n_prefilter_tx: int = 8, tau_region: float | None = None):
         self.map = rmap
         self.sigma_meas = sigma_meas
         self.z_max = z_max
@@ -78,6 +78,7 @@ class ProbabilisticLocator:
         self.max_age_s = max_age_s
         self.prefilter = prefilter
         self.n_prefilter_tx = n_prefilter_tx
+        self.tau_region = tau_region or tau
         self._floors = []
         for f in rmap.floors.values():
             keep = f.support >= min_support
@@ -111,7 +112,7 @@ class ProbabilisticLocator:
         J = np.asarray(J)
         zz = np.float32(self.z_max**2)
         logs, names = [], []
-        cells_used = []
+        cells_used, raw = [], []
         for fc in self._floors:
             cj = fc.col[J]
             here = cj >= 0
@@ -136,6 +137,7 @@ class ProbabilisticLocator:
             # heard here but never mapped on this floor: as unlikely as the map allows anywhere
             ll += (~here).sum() * UNMAPPED_LOGLIK
             logs.append(ll / self.tau - fc.log_area)
+            raw.append(ll)
             names.append(fc.name)
             cells_used.append(fc.cells if cand is None else fc.cells[cand])
         ev = np.array([logsumexp(x) for x in logs])
@@ -151,8 +153,12 @@ class ProbabilisticLocator:
         fix = AbsoluteFix(scan.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI if scan.technology.value == "wifi" else FixSource.BLE, fc.name, float(fp[best]))
         region = None
         if self.region:
-            order = np.argsort(-w)
-            k = int(np.searchsorted(np.cumsum(w[order]), self.mass)) + 1
+            # The region may use a higher temperature than the fix (tau_region): the independence
+            # assumption makes the posterior too sharp for its 95 % set to hold 95 % of the truths.
+            wr = np.exp((raw[best] - raw[best].max()) / self.tau_region)
+            wr /= wr.sum()
+            order = np.argsort(-wr)
+            k = int(np.searchsorted(np.cumsum(wr[order]), self.mass)) + 1
             sel = order[:k]
             h = fc.cell / 2.0
             boxes = shapely.box(cells[sel, 0] - h, cells[sel, 1] - h, cells[sel, 0] + h, cells[sel, 1] + h)
@@ -195,15 +201,22 @@ def powed(X: np.ndarray, beta: float = math.e) -> np.ndarray:
 class KnnLocator:
     """Weighted k-nearest-neighbour positioning over labelled reference scans (scikit-learn).
 
+    Fingerprints are compared in Torres-Sospedra's "powed" representation; with references from several
+    phone models each scan is first shifted so its three strongest readings average -50 dBm
+    ("powed-rel"), which removes the unknown RSSI offset of the querying phone.
     Floor = majority vote of the k neighbours (weighted by inverse distance); position = inverse-distance
     weighted mean of the neighbours on that floor; covariance = their weighted spread plus the labels'
     own uncertainty; region = the union of discs of radius 2 sigma around them (a 95 % region for a
     2-D Gaussian needs 2.45 sigma; the neighbours' spread already widens it).
     """
 
-    def __init__(self, refs: list[LabelledScan], k: int = 5, representation: str = "powed", tx: list[str] | None = None, max_age_s: float | None = None):
+    def __init__(self, refs: list[LabelledScan], k: int = 5, representation: str = "auto", tx: list[str] | None = None, max_age_s: float | None = None):
         if not refs:
             raise ValueError("kNN needs reference scans")
+        if representation == "auto":  # several phone models: make fingerprints offset-free
+            representation = "powed-rel" if len({r.scan.device_model for r in refs}) > 1 else "powed"
+        if representation not in ("powed", "powed-rel", "raw"):
+            raise ValueError(f"unknown representation {representation!r}")
         self.refs = refs
         txs = tx or sorted({k for r in refs for k in r.scan.rssi_dbm})
         self.tx_index = {t: i for i, t in enumerate(txs)}
@@ -218,6 +231,15 @@ class KnnLocator:
         self.clf = KNeighborsClassifier(n_neighbors=self.k, weights="distance").fit(X, self.floors)
 
     def _rep(self, X):
+        if self.representation == "powed-rel":
+            # Device-independent: shift each scan so that the mean of its 3 strongest readings is
+            # -50 dBm (removes a phone's RSSI offset, which the references cannot know), then powed.
+            heard = X > MISSING_DBM
+            top = -np.sort(-np.where(heard, X, -np.inf), axis=1)[:, :3]
+            ref = np.where(np.isfinite(top), top, np.nan)
+            shift = -50.0 - np.nan_to_num(np.nanmean(ref, axis=1), nan=-50.0)
+            X = np.where(heard, np.minimum(X + shift[:, None], 0.0), MISSING_DBM)
+            return powed(X)
         return powed(X) if self.representation == "powed" else X
 
     def locate_many(self, scans: list[RfScan]) -> list[LocateResult]:

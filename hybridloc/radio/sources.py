@@ -127,17 +127,14 @@ def read_scans_csv(path: str) -> list[tuple[RfScan, np.ndarray | None, str | Non
     return out
 
 
-def scans_to_locate(fmt: str, path: str) -> tuple[list[RfScan], list[str | None], list[dict]]:
-    """(scans, true floor names or None, extra output columns per scan) of one ``locate`` input."""
+def scans_to_locate(fmt: str, path: str) -> tuple[list[RfScan], str | None]:
+    """(scans in input order, site id or None when the format does not say) of one ``locate`` input."""
     if fmt == "msft":
         tr = read_ilc_trace(path)
-        scans = [s for s in tr.scans if s.technology is Technology.WIFI]
-        return scans, [tr.floor] * len(scans), [{} for _ in scans]
+        return [s for s in tr.scans if s.technology is Technology.WIFI], tr.site
     if fmt == "ujiindoorloc":
         d = read_uji(path)
-        scans = [d.scan(r) for r in range(len(d))]
-        return scans, [uji_floor_name(d.building[r], d.floor[r]) for r in range(len(d))], [{"line": int(d.lines[r])} for r in range(len(d))]
+        return [d.scan(r) for r in range(len(d))], "ujiindoorloc"
     if fmt == "csv":
-        rows = read_scans_csv(path)
-        return [r[0] for r in rows], [r[2] for r in rows], [{} for _ in rows]
+        return [r[0] for r in read_scans_csv(path)], None
     raise ValueError(f"unknown format {fmt!r}; choose one of {FORMATS}")
