@@ -269,6 +269,28 @@ def _cmd_eval_fingerprint(args: argparse.Namespace) -> int:
     return run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every)
 
 
+def _cmd_sim_world(args: argparse.Namespace) -> int:
+    from .sim.run import make_world
+
+    w = make_world(args.seed, args.floors, args.out)
+    print(f"world {args.seed}: {w.n_floors} floors of {w.width:.1f} m x {w.depth:.1f} m, {len(w.rooms)} rooms, {len(w.aps)} WiFi APs, "
+          f"{len(w.beacons)} BLE beacons, {len(w.rfid)} RFID readers -> {args.out}")
+    return 0
+
+
+def _cmd_sim_walk(args: argparse.Namespace) -> int:
+    from .sim.run import load_world, simulate_walks
+
+    world = load_world(args.world)
+
+    def progress(i, n):
+        print(f"\r[sim] walker {i}/{n}", end="" if i < n else "\n", file=sys.stderr, flush=True)
+
+    out = simulate_walks(world, args.walkers, args.minutes, args.carrier, args.out, args.seed, progress)
+    print(f"{len(out)} walks of {args.minutes:g} min ({args.carrier}) -> {args.out}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -340,6 +362,22 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--k", type=int, default=5)
     lo.add_argument("--max-age", type=float, default=8.0, help="ignore readings older than this at scan time, s (default 8)")
     lo.set_defaults(func=_cmd_locate)
+
+    sm = sub.add_parser("sim", help="simulated buildings and walks with ground truth")
+    ssub = sm.add_subparsers(dest="sim_command", required=True)
+    sw = ssub.add_parser("world", help="generate a multi-floor building with WiFi, BLE and RFID infrastructure")
+    sw.add_argument("--seed", type=int, required=True)
+    sw.add_argument("--floors", type=int, default=3)
+    sw.add_argument("--out", required=True)
+    sw.set_defaults(func=_cmd_sim_world)
+    sk = ssub.add_parser("walk", help="simulate walkers in a world: traces in the ILC format, foot IMU CSV, truth")
+    sk.add_argument("--world", required=True)
+    sk.add_argument("--walkers", type=int, default=1)
+    sk.add_argument("--minutes", type=float, default=5.0)
+    sk.add_argument("--carrier", choices=("phone", "foot", "both"), default="phone")
+    sk.add_argument("--seed", type=int, default=0, help="seed of the walkers (the world has its own)")
+    sk.add_argument("--out", required=True)
+    sk.set_defaults(func=_cmd_sim_walk)
 
     ev = sub.add_parser("eval", help="evaluation commands that print figures")
     esub = ev.add_subparsers(dest="eval_command", required=True)

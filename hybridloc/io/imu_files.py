@@ -130,7 +130,9 @@ def write_imu_csv(path: str | os.PathLike, imu: ImuBlock) -> None:
     """Write the plain IMU CSV (SI units, tesla)."""
     cols = [imu.t[:, None], imu.accel_body, imu.gyro_body] + ([imu.mag_body] if imu.mag_body is not None else [])
     header = ",".join(IMU_CSV_COLUMNS + (IMU_CSV_MAG_COLUMNS if imu.mag_body is not None else ()))
-    np.savetxt(path, np.hstack(cols), delimiter=",", header=header, comments="", fmt="%.9g")
+    # time keeps microseconds whatever its magnitude (Unix seconds need 16 digits); the rest 9 digits
+    fmt = ["%.6f"] + ["%.9g"] * (sum(c.shape[1] for c in cols) - 1)
+    np.savetxt(path, np.hstack(cols), delimiter=",", header=header, comments="", fmt=fmt)
 
 
 def _loadmat(path: str) -> dict:

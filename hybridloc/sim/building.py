@@ -1,0 +1,221 @@
+"""Generated buildings: multi-floor office-like layouts as a :class:`~hybridloc.types.FloorPlan` plus the
+walkable graph walkers route on, and the radio infrastructure (WiFi APs, BLE beacons, RFID readers).
+
+Layout of every floor (site frame, metres, origin at the building's south-west corner):
+
+* a central east-west corridor (``corridor_width`` wide) along the building;
+* rooms on both sides, 4-8 m wide, each with a 1 m door onto the corridor;
+* a stairwell at the west end and a lift at the east end joining consecutive floors;
+* a main entrance in the middle of the south facade on the ground floor, with an outdoor forecourt
+  (where GPS works) in front of it.
+
+Every function takes an explicit ``numpy.random.Generator``.
+"""
+
+from __future__ import annotations
+
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import shapely
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+from shapely.geometry import MultiPolygon, Polygon, box
+
+from ..geo import GeodeticOrigin
+from ..types import Floor, FloorPlan, FloorTransition, TransitionKind
+
+STOREY = 3.5  # m
+
+
+@dataclass
+class Room:
+    floor: int
+    name: str
+    poly: Polygon
+    door: tuple[float, float]  # door centre on the corridor wall
+    centre: tuple[float, float]
+
+
+@dataclass
+class World:
+    """A generated building with its infrastructure."""
+
+    seed: int
+    plan: FloorPlan
+    width: float
+    depth: float
+    corridor_y: tuple[float, float]
+    rooms: list[Room]
+    nodes: np.ndarray  # (K, 3) walkable graph nodes: x, y, floor index
+    node_kind: list[str]
+    edges: list[tuple[int, int]]
+    aps: np.ndarray  # (A, 3) x, y, floor index
+    ap_ids: list[str]
+    ap_freq_mhz: np.ndarray
+    beacons: np.ndarray  # (B, 3)
+    beacon_ids: list[str]
+    rfid: np.ndarray  # (R, 3) readers at doors
+    entrance: tuple[float, float]
+    outdoor_node: int
+    origin: GeodeticOrigin
+    _dist: np.ndarray | None = field(default=None, repr=False)
+    _pred: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_floors(self) -> int:
+        return len(self.plan.floors)
+
+    def floor_name(self, i: int) -> str:
+        return self.plan.floors[i].name
+
+    def shortest_path(self, a: int, b: int) -> list[int]:
+        if self._dist is None:
+            n = len(self.nodes)
+            w = [float(np.linalg.norm(self.nodes[i, :2] - self.nodes[j, :2])) + (STOREY * 2 if self.nodes[i, 2] != self.nodes[j, 2] else 0.0) for i, j in self.edges]
+            rows = [i for i, _ in self.edges] + [j for _, j in self.edges]
+            cols = [j for _, j in self.edges] + [i for i, _ in self.edges]
+            g = csr_matrix((w + w, (rows, cols)), shape=(n, n))
+            self._dist, self._pred = dijkstra(g, directed=False, return_predecessors=True)
+        path = [b]
+        while path[-1] != a:
+            p = int(self._pred[a, path[-1]])
+            if p < 0:
+                raise ValueError(f"no path between nodes {a} and {b}")
+            path.append(p)
+        return path[::-1]
+
+
+def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, width: float | None = None, depth: float | None = None,
+                   origin: GeodeticOrigin | None = None) -> World:
+    if not 1 <= floors <= 50:
+        raise ValueError("floors must be between 1 and 50")
+    W = float(width if width is not None else rng.uniform(50.0, 80.0))
+    D = float(depth if depth is not None else rng.uniform(20.0, 26.0))
+    cw = 2.5
+    cy0, cy1 = D / 2 - cw / 2, D / 2 + cw / 2
+    stair_w, lift_w = 4.0, 3.0
+    origin = origin or GeodeticOrigin.from_degrees(47.3769, 8.5417, 410.0)
+    # room partitions, shared by every floor (a building's structure repeats)
+    xs_n, xs_s = [stair_w], [stair_w]
+    for xs in (xs_n, xs_s):
+        while xs[-1] < W - lift_w - 4.0:
+            xs.append(min(xs[-1] + float(rng.uniform(4.0, 8.0)), W - lift_w))
+        xs[-1] = W - lift_w
+    fl_objs, rooms, transitions = [], [], []
+    nodes: list[tuple[float, float, int]] = []
+    kinds: list[str] = []
+    edges: list[tuple[int, int]] = []
+    rfid = []
+    stair_nodes, lift_nodes = [], []
+    entrance = (W / 2, 0.0)
+
+    def add(x, y, f, kind):
+        nodes.append((x, y, f))
+        kinds.append(kind)
+        return len(nodes) - 1
+
+    for f in range(floors):
+        walls = [((0, 0), (W, 0)), ((W, 0), (W, D)), ((W, D), (0, D)), ((0, D), (0, 0))]
+        fl_rooms = []
+        # corridor nodes every ~2 m
+        cx = np.linspace(1.0, W - 1.0, max(3, int(W / 2.0)))
+        cn = [add(float(x), D / 2, f, "corridor") for x in cx]
+        edges += list(zip(cn[:-1], cn[1:]))
+        for side, xs, (y0, y1), wall_y in (("N", xs_n, (cy1, D), cy1), ("S", xs_s, (0.0, cy0), cy0)):
+            gaps = []
+            for k in range(len(xs) - 1):
+                x0, x1 = xs[k], xs[k + 1]
+                door_x = float(rng.uniform(x0 + 1.0, x1 - 1.0))
+                gaps.append((door_x - 0.5, door_x + 0.5))
+                walls.append(((x1, y0), (x1, y1)))  # partition to the next room
+                poly = box(x0, y0, x1, y1)
+                name = f"{f + 1}{side}{k + 1:02d}"
+                centre = ((x0 + x1) / 2, (y0 + y1) / 2)
+                room = Room(f, name, poly, (door_x, wall_y), centre)
+                fl_rooms.append(room)
+                # graph: corridor node nearest the door -> door -> room centre
+                ci = cn[int(np.argmin(np.abs(cx - door_x)))]
+                dn = add(door_x, wall_y, f, "door")
+                rn = add(centre[0], centre[1], f, "room")
+                edges += [(ci, dn), (dn, rn)]
+                rfid.append((door_x, wall_y, f))
+            # the corridor wall on this side, with door gaps
+            x = stair_w
+            for g0, g1 in sorted(gaps):
+                walls.append(((x, wall_y), (g0, wall_y)))
+                x = g1
+            walls.append(((x, wall_y), (W - lift_w, wall_y)))
+        # stairwell (west) and lift (east) ends are open to the corridor
+        sn = add(stair_w / 2, D / 2, f, "stairs")
+        ln = add(W - lift_w / 2, D / 2, f, "lift")
+        edges += [(sn, cn[0]), (ln, cn[-1])]
+        stair_nodes.append(sn)
+        lift_nodes.append(ln)
+        rooms += fl_rooms
+        outline = MultiPolygon([box(0, 0, W, D)])
+        # the entrance gap in the south facade on the ground floor
+        if f == 0:
+            walls[0] = ((0, 0), (W / 2 - 1.0, 0))
+            walls.append(((W / 2 + 1.0, 0), (W, 0)))
+        fl_objs.append(Floor(f"F{f + 1}", f, f * STOREY, outline, outline, np.array(walls, float), tuple((r.name, r.poly) for r in fl_rooms)))
+    for f in range(floors - 1):
+        edges += [(stair_nodes[f], stair_nodes[f + 1]), (lift_nodes[f], lift_nodes[f + 1])]
+        transitions += [
+            FloorTransition(TransitionKind.STAIRS, f"F{f + 1}", f"F{f + 2}", (stair_w / 2, D / 2), (stair_w / 2, D / 2)),
+            FloorTransition(TransitionKind.LIFT, f"F{f + 1}", f"F{f + 2}", (W - lift_w / 2, D / 2), (W - lift_w / 2, D / 2)),
+        ]
+    # entrance: a south-room-free corridor link through the facade, and the outdoor forecourt
+    ent_in = add(W / 2, D / 2, 0, "corridor")
+    ent_door = add(W / 2, 0.0, 0, "entrance")
+    outdoor = add(W / 2, -12.0, 0, "outdoor")
+    near = [i for i, k in enumerate(kinds) if k == "corridor" and nodes[i][2] == 0]
+    nearest = min(near, key=lambda i: abs(nodes[i][0] - W / 2) if i != ent_in else 1e9)
+    edges += [(ent_in, nearest), (ent_in, ent_door), (ent_door, outdoor)]
+    rfid.append((W / 2, 0.0, 0))
+    # the south room under the entrance corridor is now a lobby: no wall crosses the link
+    plan = FloorPlan(f"sim-{seed}", tuple(fl_objs), tuple(transitions), origin)
+    # WiFi access points: ceiling-mounted along the corridor every ~15 m, alternate floors staggered
+    aps, ap_ids, freqs = [], [], []
+    for f in range(floors):
+        n_ap = max(2, int(round(W / 15.0)))
+        xs = (np.arange(n_ap) + 0.5 + (0.5 if f % 2 else 0.0)) * W / n_ap
+        for x in xs:
+            for band, fmhz in (("2g", 2437.0), ("5g", 5180.0)):
+                aps.append((float(min(x, W - 0.5)), D / 2 + float(rng.uniform(-1, 1)), f))
+                ap_ids.append(f"02:00:{seed % 256:02x}:{f:02x}:{len(ap_ids) // 256 % 256:02x}:{len(ap_ids) % 256:02x}")
+                freqs.append(fmhz)
+    # BLE beacons every ~8 m in the corridor, and one per room
+    beacons, beacon_ids = [], []
+    for f in range(floors):
+        for x in np.arange(4.0, W - 2.0, 8.0):
+            beacons.append((float(x), D / 2, f))
+        for r in rooms:
+            if r.floor == f:
+                beacons.append((r.centre[0], r.centre[1], f))
+    beacon_ids = [f"sim{seed}_{i // 1000}_{i % 1000}" for i in range(len(beacons))]
+    return World(seed, plan, W, D, (cy0, cy1), rooms, np.array(nodes, float), kinds, edges, np.array(aps, float), ap_ids, np.array(freqs),
+                 np.array(beacons, float), beacon_ids, np.array(rfid, float), entrance, outdoor, origin)
+
+
+def wall_crossings(walls: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Number of wall segments crossed by each segment p0[i] -> p1[i]; walls (M, 2, 2), p0/p1 (N, 2)."""
+    if len(walls) == 0 or len(p0) == 0:
+        return np.zeros(len(p0), int)
+    a, b = walls[:, 0][None, :, :], walls[:, 1][None, :, :]
+    c, d = p0[:, None, :], p1[:, None, :]
+
+    def orient(p, q, r):
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+
+    o1, o2 = orient(a, b, c), orient(a, b, d)
+    o3, o4 = orient(c, d, a), orient(c, d, b)
+    hit = (o1 * o2 < 0) & (o3 * o4 < 0)
+    return hit.sum(axis=1)
+
+
+def walkable_points(world: World, floor: int, pts: np.ndarray) -> np.ndarray:
+    return shapely.contains_xy(world.plan.floors[floor].walkable, pts[:, 0], pts[:, 1])
+
+

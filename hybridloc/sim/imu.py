@@ -1,0 +1,222 @@
+"""IMU synthesis for simulated walks: a phone in the hand at 50 Hz and a foot-mounted unit at 200 Hz,
+with sensor error models by grade.
+
+Phone (held flat, screen up, top edge forward): specific force R^T (0, 0, g + a_v), with the vertical
+bounce a_v peaking at each heel strike, a_v = (A/2) cos(2 pi (t - t_k) / T_k) around step k, and the
+peak-to-peak bounce A chosen so that Weinberg's model with the walker's own K gives the true step
+length, A = (L / K)^4. The attitude is R = Rz(psi - pi/2) (body +y along the heading psi), so the gyro
+reads (0, 0, dpsi/dt) when walking; handling adds smooth random rotations and accelerations. The
+magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor disturbance field.
+
+Foot (body x forward, y left, z up): per stride (two steps) the foot stands still for 60 % of the
+stride and swings 40 %. The swing's nav-frame acceleration is chosen sample by sample,
+a_i = A sin(2 pi i / N), which sums to exactly zero over the swing, and the truth is *defined* as the
+discrete strapdown integral of it (the same scheme as :func:`hybridloc.ins.strapdown.mechanise`), so a
+noiseless foot INS must reproduce the truth to rounding. The gyro is the discrete log of consecutive
+truth attitudes; the foot pitches up to 25 degrees during the swing.
+
+Sensor errors (:data:`GRADES`, from datasheets of the classes the seeds use: consumer MEMS as in
+phones, industrial as the MicroStrain 3DM-GX3-25 of PyShoe / Ojeda's unit, tactical): white noise
+densities, turn-on biases, bias random walk (instability), scale factors and saturation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..ins.strapdown import quat_from_rotvec, quat_mult, quat_to_dcm
+from ..types import ImuBlock
+from ..units import DEG, G0, UT_TO_T
+from .walker import Walk
+
+
+@dataclass(frozen=True)
+class SensorGrade:
+    accel_noise: float  # m/s^2/sqrt(Hz)
+    gyro_noise: float  # rad/s/sqrt(Hz)
+    accel_bias: float  # m/s^2, turn-on (1 sigma)
+    gyro_bias: float  # rad/s, turn-on (1 sigma)
+    accel_bias_rw: float  # m/s^3/sqrt(Hz)
+    gyro_bias_rw: float  # rad/s^2/sqrt(Hz)
+    scale: float  # relative scale-factor error (1 sigma)
+    accel_range: float  # m/s^2
+    gyro_range: float  # rad/s
+
+
+GRADES = {
+    # phone MEMS (e.g. BMI160: 180 ug/rtHz, 0.007 dps/rtHz, +-40 mg, +-3 dps turn-on)
+    "consumer": SensorGrade(180e-6 * G0, 0.007 * DEG, 0.04 * G0, 1.0 * DEG, 1e-3, 2e-5, 0.005, 4 * G0, 2000 * DEG),
+    # MicroStrain 3DM-GX3-25 class: 80 ug/rtHz, 0.03 dps/rtHz, bias stability 0.04 mg / 18 deg/h
+    "industrial": SensorGrade(80e-6 * G0, 0.03 * DEG, 0.002 * G0, 0.05 * DEG, 1e-4, 5e-6, 0.0005, 16 * G0, 1200 * DEG),
+    # tactical (e.g. ADIS16490-class or better): 30 ug/rtHz, 0.002 dps/rtHz, 1 deg/h stability
+    "tactical": SensorGrade(30e-6 * G0, 0.002 * DEG, 0.0005 * G0, 0.002 * DEG, 2e-5, 2e-7, 0.0001, 40 * G0, 2000 * DEG),
+}
+
+EARTH_FIELD_T = 48.0 * UT_TO_T
+EARTH_DIP = 63.0 * DEG
+
+
+def apply_errors(t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, grade: SensorGrade, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Add turn-on bias, bias random walk, white noise and scale factor, then saturate."""
+    n = len(t)
+    dt = float(np.median(np.diff(t))) if n > 1 else 0.01
+    out = []
+    for x, noise, bias, rw, rng_max in ((acc, grade.accel_noise, grade.accel_bias, grade.accel_bias_rw, grade.accel_range),
+                                        (gyr, grade.gyro_noise, grade.gyro_bias, grade.gyro_bias_rw, grade.gyro_range)):
+        b = bias * rng.standard_normal(3) + np.cumsum(rw * math.sqrt(dt) * rng.standard_normal((n, 3)), axis=0)
+        s = 1.0 + grade.scale * rng.standard_normal(3)
+        y = x * s + b + noise / math.sqrt(dt) * rng.standard_normal((n, 3))
+        out.append(np.clip(y, -rng_max, rng_max))
+    return out[0], out[1]
+
+
+def _smooth_noise(rng: np.random.Generator, n: int, width: int) -> np.ndarray:
+    k = np.exp(-0.5 * (np.arange(-3 * width, 3 * width + 1) / width) ** 2)
+    k /= np.sqrt((k**2).sum())
+    return np.convolve(rng.standard_normal(n + len(k)), k, mode="same")[: n]
+
+
+def disturbance_field(rng: np.random.Generator, n_terms: int = 24, length: float = 4.0, amplitude: float = 8e-6):
+    """A smooth random indoor magnetic disturbance (random Fourier features), tesla, f(x, y) -> (N, 3)."""
+    w = rng.normal(0.0, 1.0 / length, (n_terms, 2))
+    b = rng.uniform(0, 2 * math.pi, n_terms)
+    c = rng.normal(0.0, amplitude * math.sqrt(2.0 / n_terms), (n_terms, 3))
+
+    def field(xy: np.ndarray) -> np.ndarray:
+        return np.cos(np.asarray(xy) @ w.T + b) @ c
+
+    return field
+
+
+def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: str | None = "consumer", mag_field=None) -> ImuBlock:
+    """The phone's IMU over the walk (see module docstring); ``grade=None`` gives noiseless data."""
+    t = np.arange(walk.t0, walk.t1, 1.0 / rate)
+    n = len(t)
+    ts = np.array([s.t for s in walk.steps])
+    hs = np.unwrap(np.array([s.heading for s in walk.steps])) if walk.steps else np.zeros(0)
+    # heading: turn during the step that changes it (linear between step times)
+    psi = np.interp(t, ts, hs) if len(ts) else np.zeros(n)
+    dpsi = np.gradient(psi, t) if n > 1 else np.zeros(n)
+    av = np.zeros(n)
+    if len(ts):
+        k = np.clip(np.searchsorted(ts, t), 0, len(ts) - 1)
+        k0 = np.clip(k - 1, 0, len(ts) - 1)
+        # nearest step event and its period
+        near = np.where(np.abs(t - ts[k0]) < np.abs(t - ts[k]), k0, k)
+        T = np.diff(np.concatenate([[ts[0] - 0.55], ts]))[near]
+        L = np.array([s.length for s in walk.steps])[near]
+        A = (L / walk.weinberg_k) ** 4
+        phase = (t - ts[near]) / T
+        walking = np.abs(phase) <= 0.5
+        av = np.where(walking, 0.5 * A * np.cos(2 * math.pi * phase), 0.0)
+    # handling while standing: smooth random rotations (about 1 rad/s) and accelerations (2 m/s^2)
+    handling = np.zeros(n, bool)
+    for a, b, h in walk.pauses:
+        if h:
+            handling |= (t >= a) & (t < b)
+    c, s = np.cos(psi - math.pi / 2), np.sin(psi - math.pi / 2)
+    f_nav = np.column_stack([np.zeros(n), np.zeros(n), G0 + av])
+    # R = Rz(psi - pi/2): body = R^T nav
+    acc = np.column_stack([c * f_nav[:, 0] + s * f_nav[:, 1], -s * f_nav[:, 0] + c * f_nav[:, 1], f_nav[:, 2]])
+    gyr = np.column_stack([np.zeros(n), np.zeros(n), dpsi])
+    if handling.any():
+        for j in range(3):
+            gyr[:, j] += np.where(handling, _smooth_noise(rng, n, 8) * 1.0, 0.0)
+            acc[:, j] += np.where(handling, _smooth_noise(rng, n, 8) * 2.0, 0.0)
+    pos, _ = walk.position_at(t)
+    m_nav = np.tile([0.0, EARTH_FIELD_T * math.cos(EARTH_DIP), -EARTH_FIELD_T * math.sin(EARTH_DIP)], (n, 1))
+    if mag_field is not None:
+        m_nav = m_nav + mag_field(pos)
+    mag = np.column_stack([c * m_nav[:, 0] + s * m_nav[:, 1], -s * m_nav[:, 0] + c * m_nav[:, 1], m_nav[:, 2]])
+    if grade is not None:
+        acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
+        mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
+    return ImuBlock(t, acc, gyr, mag)
+
+
+@dataclass
+class FootTruth:
+    t: np.ndarray
+    pos: np.ndarray  # (N, 3) foot position, m
+    quat: np.ndarray  # (N, 4) body-to-nav
+    stance: np.ndarray  # (N,) bool
+
+
+def foot_imu(walk: Walk, rng: np.random.Generator, rate: float = 200.0, grade: str | None = "industrial",
+             stride_stance: float = 0.6, max_pitch: float = 25 * DEG) -> tuple[ImuBlock, FootTruth]:
+    """The right foot's IMU and its truth (see module docstring). Strides join every second step."""
+    dt = 1.0 / rate
+    t = np.arange(walk.t0, walk.t1, dt)
+    n = len(t)
+    acc_nav = np.zeros((n, 3))
+    h0 = walk.steps[0].heading if walk.steps else 0.0
+    yaw = np.full(n, h0)
+    pitch = np.zeros(n)
+    stance = np.ones(n, bool)
+    strides = walk.steps[1::2]
+    prev_t = walk.t0
+    prev_xy = np.array(walk.start[:2], float)
+    cur_yaw = h0
+    for st in strides:
+        T = st.t - prev_t
+        i0 = int(np.searchsorted(t, prev_t + stride_stance * T))
+        i1 = int(np.searchsorted(t, st.t))
+        N = i1 - i0
+        target = np.array([st.x, st.y])
+        d = target - prev_xy
+        if N >= 8 and np.linalg.norm(d) > 1e-3:
+            k = np.arange(1, N + 1)
+            prof = np.sin(2 * math.pi * k / N)
+            # displacement of the discrete scheme for a unit profile: sum over j of (v_{j-1} dt + a_j dt^2 / 2)
+            v = np.cumsum(prof) * dt
+            disp = float(np.sum(np.concatenate([[0.0], v[:-1]]) * dt + 0.5 * prof * dt * dt))
+            amp = d / disp
+            acc_nav[i0:i1, :2] = prof[:, None] * amp[None, :]
+            dz = sum(s.dz for s in walk.steps if prev_t < s.t <= st.t)
+            if dz:
+                acc_nav[i0:i1, 2] = prof * (dz / disp)
+            stance[i0:i1] = False
+            new_yaw = math.atan2(d[1], d[0])
+            dyaw = math.atan2(math.sin(new_yaw - cur_yaw), math.cos(new_yaw - cur_yaw))
+            yaw[i0:i1] = cur_yaw + dyaw * (k / N)
+            cur_yaw = cur_yaw + dyaw
+            pitch[i0:i1] = max_pitch * np.sin(2 * math.pi * k / N)
+            yaw[i1:] = cur_yaw
+        prev_t, prev_xy = st.t, target if N >= 8 else prev_xy
+    # truth attitude: R = Rz(yaw) Ry(-pitch) (nose-up pitch about the body's left axis)
+    quat = np.zeros((n, 4))
+    for i in range(n):
+        qz = quat_from_rotvec(np.array([0.0, 0.0, yaw[i]]))
+        qy = quat_from_rotvec(np.array([0.0, -pitch[i], 0.0]))
+        q = quat_mult(qz, qy)
+        quat[i] = q / np.linalg.norm(q)
+    # discrete truth: integrate the chosen nav accelerations with the strapdown scheme
+    pos = np.zeros((n, 3))
+    vel = np.zeros(3)
+    p = np.array([walk.start[0], walk.start[1], walk.start[2] * 3.5])
+    pos[0] = p
+    gyr = np.zeros((n, 3))
+    acc = np.zeros((n, 3))
+    acc[0] = quat_to_dcm(quat[0]).T @ np.array([0.0, 0.0, G0])
+    for i in range(1, n):
+        # the interval the INS will see: t is Unix time, whose float spacing (2.4e-7 s near 1.7e9)
+        # makes consecutive differences differ from 1/rate in the 5th digit
+        dt = float(t[i] - t[i - 1])
+        a = acc_nav[i]
+        p = p + vel * dt + 0.5 * a * dt * dt
+        vel = vel + a * dt
+        pos[i] = p
+        R_prev = quat_to_dcm(quat[i - 1])
+        acc[i] = R_prev.T @ (a + np.array([0.0, 0.0, G0]))
+        dq = quat_mult(np.array([quat[i - 1][0], -quat[i - 1][1], -quat[i - 1][2], -quat[i - 1][3]]), quat[i])
+        if dq[0] < 0:
+            dq = -dq
+        vn = np.linalg.norm(dq[1:])
+        ang = 2 * math.atan2(vn, dq[0])
+        gyr[i] = (dq[1:] * (ang / vn) if vn > 1e-15 else 2 * dq[1:]) / dt
+    if grade is not None:
+        acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
+    return ImuBlock(t, acc, gyr), FootTruth(t, pos, quat, stance)
