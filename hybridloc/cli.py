@@ -291,6 +291,12 @@ def _cmd_sim_walk(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_sim_realism(args: argparse.Namespace) -> int:
+    from .sim.evaluate import run_sim_realism
+
+    return run_sim_realism(args.ilc, args.walkers, args.minutes, args.every)
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -398,6 +404,13 @@ def build_parser() -> argparse.ArgumentParser:
     efp.add_argument("--folds", type=int, default=4, help="trace folds for the ILC leave-traces-out test")
     efp.add_argument("--every", type=int, default=1, help="use every N-th ILC trace")
     efp.set_defaults(func=_cmd_eval_fingerprint)
+
+    esr = esub.add_parser("sim-realism", help="simulated statistics beside real ones; phone PDR step counts on simulated walks")
+    esr.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="real Indoor Location Competition site folder ('' to skip)")
+    esr.add_argument("--walkers", type=int, default=20)
+    esr.add_argument("--minutes", type=float, default=5.0)
+    esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
+    esr.set_defaults(func=_cmd_eval_sim_realism)
 
     demo = sub.add_parser("demo", help="run the platform end to end on the bundled sample")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")

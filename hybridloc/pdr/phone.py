@@ -49,6 +49,7 @@ class PhonePdrConfig:
     nasc_walking: float = 0.55  # Zee et al. use ~0.7 on raw data; ours is low-passed and per-step
     nasc_window: float = 2.4  # s of signal for the auto-correlation
     period_tolerance: float = 0.15  # relative change of the step period between candidates still "walking"
+    min_vertical_share: float = 0.3  # vertical share of dynamic acceleration variance while walking
     confirm_candidates: int = 3  # consecutive periodic candidates with a consistent period to start walking
     step_lag_range: tuple[float, float] = (0.3, 1.0)  # s, one step
     walking_offset: float = 0.0  # rad, walking direction minus device forward heading
@@ -98,6 +99,8 @@ class PhonePdr:
         self._t1 = None
         self._mean = None
         self._var = 0.0
+        self._mean_fast = None
+        self._var_fast = 0.0
         self._valley = math.inf
         self._last_step_t: float | None = None
         self._last_cand_t: float | None = None
@@ -159,6 +162,13 @@ class PhonePdr:
         d = y - self._mean
         self._mean += alpha * d
         self._var = (1 - alpha) * (self._var + alpha * d * d)
+        # a fast one (0.5 s) for the idle test, so the first steps after standing are not "still"
+        af = 4.0 * alpha
+        if self._mean_fast is None:
+            self._mean_fast = y
+        df = y - self._mean_fast
+        self._mean_fast += af * df
+        self._var_fast = (1 - af) * (self._var_fast + af * df * df)
         out: list[StepEvent] = []
         if self._y1 is not None and self._y2 is not None:
             if self._y1 < self._y2 and self._y1 <= y:
@@ -209,10 +219,20 @@ class PhonePdr:
         k = start - 1 + int(np.argmax(r[start - 1 : hi]))
         return float(r[k]), (k + 1) / self.rate
 
+    def _vertical_share(self) -> float:
+        """Share of the vertical in the dynamic acceleration variance over the last ~1.5 s."""
+        n = int(1.5 * self.rate)
+        h = list(self._hist)[-n:]
+        if len(h) < 10:
+            return 0.0
+        v = np.var([x[2] for x in h])
+        hz = np.var([x[5] for x in h]) + np.var([x[6] for x in h])
+        return float(v / (v + hz)) if v + hz > 0 else 0.0
+
     def _candidate(self, tp: float, yp: float) -> list[StepEvent]:
         cfg = self.cfg
         std = math.sqrt(self._var)
-        if std < cfg.idle_std:
+        if math.sqrt(max(self._var, self._var_fast)) < cfg.idle_std:
             self._valley = math.inf
             return []
         if cfg.detector == "peak":
@@ -231,7 +251,9 @@ class PhonePdr:
         nasc, lag = self._nasc()
         # Walking = periodic now AND at the previous candidate with a consistent period: a handled
         # phone can look periodic for one window, but its "period" jumps from one window to the next.
-        periodic = nasc >= cfg.nasc_walking
+        # And walking bounces the body: the vertical (gravity-aligned) acceleration must carry a
+        # good share of the dynamic acceleration; a phone turned in the hand shakes every axis.
+        periodic = nasc >= cfg.nasc_walking and self._vertical_share() >= cfg.min_vertical_share
         prev = self._prev_periodic_lag
         if periodic and prev is not None and abs(lag - prev) <= cfg.period_tolerance * lag:
             self._consistent += 1

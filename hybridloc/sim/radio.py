@@ -50,6 +50,9 @@ class RadioModel:
     grid_x: np.ndarray
     grid_y: np.ndarray
     walls_db: np.ndarray  # (A + B, n_floors, ny, nx) wall attenuation from tx to grid cell on each floor
+    shadow_x: np.ndarray  # finer grid for the shadowing field
+    shadow_y: np.ndarray
+    shadow_db: np.ndarray  # (A + B, nsy, nsx) the shadowing field sampled on it
 
 
 def make_radio_model(world: World, rng: np.random.Generator, n_terms: int = 32, grid: float = 1.0) -> RadioModel:
@@ -69,20 +72,34 @@ def make_radio_model(world: World, rng: np.random.Generator, n_terms: int = 32, 
         walls = world.plan.floors[fj].walls
         nw = wall_crossings(walls, np.repeat(tx[j : j + 1, :2], len(pts), axis=0), pts)
         walls_db[j, :] = (WALL_DB * nw).reshape(len(gy), len(gx))[None]
-    return RadioModel(world, w, b, c, p0, tx, gx, gy, walls_db)
+    # the shadowing field on a 0.5 m grid (correlation length 3 m: nearest-cell lookup is smooth enough)
+    sx = np.arange(-15.0, world.width + 15.5, 0.5)
+    sy = np.arange(-15.0, world.depth + 15.5, 0.5)
+    SX, SY = np.meshgrid(sx, sy)
+    sp = np.column_stack([SX.ravel(), SY.ravel()])
+    shadow = np.stack([np.cos(sp @ w[j].T + b[j]) @ c[j] for j in range(n_tx)]).reshape(n_tx, len(sy), len(sx)).astype(np.float32)
+    return RadioModel(world, w, b, c, p0, tx, gx, gy, walls_db, sx, sy, shadow)
 
 
-def rssi(model: RadioModel, tx_idx: np.ndarray, xy: np.ndarray, floor: int, rng: np.random.Generator, offset: float = 0.0) -> np.ndarray:
-    """Readings of transmitters ``tx_idx`` at one position (no detection threshold), dBm."""
+def rssi(model: RadioModel, tx_idx: np.ndarray, xy: np.ndarray, floor, rng: np.random.Generator, offset: float = 0.0) -> np.ndarray:
+    """Readings of transmitters ``tx_idx`` at positions ``xy`` (S, 2) on floors (S,), dBm, shape (S, T);
+    one position (2,) with an int floor gives shape (T,). No detection threshold applied."""
+    single = np.ndim(xy) == 1
+    xy = np.atleast_2d(np.asarray(xy, float))
+    fl = np.broadcast_to(np.asarray(floor, int), (len(xy),))
     tx = model.tx_pos[tx_idx]
-    dz = (floor - tx[:, 2]) * STOREY
-    d = np.sqrt(np.sum((tx[:, :2] - xy) ** 2, axis=1) + dz**2)
-    shadow = np.einsum("jk,jk->j", np.cos(np.einsum("jkd,d->jk", model.w[tx_idx], xy) + model.b[tx_idx]), model.c[tx_idx])
-    ix = int(np.clip(np.searchsorted(model.grid_x, xy[0]), 0, len(model.grid_x) - 1))
-    iy = int(np.clip(np.searchsorted(model.grid_y, xy[1]), 0, len(model.grid_y) - 1))
-    walls = model.walls_db[tx_idx, min(floor, model.walls_db.shape[1] - 1), iy, ix]
-    return (model.p0[tx_idx] - 10 * PATH_LOSS_N * np.log10(np.maximum(d, 1.0)) - walls - FLOOR_DB * np.abs(floor - tx[:, 2])
-            + shadow + TEMPORAL_SD * rng.standard_normal(len(tx_idx)) + offset)
+    dz = (fl[:, None] - tx[None, :, 2]) * STOREY
+    d = np.sqrt(np.sum((tx[None, :, :2] - xy[:, None, :]) ** 2, axis=2) + dz**2)
+    jx = np.clip(np.rint((xy[:, 0] - model.shadow_x[0]) / 0.5).astype(int), 0, len(model.shadow_x) - 1)
+    jy = np.clip(np.rint((xy[:, 1] - model.shadow_y[0]) / 0.5).astype(int), 0, len(model.shadow_y) - 1)
+    shadow = model.shadow_db[tx_idx][:, jy, jx].T  # (S, T)
+    ix = np.clip(np.searchsorted(model.grid_x, xy[:, 0]), 0, len(model.grid_x) - 1)
+    iy = np.clip(np.searchsorted(model.grid_y, xy[:, 1]), 0, len(model.grid_y) - 1)
+    flc = np.minimum(fl, model.walls_db.shape[1] - 1)
+    walls = model.walls_db[tx_idx][:, flc, iy, ix].T  # (S, T)
+    r = (model.p0[tx_idx][None] - 10 * PATH_LOSS_N * np.log10(np.maximum(d, 1.0)) - walls - FLOOR_DB * np.abs(fl[:, None] - tx[None, :, 2])
+         + shadow + TEMPORAL_SD * rng.standard_normal(d.shape) + offset)
+    return r[0] if single else r
 
 
 @dataclass
@@ -101,22 +118,28 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
     bc_idx = np.arange(n_ap, n_ap + len(world.beacons))
     wifi, ble, rfid, gps = [], [], [], []
     # WiFi scans, throttled, with Android-like caching: a reading can be up to 2 s old at scan time
-    t = walk.t0 + float(rng.uniform(0, wifi_period))
-    while t < walk.t1:
-        pos, fl = walk.position_at(np.array([t]))
-        r = rssi(model, ap_idx, pos[0], int(fl[0]), rng, device_offset)
-        heard = np.flatnonzero(r > -92.0)
-        age = rng.uniform(0.0, 2.0, len(heard))
-        wifi.append(RfScan(t, Technology.WIFI, {world.ap_ids[j]: float(np.round(r[j])) for j in heard},
-                           {world.ap_ids[j]: float(world.ap_freq_mhz[j]) * 1e6 for j in heard}, {world.ap_ids[j]: float(a) for j, a in zip(heard, age)}, device_model))
-        t += wifi_period * float(rng.uniform(0.9, 1.1))
+    n_scans = max(0, int((walk.t1 - walk.t0) / wifi_period) + 2)
+    ts = walk.t0 + float(rng.uniform(0, wifi_period)) + np.cumsum(np.concatenate([[0.0], wifi_period * rng.uniform(0.9, 1.1, n_scans)]))
+    ts = ts[ts < walk.t1]
+    if len(ts):
+        pos, fl = walk.position_at(ts)
+        R = np.round(rssi(model, ap_idx, pos, fl, rng, device_offset))
+        ages = rng.uniform(0.0, 2.0, R.shape)
+        ids = world.ap_ids
+        freq = (world.ap_freq_mhz * 1e6).tolist()
+        for t, row, age in zip(ts.tolist(), R.tolist(), ages.tolist()):
+            heard = [j for j, v in enumerate(row) if v > -92.0]
+            wifi.append(RfScan(t, Technology.WIFI, {ids[j]: row[j] for j in heard}, {ids[j]: freq[j] for j in heard}, {ids[j]: age[j] for j in heard}, device_model))
     # BLE: one report per second of the beacons heard
-    for t in np.arange(walk.t0 + 0.5, walk.t1, 1.0):
-        pos, fl = walk.position_at(np.array([t]))
-        r = rssi(model, bc_idx, pos[0], int(fl[0]), rng, device_offset)
-        heard = np.flatnonzero(r > -95.0)
-        if heard.size:
-            ble.append(RfScan(float(t), Technology.BLE, {world.beacon_ids[j]: float(np.round(r[j])) for j in heard}, device_model=device_model))
+    tb = np.arange(walk.t0 + 0.5, walk.t1, 1.0)
+    if len(tb):
+        pos, fl = walk.position_at(tb)
+        R = np.round(rssi(model, bc_idx, pos, fl, rng, device_offset))
+        ids = world.beacon_ids
+        for t, row in zip(tb.tolist(), R.tolist()):
+            heard = {ids[j]: v for j, v in enumerate(row) if v > -95.0}
+            if heard:
+                ble.append(RfScan(t, Technology.BLE, heard, device_model=device_model))
     # RFID at doors (Kourogi: range ~1.5 m, sigma 0.4 m), at the walker's step events
     if len(world.rfid) and walk.steps:
         st = np.array([[s.t, s.x, s.y, s.floor] for s in walk.steps])
@@ -131,19 +154,16 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
                 rfid.append(AbsoluteFix(float(row[0]), same[k, :2].copy(), np.eye(2) * 0.4**2, FixSource.RFID, world.floor_name(int(row[3]))))
                 last = row[0]
     # GPS: outdoors (y < 0) and just inside the entrance, 1 Hz
-    for t in np.arange(walk.t0, walk.t1, 1.0):
-        pos, fl = walk.position_at(np.array([t]))
-        x, y = pos[0]
-        if int(fl[0]) != 0:
-            continue
-        inside = y > 0.0
-        if inside and (y > gps_indoor_reach or abs(x - world.entrance[0]) > 6.0):
-            continue
-        hdop = float(rng.uniform(0.8, 1.6)) if not inside else float(rng.uniform(3.0, 6.0))
+    tg = np.arange(walk.t0, walk.t1, 1.0)
+    pos, fl = walk.position_at(tg)
+    inside = pos[:, 1] > 0.0
+    ok = (fl == 0) & (~inside | ((pos[:, 1] <= gps_indoor_reach) & (np.abs(pos[:, 0] - world.entrance[0]) <= 6.0)))
+    for t, p, ins in zip(tg[ok], pos[ok], inside[ok]):
+        hdop = float(rng.uniform(0.8, 1.6)) if not ins else float(rng.uniform(3.0, 6.0))
         sigma = 3.0 * hdop
         err = sigma * rng.standard_normal(2)
         if rng.random() < 0.05:  # multipath outlier
             ang = rng.uniform(0, 2 * math.pi)
             err += rng.uniform(10.0, 30.0) * np.array([math.cos(ang), math.sin(ang)])
-        gps.append(AbsoluteFix(float(t), pos[0] + err, np.eye(2) * sigma**2, FixSource.GPS, world.floor_name(0)))
+        gps.append(AbsoluteFix(float(t), p + err, np.eye(2) * sigma**2, FixSource.GPS, world.floor_name(0)))
     return WalkRadio(wifi, ble, rfid, gps)

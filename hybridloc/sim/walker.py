@@ -47,12 +47,18 @@ class Walk:
     loop: bool = False
     outdoor_start: bool = False
 
+    def _arrays(self):
+        if getattr(self, "_cache", None) is None or self._cache[0] != len(self.steps):
+            ts = np.array([self.t0] + [s.t for s in self.steps])
+            xs = np.array([self.start[0]] + [s.x for s in self.steps])
+            ys = np.array([self.start[1]] + [s.y for s in self.steps])
+            fs = np.array([self.start[2]] + [s.floor for s in self.steps])
+            self._cache = (len(self.steps), ts, xs, ys, fs)
+        return self._cache[1:]
+
     def position_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) positions and (N,) floor indices at times t (linear between step events)."""
-        ts = np.array([self.t0] + [s.t for s in self.steps])
-        xs = np.array([self.start[0]] + [s.x for s in self.steps])
-        ys = np.array([self.start[1]] + [s.y for s in self.steps])
-        fs = np.array([self.start[2]] + [s.floor for s in self.steps])
+        ts, xs, ys, fs = self._arrays()
         t = np.asarray(t, float)
         pos = np.column_stack([np.interp(t, ts, xs), np.interp(t, ts, ys)])
         k = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, len(ts) - 1)
@@ -92,41 +98,50 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
             continue
         path = world.shortest_path(node, dest)
         pts = _polyline(world, path)
-        for (xa, ya, fa, ka), (xb, yb, fb, kb) in zip(pts[:-1], pts[1:]):
-            if t >= t_end:
-                break
-            if fa != fb:
+        # split the route into same-floor polylines joined by floor changes
+        k = 0
+        while k < len(pts) - 1 and t < t_end:
+            if pts[k][2] != pts[k + 1][2]:
+                (xa, ya, fa, ka), (xb, yb, fb, kb) = pts[k], pts[k + 1]
                 if ka == "lift":  # ride: stand for 10 s per storey
                     dt = 10.0 * abs(fb - fa)
                     lifts.append((t, t + dt))
                     pauses.append((t, t + dt, False))
                     t += dt
-                    fl = fb
-                    continue
-                # stairs: 16 steps per storey in place horizontally (a compact stairwell), 0.29 m short steps
-                n = 16 * abs(fb - fa)
-                for k in range(n):
-                    t += 1.0 / (0.8 * cadence) * float(rng.uniform(0.97, 1.03))
-                    heading = math.pi / 2 if k % 2 == 0 else -math.pi / 2  # switchback flights
-                    dx, dy = 0.29 * math.cos(heading), 0.29 * math.sin(heading)
-                    x, y = x + dx, y + dy
-                    f_now = fa if k < n - 1 else fb
-                    steps.append(TrueStep(t, x, y, f_now, heading, 0.29, math.copysign(STOREY / 16, fb - fa)))
+                else:
+                    # stairs: 16 steps per storey on switchback flights within the stairwell
+                    n = 16 * abs(fb - fa)
+                    for j in range(n):
+                        t += 1.0 / (0.8 * cadence) * float(rng.uniform(0.97, 1.03))
+                        heading = math.pi / 2 if j % 2 == 0 else -math.pi / 2
+                        x, y = x + 0.29 * math.cos(heading), y + 0.29 * math.sin(heading)
+                        steps.append(TrueStep(t, x, y, fa if j < n - 1 else fb, heading, 0.29, math.copysign(STOREY / 16, fb - fa)))
                 fl = fb
                 x, y = xb, yb
+                k += 1
                 continue
-            seg = math.hypot(xb - x, yb - y)
-            if seg < 1e-6:
-                continue
-            heading = math.atan2(yb - y, xb - x)
-            n = max(1, int(round(seg / L)))
-            for k in range(n):
-                step_len = seg / n * float(rng.uniform(0.98, 1.02))
-                t += 1.0 / cadence * float(rng.uniform(0.97, 1.03))
-                x += step_len * math.cos(heading)
-                y += step_len * math.sin(heading)
-                steps.append(TrueStep(t, x, y, fl, heading, step_len, 0.0))
-            x, y = xb, yb
+            j = k
+            while j < len(pts) - 1 and pts[j + 1][2] == pts[k][2]:
+                j += 1
+            poly = np.array([[x, y]] + [[p[0], p[1]] for p in pts[k + 1 : j + 1]])
+            seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
+            arc = np.concatenate([[0.0], np.cumsum(seg)])
+            total = float(arc[-1])
+            if total > 1e-6:
+                # People spread a leg evenly over whole steps: n = round(total / L) steps of total / n
+                # (2 % jitter) along the polyline, so there are no tiny leftover steps.
+                n_steps = max(1, int(round(total / L)))
+                s_pos = 0.0
+                for j_step in range(n_steps):
+                    if t >= t_end:
+                        break
+                    s_new = total if j_step == n_steps - 1 else min(total, s_pos + total / n_steps * float(rng.uniform(0.98, 1.02)))
+                    nx, ny = float(np.interp(s_new, arc, poly[:, 0])), float(np.interp(s_new, arc, poly[:, 1]))
+                    t += 1.0 / cadence * float(rng.uniform(0.97, 1.03))
+                    heading = math.atan2(ny - y, nx - x)
+                    steps.append(TrueStep(t, nx, ny, fl, heading, math.hypot(nx - x, ny - y), 0.0))
+                    x, y, s_pos = nx, ny, s_new
+            k = j
         node = dest
         pause = float(rng.uniform(3.0, 15.0))
         pauses.append((t, t + pause, bool(rng.random() < 0.3)))

@@ -1,0 +1,139 @@
+"""Simulator: determinism, physics of the synthesis, exact noiseless reproduction, formats, realism."""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from hybridloc.ins.foot import run_foot_ins
+from hybridloc.io.msft import read_ilc_site, read_ilc_trace
+from hybridloc.pdr.phone import run_phone_pdr
+from hybridloc.sim.building import generate_world, wall_crossings
+from hybridloc.sim.imu import GRADES, foot_imu, phone_imu
+from hybridloc.sim.radio import make_radio_model, rssi, simulate_radio
+from hybridloc.sim.walker import simulate_walk
+from hybridloc.units import G0
+
+
+@pytest.fixture(scope="module")
+def world():
+    return generate_world(np.random.default_rng(5), 3, 5)
+
+
+def test_world_is_deterministic_and_connected(world):
+    again = generate_world(np.random.default_rng(5), 3, 5)
+    assert again.width == world.width and again.ap_ids == world.ap_ids
+    rooms = [i for i, k in enumerate(world.node_kind) if k == "room"]
+    for r in rooms[:: max(1, len(rooms) // 8)]:
+        path = world.shortest_path(world.outdoor_node, r)  # every room is reachable from outdoors
+        assert path[0] == world.outdoor_node and path[-1] == r
+    assert [f.name for f in world.plan.floors] == ["F1", "F2", "F3"] and len(world.plan.transitions) == 4
+
+
+def test_wall_crossings():
+    walls = np.array([[[0, -1], [0, 1]], [[2, -1], [2, 1]]], float)
+    n = wall_crossings(walls, np.array([[-1.0, 0.0], [-1.0, 0.0], [0.5, 5.0]]), np.array([[3.0, 0.0], [1.0, 0.0], [0.5, 6.0]]))
+    assert n.tolist() == [2, 1, 0]
+
+
+def test_walk_steps_follow_the_walker(world):
+    rng = np.random.default_rng(1)
+    walk = simulate_walk(world, rng, 3.0)
+    assert walk.steps and walk.steps[-1].t <= walk.t1
+    flat = [s for s in walk.steps if s.dz == 0]
+    lengths = np.array([s.length for s in flat])
+    assert np.median(lengths) == pytest.approx(walk.step_length, rel=0.05)
+    cad = 1 / np.median(np.diff([s.t for s in flat]))
+    assert cad == pytest.approx(walk.speed / walk.step_length, rel=0.1)
+    for s in walk.steps[::25]:  # every step lies in its floor's building footprint or the forecourt
+        assert -15 <= s.y <= world.depth + 1 and -1 <= s.x <= world.width + 1
+
+
+def test_noiseless_foot_imu_reproduces_truth_to_numerical_precision(world):
+    rng = np.random.default_rng(2)
+    walk = simulate_walk(world, rng, 2.0)
+    imu, truth = foot_imu(walk, rng, grade=None)
+    res = run_foot_ins(imu, stance=truth.stance, heading0=walk.steps[0].heading)
+    err = (res.pos_enu - res.pos_enu[0]) - (truth.pos - truth.pos[0])
+    assert np.abs(err).max() < 1e-8  # metres over ~150 m of walking: rounding only
+
+
+def test_noiseless_phone_pdr_counts_every_step_and_every_turn(world):
+    rng = np.random.default_rng(3)
+    walk = simulate_walk(world, rng, 3.0)
+    imu = phone_imu(walk, rng, grade=None)
+    steps, _ = run_phone_pdr(imu)
+    n_true = len(walk.steps)
+    assert abs(len(steps) - n_true) <= 0.01 * n_true + 2  # the issue's 1 % (+ a start/end cut)
+    true_turn = np.unwrap([s.heading for s in walk.steps])
+    est_turn = np.unwrap([s.heading for s in steps])
+    assert (est_turn[-1] - est_turn[0]) == pytest.approx(true_turn[-1] - true_turn[0], abs=math.radians(10))
+
+
+def test_phone_imu_physics(world):
+    rng = np.random.default_rng(4)
+    walk = simulate_walk(world, rng, 1.0)
+    imu = phone_imu(walk, rng, grade=None)
+    # standing at the start: specific force is g straight up (flat phone), field is the Earth's
+    still = imu.t < walk.pauses[0][1] - 0.1
+    np.testing.assert_allclose(imu.accel_body[still].mean(0), [0, 0, G0], atol=1e-9)
+    assert np.linalg.norm(imu.mag_body[still], axis=1).mean() == pytest.approx(48e-6, rel=1e-6)
+    noisy = phone_imu(walk, np.random.default_rng(4), grade="consumer")
+    assert np.abs(noisy.accel_body).max() <= GRADES["consumer"].accel_range  # saturation
+
+
+def test_radio_follows_path_loss_and_is_spatially_correlated(world):
+    model = make_radio_model(world, np.random.default_rng(6))
+    rng = np.random.default_rng(7)
+    ap = 0
+    x0, y0, f0 = world.aps[ap]
+    near = np.mean([rssi(model, np.array([ap]), np.array([x0 + 2.0, y0]), int(f0), rng)[0] for _ in range(200)])
+    far = np.mean([rssi(model, np.array([ap]), np.array([x0 + 20.0, y0]), int(f0), rng)[0] for _ in range(200)])
+    assert near - far > 10 * 2.2 * 1.0 - 8  # one decade of distance: 22 dB of path loss, minus shadowing swings
+    a = [rssi(model, np.array([ap]), np.array([x0 + 10.0, y0 + 0.3]), int(f0), rng)[0] for _ in range(200)]
+    b = [rssi(model, np.array([ap]), np.array([x0 + 10.3, y0 + 0.3]), int(f0), rng)[0] for _ in range(200)]
+    assert abs(np.mean(a) - np.mean(b)) < 2.0  # 0.3 m apart (correlation length 3 m): nearly the same
+    walk = simulate_walk(world, np.random.default_rng(8), 2.0)
+    radio = simulate_radio(model, walk, np.random.default_rng(9), wifi_period=4.0)
+    gaps = np.diff([s.t for s in radio.wifi])
+    assert np.all((gaps > 3.5) & (gaps < 4.5))  # throttled scans
+    assert all(-92 < r <= 0 for s in radio.wifi for r in s.rssi_dbm.values())
+    assert all(f.source.value == "rfid" and f.sigma[0] == pytest.approx(0.4) for f in radio.rfid)
+
+
+def test_cli_world_and_walk_write_readable_formats(tmp_path):
+    run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", *a], capture_output=True, text=True, timeout=300)  # noqa: E731
+    r = run("sim", "world", "--seed", "9", "--floors", "2", "--out", str(tmp_path / "w"))
+    assert r.returncode == 0, r.stderr
+    plan = read_ilc_site(tmp_path / "w")  # the ILC floor plan reader takes our world
+    assert plan.floor_names == ["F1", "F2"]
+    meta = json.loads((tmp_path / "w" / "world.json").read_text())
+    x0, y0, x1, y1 = plan.floor("F1").bounds()
+    assert x1 - x0 == pytest.approx(meta["width"], rel=1e-6) and y1 - y0 == pytest.approx(meta["depth"], rel=1e-6)
+    r = run("sim", "walk", "--world", str(tmp_path / "w"), "--walkers", "2", "--minutes", "1", "--carrier", "both", "--out", str(tmp_path / "k"))
+    assert r.returncode == 0, r.stderr
+    tr = read_ilc_trace(tmp_path / "k" / "w0000.txt.gz")
+    assert tr.report.ok and 49 < tr.imu.rate_hz < 51 and len(tr.waypoints) >= 2 and tr.wifi_scans
+    truth = np.loadtxt(tmp_path / "k" / "w0000_truth_steps.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2))
+    assert len(truth) > 30
+    r = run("pdr", "foot", str(tmp_path / "k" / "w0001_foot.csv"), "--out", str(tmp_path / "o"))
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.shared_data
+def test_realism_statistics_inside_real_ranges(ilc_site1):
+    from hybridloc.radio.evaluate import load_site_surveys
+    from hybridloc.sim.evaluate import simulated_sample
+    from hybridloc.sim.realism import in_range, rssi_slopes, spectrum_peaks
+
+    real = [ls for t in load_site_surveys(ilc_site1 / "F2", every=4) for ls in t.labelled]
+    _, sim_lab, walks, imus, _ = simulated_sample(6, 4.0)
+    assert in_range(float(np.median(rssi_slopes(sim_lab))), rssi_slopes(real))
+    real_peaks = []
+    for p in sorted((ilc_site1 / "F2" / "path_data_files").glob("*.txt.gz"))[::6]:
+        real_peaks += spectrum_peaks(read_ilc_trace(p).imu)
+    sim_peaks = np.concatenate([spectrum_peaks(i) for i in imus])
+    assert in_range(float(np.median(sim_peaks)), np.array(real_peaks))
