@@ -1,7 +1,10 @@
 """Run every benchmark: ``python -m benchmarks`` (``make bench``)."""
 
-from . import bench_foot_ins, bench_phone_pdr
+from . import bench_foot_ins, bench_foot_loops, bench_phone_pdr, bench_radiomap, bench_sim
 
 if __name__ == "__main__":
     bench_phone_pdr.main([])
     bench_foot_ins.main([])
+    bench_foot_loops.main([])
+    bench_radiomap.main([])
+    bench_sim.main([])

@@ -32,7 +32,7 @@ class FootInsConfig:
     detector_threshold: float | None = None  # the chosen detector's threshold (units per stance.py)
     zupt_sigma: float = 0.01  # m/s
     gate_zupt: bool = False  # chi-square gate on ZUPTs (see the module docstring)
-    zaru: bool = False
+    zaru: bool = True  # zero angular rate at stance: observes the gyro biases (heading drift over minutes)
     gravity: float | None = None  # m/s^2; None: measured from the initial still period
     init_seconds: float = 0.5  # still period used for alignment (at most)
     max_gap: float = 0.1  # s

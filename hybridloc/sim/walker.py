@@ -69,7 +69,9 @@ def _polyline(world: World, path: list[int]) -> list[tuple[float, float, int, st
     return [(float(world.nodes[i, 0]), float(world.nodes[i, 1]), int(world.nodes[i, 2]), world.node_kind[i]) for i in path]
 
 
-def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker: int = 0, t0: float = 1.7e9) -> Walk:
+def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker: int = 0, t0: float = 1.7e9, close_loop: bool = False) -> Walk:
+    """One walker for ``minutes``; with ``close_loop`` the walk always returns to its start after the
+    time is up (a closed loop for return-to-start tests), otherwise 30 % of routes loop by chance."""
     speed = float(np.clip(rng.normal(1.3, 0.15), 0.8, 1.8))
     L = float(np.clip(rng.normal(0.70, 0.06), 0.5, 0.9))
     K = float(np.clip(rng.normal(0.37, 0.02), 0.3, 0.45))
@@ -77,7 +79,7 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     rooms = [i for i, k in enumerate(world.node_kind) if k == "room"]
     outdoor = rng.random() < 0.2
     start_node = world.outdoor_node if outdoor else int(rng.choice(rooms))
-    loop = rng.random() < 0.3
+    loop = close_loop or rng.random() < 0.3
     x, y, fl = (float(v) for v in world.nodes[start_node])
     fl = int(fl)
     t = t0 + float(rng.uniform(2.0, 5.0))  # standing still at the start (filters settle)
@@ -88,8 +90,14 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     node = start_node
     heading = 0.0
     targets: list[int] = []
-    while t < t_end:
+    closing = False
+    while t < t_end or (close_loop and not closing):
+        if close_loop and t >= t_end and not closing:
+            closing, targets = True, [start_node]  # time is up: head back to the start and stop there
+            t_end = math.inf
         if not targets:
+            if closing:
+                break
             targets = [int(rng.choice(rooms)) for _ in range(int(rng.integers(2, 5)))]
             if loop:
                 targets.append(start_node)
@@ -100,7 +108,8 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         pts = _polyline(world, path)
         # split the route into same-floor polylines joined by floor changes
         k = 0
-        while k < len(pts) - 1 and t < t_end:
+        t_stop = math.inf if close_loop else t_end  # a closing walk finishes its route
+        while k < len(pts) - 1 and t < t_stop:
             if pts[k][2] != pts[k + 1][2]:
                 (xa, ya, fa, ka), (xb, yb, fb, kb) = pts[k], pts[k + 1]
                 if ka == "lift":  # ride: stand for 10 s per storey
@@ -133,7 +142,7 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
                 n_steps = max(1, int(round(total / L)))
                 s_pos = 0.0
                 for j_step in range(n_steps):
-                    if t >= t_end:
+                    if t >= t_stop:
                         break
                     s_new = total if j_step == n_steps - 1 else min(total, s_pos + total / n_steps * float(rng.uniform(0.98, 1.02)))
                     nx, ny = float(np.interp(s_new, arc, poly[:, 0])), float(np.interp(s_new, arc, poly[:, 1]))
@@ -147,5 +156,5 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         pauses.append((t, t + pause, bool(rng.random() < 0.3)))
         t += pause
     steps = [s for s in steps if s.t <= t_end]
-    return Walk(walker, speed, L, K, t0, min(t, t_end), steps, tuple(float(v) for v in world.nodes[start_node][:2]) + (int(world.nodes[start_node][2]),),
+    return Walk(walker, speed, L, K, t0, min(t, t_end) if math.isfinite(t_end) else t, steps, tuple(float(v) for v in world.nodes[start_node][:2]) + (int(world.nodes[start_node][2]),),
                 pauses, lifts, loop, outdoor)
