@@ -68,7 +68,7 @@ class _FloorCache:
 class ProbabilisticLocator:
     def __init__(self, rmap: RadioMap, sigma_meas: float = 3.0, z_max: float = 3.0, tau: float = 4.0, mass: float = 0.95,
                  region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0,
-                 prefilter: int | None = 400, n_prefilter_tx: int = 8, tau_region: float | None = None):
+                 prefilter: int | None = 400, n_prefilter_tx: int = 8, tau_region: float | None = 30.0):
         self.map = rmap
         self.sigma_meas = sigma_meas
         self.z_max = z_max

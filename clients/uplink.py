@@ -1,0 +1,141 @@
+"""Reliable uplink from a client to the server: sequence-numbered batches, a spool on disk, resend.
+
+Every batch gets the device's next sequence number and is written to the spool folder (one JSON file
+per batch, written atomically) *before* it is published. The server acknowledges the highest batch it
+has persisted; acknowledged files are deleted. Unacknowledged batches are published again, in order
+from the oldest, when the acknowledgement does not advance for ``resend_after`` seconds (a lost
+message, a server restart, a reconnect). The server keeps only the next batch in sequence, so a resend
+can neither duplicate nor reorder data. The spool survives the client process, so a restarted client
+continues its sequence where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+from hybridloc.wire import protocol as P
+
+
+class Uplink:
+    def __init__(self, session: zenoh.Session, site: str, device: str, spool_dir: str | os.PathLike, device_model: str = "",
+                 resend_after: float = 2.0):
+        self.session = session
+        self.site, self.device = P.check_id(site, "site"), P.check_id(device, "device")
+        self.device_model = device_model
+        self.spool = Path(spool_dir)
+        self.spool.mkdir(parents=True, exist_ok=True)
+        self.resend_after = resend_after
+        self._lock = threading.Lock()
+        self.acked = self._read_state().get("acked", 0)
+        existing = sorted(int(p.stem) for p in self.spool.glob("*.json") if p.stem.isdigit())
+        self.next_seq = max([self.acked] + existing) + 1
+        self._last_progress = time.monotonic()
+        self.n_resent = 0
+        self._key = P.key_batch(site, device)
+        self._ack_sub = session.declare_subscriber(P.key_ack(site, device), self._on_ack)
+        self._acked_event = threading.Condition(self._lock)
+
+    # ------------------------------------------------------------ state
+    def _state_path(self) -> Path:
+        return self.spool / "state.json"
+
+    def _read_state(self) -> dict:
+        try:
+            return json.loads(self._state_path().read_text())
+        except (OSError, ValueError):
+            return {}
+
+    def _write_state(self) -> None:
+        tmp = self._state_path().with_suffix(".tmp")
+        tmp.write_text(json.dumps({"acked": self.acked, "device": self.device, "site": self.site}))
+        os.replace(tmp, self._state_path())
+
+    @property
+    def pending(self) -> int:
+        return self.next_seq - 1 - self.acked
+
+    # ------------------------------------------------------------ sending
+    def send(self, steps=(), scans=(), marks=()) -> int:
+        """Spool and publish one batch; returns its sequence number."""
+        with self._lock:
+            seq = self.next_seq
+            self.next_seq += 1
+            payload = P.encode_batch(self.site, self.device, seq, steps, scans, marks, self.device_model, time.time())
+            if len(payload) > P.MAX_BATCH_BYTES:
+                raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
+            path = self.spool / f"{seq:012d}.json"
+            tmp = path.with_suffix(".tmp")
+            tmp.write_bytes(payload)
+            os.replace(tmp, path)
+        self._put(payload)
+        return seq
+
+    def _put(self, payload: bytes) -> None:
+        # session.put rather than a declared publisher: under the server's access control a device
+        # does not see the server's (wildcard) subscriber declaration, and a publisher that sees no
+        # subscriber would not send at all.
+        self.session.put(self._key, payload, encoding=P.encoding(P.BATCH_SCHEMA), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _on_ack(self, sample: zenoh.Sample) -> None:
+        try:
+            seq = P.decode_ack(sample.payload.to_bytes())
+        except (ValueError, KeyError):
+            return
+        with self._lock:
+            if seq > self.acked:
+                for s in range(self.acked + 1, seq + 1):
+                    try:
+                        (self.spool / f"{s:012d}.json").unlink()
+                    except FileNotFoundError:
+                        pass
+                self.acked = seq
+                self._write_state()
+                self._last_progress = time.monotonic()
+                self._acked_event.notify_all()
+
+    def resend_if_stalled(self) -> int:
+        """Publish the unacknowledged batches again (oldest first) if the ack has not moved for a while."""
+        with self._lock:
+            if self.pending == 0 or time.monotonic() - self._last_progress < self.resend_after:
+                return 0
+            files = sorted(p for p in self.spool.glob("*.json") if p.stem.isdigit() and int(p.stem) > self.acked)
+            self._last_progress = time.monotonic()
+        for p in files:
+            self._put(p.read_bytes())
+        self.n_resent += len(files)
+        return len(files)
+
+    def wait_connected(self, timeout: float = 10.0) -> bool:
+        """Wait until the server is reachable (its status queryable answers)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if any(r.ok for r in self.session.get(P.KEY_STATUS, timeout=1.0)):
+                return True
+            time.sleep(0.1)
+        return False
+
+    def wait_acked(self, seq: int | None = None, timeout: float = 10.0) -> bool:
+        """Block until batch ``seq`` (default: every batch sent) is acknowledged, resending on stalls."""
+        target = self.next_seq - 1 if seq is None else seq
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                if self.acked >= target:
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._acked_event.wait(min(left, 0.2))
+            self.resend_if_stalled()
+
+    def close(self) -> None:
+        try:
+            self._ack_sub.undeclare()
+        except Exception:  # noqa: BLE001 - already closed with its session
+            pass

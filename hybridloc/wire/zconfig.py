@@ -1,0 +1,98 @@
+"""Zenoh session configuration shared by the server and the clients.
+
+Every configuration turns multicast and gossip scouting off and names its endpoints explicitly
+(../shared/notes/zenoh.md section 6: the defaults scout by multicast and listen on all interfaces).
+
+* Server: ``mode: "router"`` listening on its endpoint (a Python session in router mode is a full
+  router; there is no separate daemon).
+* Clients: ``mode: "client"`` connecting to the server's endpoint.
+* Security (optional): user/password authentication (``usrpwd``; the server reads a dictionary file
+  of ``user:password`` lines), TLS (``tls/host:port`` endpoints; server certificate and key, client CA),
+  and an access-control list generated from the device list: every device may publish and declare
+  liveliness only under its own ``hl/v1/*/<device>/**`` keys, query only its own ``locate`` and the
+  site maps, and receive only its own ``ack`` and ``fix``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from . import protocol as P
+
+
+@dataclass
+class Security:
+    users_file: str | None = None  # server: "user:password" per line
+    user: str | None = None  # client credentials
+    password: str | None = None
+    tls_cert: str | None = None  # server certificate (PEM)
+    tls_key: str | None = None  # server private key (PEM)
+    tls_ca: str | None = None  # client: CA that signed the server certificate
+    acl_devices: list[str] = field(default_factory=list)  # server: device user names to confine
+    server_user: str = "server"
+
+
+def _base(mode: str) -> zenoh.Config:
+    c = zenoh.Config()
+    c.insert_json5("mode", json.dumps(mode))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    # predictable: our messages are small; no shared-memory path around the size limit
+    c.insert_json5("transport/shared_memory/enabled", "false")
+    return c
+
+
+def server_config(endpoint: str, security: Security | None = None) -> zenoh.Config:
+    c = _base("router")
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("connect/endpoints", "[]")
+    s = security or Security()
+    if s.users_file:
+        c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(s.users_file).resolve())))
+    if s.tls_cert and s.tls_key:
+        c.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(Path(s.tls_cert).resolve())))
+        c.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(Path(s.tls_key).resolve())))
+    if s.acl_devices:
+        c.insert_json5("access_control", json.dumps(acl_for_devices(s.acl_devices, s.server_user)))
+    return c
+
+
+def client_config(endpoint: str, security: Security | None = None) -> zenoh.Config:
+    c = _base("client")
+    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    c.insert_json5("listen/endpoints", "[]")
+    s = security or Security()
+    if s.user:
+        c.insert_json5("transport/auth/usrpwd/user", json.dumps(s.user))
+        c.insert_json5("transport/auth/usrpwd/password", json.dumps(s.password or ""))
+    if s.tls_ca:
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(Path(s.tls_ca).resolve())))
+    return c
+
+
+def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
+    """Access control: deny by default; each device confined to its own keys; the server may do all."""
+    rules, subjects, policies = [], [], []
+    rules.append({"id": "all", "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
+                                            "liveliness_query", "declare_liveliness_subscriber"], "flows": ["ingress", "egress"],
+                  "permission": "allow", "key_exprs": ["**"]})
+    subjects.append({"id": "srv", "usernames": [server_user]})
+    policies.append({"rules": ["all"], "subjects": ["srv"]})
+    for d in devices:
+        P.check_id(d, "device")
+        rid, sid = f"r_{d}", f"s_{d}"
+        rules += [
+            {"id": f"{rid}_pub", "messages": ["put", "liveliness_token"], "flows": ["ingress"], "permission": "allow",
+             "key_exprs": [f"{P.PREFIX}/*/{d}/batch", f"{P.PREFIX}/*/{d}/pose", f"{P.PREFIX}/*/{d}/alive"]},
+            {"id": f"{rid}_sub", "messages": ["declare_subscriber", "put"], "flows": ["ingress", "egress"], "permission": "allow",
+             "key_exprs": [f"{P.PREFIX}/*/{d}/ack", f"{P.PREFIX}/*/{d}/fix"]},
+            {"id": f"{rid}_query", "messages": ["query", "reply"], "flows": ["ingress", "egress"], "permission": "allow",
+             "key_exprs": [f"{P.PREFIX}/*/{d}/locate", f"{P.PREFIX}/*/map", P.KEY_STATUS]},
+        ]
+        subjects.append({"id": sid, "usernames": [d]})
+        policies.append({"rules": [f"{rid}_pub", f"{rid}_sub", f"{rid}_query"], "subjects": [sid]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}

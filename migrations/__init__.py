@@ -1,0 +1,1 @@
+"""Alembic migrations of the hybridloc server database (installed as ``hybridloc.migrations``)."""

@@ -1,0 +1,229 @@
+"""``hybridloc serve``: one process, one Zenoh session in router mode, a worker thread for the database.
+
+Threads:
+
+* Zenoh's own threads deliver samples into a bounded FIFO channel (``FifoChannel``): when the worker
+  falls behind, the channel fills and Zenoh's BLOCK congestion control pushes back on the clients.
+* the ingest worker drains the channel in groups (up to ``max_group`` samples or ``max_wait`` s),
+  validates every message, persists the group in one transaction, publishes the acknowledgements and,
+  for batches with scans, pushes a fix to the device when its newest scan yields one;
+* queryable callbacks (locate, map, status) answer from memory and are short.
+
+Nothing is acknowledged before it is committed, so a crash (even SIGKILL) loses only unacknowledged
+batches, which clients resend.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import Counter
+
+
+import zenoh
+
+from hybridloc.radio.locate import ProbabilisticLocator
+from hybridloc.radio.radiomap import RadioMap
+from hybridloc.types import RfScan
+from hybridloc.wire import protocol as P
+from hybridloc.wire.zconfig import Security, server_config
+
+from .store import Store
+
+log = logging.getLogger("hybridloc.server")
+
+
+class Server:
+    def __init__(self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02):
+        self.endpoint = endpoint
+        self.store = Store(db_url)
+        self.security = security
+        self.max_group = max_group
+        self.max_wait = max_wait
+        self.session: zenoh.Session | None = None
+        self.counts: Counter = Counter()  # message counts by kind and rejection reason
+        self.online: set[str] = set()
+        self.locators: dict[str, tuple[int, ProbabilisticLocator, bytes]] = {}
+        self._entities: list = []
+        self._worker: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.worker_error: BaseException | None = None
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> "Server":
+        self.session = zenoh.open(server_config(self.endpoint, self.security))
+        s = self.session
+        self._sub = s.declare_subscriber(P.SUB_BATCHES, zenoh.handlers.FifoChannel(20000))
+        self._entities += [
+            self._sub,
+            s.declare_queryable(P.SUB_LOCATE, self._on_locate),
+            s.declare_queryable(P.SUB_MAPS, self._on_map),
+            s.declare_queryable(P.KEY_STATUS, self._on_status),
+            s.liveliness().declare_subscriber(P.SUB_ALIVE, self._on_alive, history=True),
+        ]
+        self._worker = threading.Thread(target=self._run, name="hybridloc-ingest", daemon=True)
+        self._worker.start()
+        return self
+
+    def stop(self) -> None:
+        for e in self._entities:
+            try:
+                e.undeclare()
+            except Exception:  # noqa: BLE001 - already gone at shutdown
+                pass
+        self._entities.clear()
+        if self._worker is not None:
+            self._worker.join(timeout=10)
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+        self.store.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    # ------------------------------------------------------------ maps
+    def load_map(self, site: str, data: bytes | None = None) -> int | None:
+        """Use the newest stored radio map of ``site`` (or store ``data`` as a new version first)."""
+        import io
+
+        if data is not None:
+            self.store.save_map(site, data)
+        got = self.store.load_map(site)
+        if got is None:
+            return None
+        version, blob = got
+        rmap = RadioMap.load(io.BytesIO(blob))
+        with self._lock:
+            self.locators[site] = (version, ProbabilisticLocator(rmap), blob)
+        return version
+
+    # ------------------------------------------------------------ ingest
+    def _run(self) -> None:
+        try:
+            while True:
+                try:
+                    first = self._sub.recv()
+                except zenoh.ZError:
+                    return  # undeclared or closed: shutting down
+                group = [first]
+                deadline = time.monotonic() + self.max_wait
+                while len(group) < self.max_group:
+                    nxt = self._sub.try_recv()
+                    if nxt is None:
+                        if time.monotonic() >= deadline:
+                            break
+                        time.sleep(0.001)
+                        continue
+                    group.append(nxt)
+                self._ingest(group)
+        except BaseException as exc:  # noqa: BLE001 - recorded, never silently lost
+            self.worker_error = exc
+            log.exception("ingest worker stopped")
+
+    def _ingest(self, samples) -> None:
+        batches, bad = [], Counter()
+        for smp in samples:
+            key = str(smp.key_expr)
+            try:
+                site, device, _ = P.parse_key(key)
+            except ValueError:
+                bad[("?", "bad-key")] += 1
+                continue
+            try:
+                batches.append(P.decode_batch(smp.payload.to_bytes(), site, device))
+                self.counts["batches-received"] += 1
+            except P.Rejected as rej:
+                bad[(device, rej.reason)] += 1
+        for (_, reason), n in bad.items():
+            self.counts[f"rejected:{reason}"] += n
+        self.store.count_rejections(bad)
+        acked, rejected, written = self.store.persist(batches)
+        for (_, reason), n in rejected.items():
+            self.counts[f"rejected:{reason}"] += n
+        self.counts["batches-persisted"] += written
+        by_dev = {b.device: b for b in batches}
+        for device, seq in acked.items():
+            self.session.put(P.key_ack(by_dev[device].site, device), P.encode_ack(device, seq), encoding=P.encoding(P.ACK_SCHEMA),
+                             congestion_control=zenoh.CongestionControl.BLOCK)
+        # push a fix for the newest WiFi scan of each batch that brought one
+        for b in batches:
+            scans = [sc for sc in b.scans if sc.technology == "wifi"]
+            if scans and b.site in self.locators:
+                sc = scans[-1]
+                res = self.locators[b.site][1].locate(RfScan(sc.t, "wifi", sc.rssi, device_model=b.device_model))
+                if res.fix is not None:
+                    self.store.add_fix(b.device, res.fix)
+                    self.session.put(P.key_fix(b.site, b.device), json.dumps(P.fix_to_dict(res.fix, res.region)), encoding=P.encoding(P.FIX_SCHEMA))
+                    self.counts["fixes-pushed"] += 1
+
+    # ------------------------------------------------------------ queryables
+    def _on_locate(self, q: zenoh.Query) -> None:
+        try:
+            site, device, _ = P.parse_key(str(q.key_expr))
+            msg = json.loads(q.payload.to_bytes()) if q.payload else {}
+            if msg.get("schema") != P.LOCATE_SCHEMA:
+                raise P.Rejected("schema-version", "locate/1 expected")
+            sc = msg["scan"]
+            scan = RfScan(float(sc["t"]), sc.get("tech", "wifi"), {str(k): float(v) for k, v in sc["rssi"].items()}, device_model=str(msg.get("device_model", "")))
+            loc = self.locators.get(site)
+            if loc is None:
+                body = P.fix_to_dict(None, reason=f"no radio map for site {site!r}")
+            else:
+                res = loc[1].locate(scan)
+                body = P.fix_to_dict(res.fix, res.region, res.reason)
+            self.counts["locate-queries"] += 1
+            q.reply(str(q.key_expr), json.dumps(body), encoding=P.encoding(P.FIX_SCHEMA))
+        except Exception as exc:  # noqa: BLE001 - a bad query gets an error reply, never a crash
+            self.counts["rejected:bad-locate"] += 1
+            q.reply_err(f"bad locate request: {exc}".encode())
+
+    def _on_map(self, q: zenoh.Query) -> None:
+        try:
+            site = str(q.key_expr).split("/")[2]
+            loc = self.locators.get(site)
+            if loc is None:
+                q.reply_err(f"no radio map for site {site!r}".encode())
+                return
+            q.reply(str(q.key_expr), loc[2], encoding="application/octet-stream", attachment=json.dumps({"site": site, "version": loc[0]}).encode())
+        except Exception as exc:  # noqa: BLE001
+            q.reply_err(str(exc).encode())
+
+    def _on_status(self, q: zenoh.Query) -> None:
+        try:
+            st = {"schema": P.STATUS_SCHEMA, "online": sorted(self.online), "counts": dict(self.counts), "db": self.store.status(),
+                  "maps_loaded": {k: v[0] for k, v in self.locators.items()}}
+            q.reply(P.KEY_STATUS, json.dumps(st), encoding=P.encoding(P.STATUS_SCHEMA))
+        except Exception as exc:  # noqa: BLE001
+            q.reply_err(str(exc).encode())
+
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        try:
+            _, device, _ = P.parse_key(str(sample.key_expr))
+        except ValueError:
+            return
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.online.add(device)
+        else:
+            self.online.discard(device)
+
+
+def serve_forever(server: Server) -> None:
+    import signal
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    with server:
+        print(f"hybridloc server listening on {server.endpoint} (router mode)", flush=True)
+        while not stop.is_set():
+            stop.wait(0.5)
+            if server.worker_error is not None:
+                raise RuntimeError(f"ingest worker failed: {server.worker_error}")
+
+

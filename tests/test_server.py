@@ -1,0 +1,230 @@
+"""Server over real Zenoh sessions on loopback, real SQLite files and real Alembic migrations."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import zenoh
+from sqlalchemy import create_engine, func, select
+from sqlalchemy.orm import Session
+
+from hybridloc.clients.uplink import Uplink
+from hybridloc.server import db as m
+from hybridloc.server.migrate import upgrade
+from hybridloc.server.service import Server
+from hybridloc.types import StepEvent
+from hybridloc.wire import protocol as P
+from hybridloc.wire.zconfig import Security, client_config
+
+SITE = "site1"
+
+
+def _steps(n, t0=0.0):
+    return [StepEvent(t0 + i * 0.5, 0.7, 0.1 * i, 0.05, 0.1, 0.1, 0.02) for i in range(n)]
+
+
+def _scans(n, t0=0.0):
+    return [P.ScanRecord(t0 + i, "wifi", {"aa:bb": -50.0 - i, "cc:dd": -70.0}) for i in range(n)]
+
+
+def _count(db, model):
+    eng = create_engine(f"sqlite:///{db}")
+    with Session(eng) as s:
+        n = s.execute(select(func.count()).select_from(model)).scalar_one()
+    eng.dispose()
+    return n
+
+
+def test_models_and_migrations_agree(tmp_path):
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    eng = m.make_engine(str(tmp_path / "a.db"))
+    upgrade(eng)
+    upgrade(eng)  # idempotent
+    with eng.connect() as conn:
+        diff = compare_metadata(MigrationContext.configure(conn, opts={"compare_type": True}), m.Base.metadata)
+        mode = conn.exec_driver_sql("PRAGMA journal_mode").scalar()
+    eng.dispose()
+    assert diff == []
+    assert mode == "wal"
+
+
+@pytest.fixture
+def server(tmp_path):
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    srv = Server(ep, str(tmp_path / "srv.db")).start()
+    try:
+        yield srv, ep, tmp_path
+    finally:
+        srv.stop()
+
+
+def _wait(cond, timeout=10.0):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
+    srv, ep, tmp = server
+    with zenoh.open(client_config(ep)) as s:
+        up = Uplink(s, SITE, "dev01", tmp / "spool")
+        try:
+            assert up.wait_connected()
+            for i in range(5):
+                up.send(steps=_steps(10, 10.0 * i), scans=_scans(2, 10.0 * i))
+            assert up.wait_acked(timeout=10)
+            assert up.acked == 5 and not list((tmp / "spool").glob("0*.json"))  # spool emptied by acks
+            raw = s.declare_publisher(P.key_batch(SITE, "dev01"), congestion_control=zenoh.CongestionControl.BLOCK)
+            raw.put(P.encode_batch(SITE, "dev01", 3, _steps(2)))  # duplicate
+            raw.put(P.encode_batch(SITE, "dev01", 9, _steps(2)))  # gap
+            raw.put(b"{not json")
+            raw.put(json.dumps({"schema": "hybridloc.batch/99", "site": SITE, "device": "dev01", "seq": 6}).encode())
+            raw.put(b'{"schema":"hybridloc.batch/1","site":"site1","device":"dev01","seq":6,"steps":[{"t":NaN}]}')
+            raw.put(b"x" * (P.MAX_BATCH_BYTES + 1))
+            raw.put(P.encode_batch(SITE, "dev02", 1, _steps(1)))  # payload device != key device
+            assert _wait(lambda: sum(v for k, v in srv.counts.items() if k.startswith("rejected:")) >= 7)
+            c = srv.counts
+            for reason in ("duplicate", "out-of-order", "malformed-json", "schema-version", "non-finite", "too-large", "key-mismatch"):
+                assert c[f"rejected:{reason}"] == 1, (reason, dict(c))
+            # the server keeps serving: the next batch in sequence is taken
+            up.send(steps=_steps(3))
+            assert up.wait_acked(timeout=10) and up.acked == 6
+            raw.undeclare()
+            replies = [r for r in s.get(P.KEY_STATUS, timeout=5.0) if r.ok]
+            st = json.loads(replies[0].ok.payload.to_bytes())
+            assert st["db"]["batches"] == 6 and st["db"]["steps"] == 53 and st["db"]["scans"] == 10
+            assert st["db"]["rejections"]["duplicate"] == 1
+        finally:
+            up.close()
+    db = tmp / "srv.db"
+    assert _count(db, m.Batch) == 6 and _count(db, m.Step) == 53
+
+
+def test_locate_queryable_and_pushed_fix(server):
+    from hybridloc.radio.radiomap import BuildParams, build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+    from hybridloc.types import RfScan
+
+    srv, ep, tmp = server
+    rng = np.random.default_rng(0)
+    aps = {"a1": (0, 0), "a2": (20, 0), "a3": (0, 20), "a4": (20, 20)}
+
+    def reading(p):
+        return {k: -40 - 30 * np.log10(max(1.0, np.hypot(p[0] - q[0], p[1] - q[1]))) + rng.normal(0, 1.5) for k, q in aps.items()}
+
+    refs = [LabelledScan(RfScan(float(i), "wifi", reading(p)), p, 0.5, "F1") for i, p in enumerate(rng.uniform(0, 20, (600, 2)))]
+    rmap = build_radio_map(refs, site=SITE, params=BuildParams())
+    rmap.save(tmp / "m.npz")
+    assert srv.load_map(SITE, (tmp / "m.npz").read_bytes()) == 1
+    with zenoh.open(client_config(ep)) as s:
+        q = {"schema": P.LOCATE_SCHEMA, "scan": {"t": 1.0, "tech": "wifi", "rssi": reading((5.0, 5.0))}}
+        rep = [r for r in s.get(P.key_locate(SITE, "dev05"), payload=json.dumps(q), timeout=5.0) if r.ok]
+        fix, region, _ = P.fix_from_dict(json.loads(rep[0].ok.payload.to_bytes()))
+        assert np.hypot(fix.pos_enu[0] - 5, fix.pos_enu[1] - 5) < 4.0 and region["floor"] == "F1"
+        rep = [r for r in s.get(P.key_locate("othersite", "dev05"), payload=json.dumps(q), timeout=5.0) if r.ok]
+        assert P.fix_from_dict(json.loads(rep[0].ok.payload.to_bytes()))[0] is None  # no map: a reason, no made-up fix
+        got = threading.Event()
+        sub = s.declare_subscriber(P.key_fix(SITE, "dev05"), lambda smp: got.set())
+        up = Uplink(s, SITE, "dev05", tmp / "spool5")
+        try:
+            assert up.wait_connected()
+            up.send(scans=[P.ScanRecord(2.0, "wifi", reading((10.0, 12.0)))])
+            assert got.wait(10.0)  # the server pushed a fix for the new scan
+        finally:
+            up.close()
+            sub.undeclare()
+
+
+def _free_port():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+def _start_server(ep, db, *extra):
+    proc = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(db), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = proc.stdout.readline()
+    assert "listening" in line, line
+    return proc
+
+
+def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_path):
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    db = tmp_path / "k.db"
+    proc = _start_server(ep, db)
+    n_batches = 300
+    conf = client_config(ep)
+    conf.insert_json5("mode", '"peer"')  # a peer keeps retrying its connection while the server is down
+    with zenoh.open(conf) as s:
+        up = Uplink(s, SITE, "devk", tmp_path / "spool", resend_after=1.0)
+        try:
+            assert up.wait_connected()
+            for i in range(n_batches):
+                up.send(steps=_steps(20, i * 10.0), scans=_scans(2, i * 10.0))
+                if i == n_batches // 2:
+                    proc.send_signal(signal.SIGKILL)  # mid-ingest
+                    proc.wait()
+            acked_at_kill = up.acked
+            assert _count(db, m.Batch) >= acked_at_kill  # every acknowledged batch was committed
+            proc = _start_server(ep, db)
+            assert up.wait_acked(timeout=60), f"acked {up.acked} of {up.next_seq - 1}"
+        finally:
+            up.close()
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=20)
+    eng = create_engine(f"sqlite:///{db}")
+    with Session(eng) as ses:
+        seqs = [r[0] for r in ses.execute(select(m.Batch.seq).where(m.Batch.device_id == "devk").order_by(m.Batch.seq))]
+        n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
+    eng.dispose()
+    assert seqs == list(range(1, n_batches + 1))  # nothing missing, nothing doubled
+    assert n_steps == 20 * n_batches
+
+
+def test_wrong_password_refused_and_devices_confined(tmp_path):
+    users = tmp_path / "users.txt"
+    users.write_text("server:srvpw\ndev01:pw1\ndev02:pw2\n")
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    sec = Security(users_file=str(users), acl_devices=["dev01", "dev02"])
+    srv = Server(ep, str(tmp_path / "s.db"), sec)
+    # the server's own session authenticates as "server" towards nobody: it is the router
+    srv.start()
+    try:
+        with pytest.raises(zenoh.ZError):
+            zenoh.open(client_config(ep, Security(user="dev01", password="wrong")))
+        with zenoh.open(client_config(ep, Security(user="dev01", password="pw1"))) as s1, zenoh.open(client_config(ep, Security(user="dev02", password="pw2"))) as s2:
+            seen = []
+            sub = s2.declare_subscriber(P.key_fix(SITE, "dev01"), lambda smp: seen.append(smp))  # dev02 spying on dev01
+            # dev01 writes under dev02's key: refused by the ACL, never stored
+            s1.put(P.key_batch(SITE, "dev02"), P.encode_batch(SITE, "dev02", 1, _steps(2)))
+            up = Uplink(s1, SITE, "dev01", tmp_path / "sp1", resend_after=0.5)
+            try:
+                assert up.wait_connected()
+                up.send(steps=_steps(2))
+                assert up.wait_acked(timeout=10)  # its own key works
+                srv.session.put(P.key_fix(SITE, "dev01"), b"{}")  # a fix for dev01 ...
+                time.sleep(0.5)
+                assert seen == []  # ... never reaches dev02
+            finally:
+                up.close()
+                sub.undeclare()
+        time.sleep(0.3)
+        assert _count(tmp_path / "s.db", m.Batch) == 1
+        assert srv.store.last_seq("dev02") == 0
+    finally:
+        srv.stop()
