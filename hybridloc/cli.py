@@ -336,26 +336,18 @@ def _cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
-    import json
+    from .clients.status import query_status
 
-    import zenoh
-
-    from .wire import protocol as P
-    from .wire.zconfig import client_config
-
-    with zenoh.open(client_config(args.endpoint, _security(args))) as s:
-        replies = list(s.get(P.KEY_STATUS, timeout=args.timeout))
-    for r in replies:
-        if r.ok:
-            st = json.loads(r.ok.payload.to_bytes())
-            print(f"devices online ({len(st['online'])}): {', '.join(st['online']) or '-'}")
-            print("database: " + ", ".join(f"{k} {v}" for k, v in st["db"].items() if k not in ("rejections", "maps")))
-            print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
-            print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
-            print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
-            return 0
-    print(f"no server answered on {args.endpoint}", file=sys.stderr)
-    return 1
+    st = query_status(args.endpoint, _security(args), args.timeout)
+    if st is None:
+        print(f"no server answered on {args.endpoint}", file=sys.stderr)
+        return 1
+    print(f"devices online ({len(st['online'])}): {', '.join(st['online']) or '-'}")
+    print("database: " + ", ".join(f"{k} {v}" for k, v in st["db"].items() if k not in ("rejections", "maps")))
+    print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
+    print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
+    print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
+    return 0
 
 
 def _cmd_map_import(args: argparse.Namespace) -> int:
