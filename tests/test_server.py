@@ -228,3 +228,30 @@ def test_wrong_password_refused_and_devices_confined(tmp_path):
         assert srv.store.last_seq("dev02") == 0
     finally:
         srv.stop()
+
+
+def test_tls_with_the_test_ca_script(tmp_path):
+    import shutil
+    from pathlib import Path
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed")
+    script = Path(__file__).resolve().parents[1] / "scripts" / "make-test-certs.sh"
+    subprocess.run(["bash", str(script), str(tmp_path / "pki")], check=True, capture_output=True)
+    subprocess.run(["bash", str(script), str(tmp_path / "other")], check=True, capture_output=True)
+    ep = f"tls/localhost:{_free_port()}"
+    pki = tmp_path / "pki"
+    srv = Server(ep, str(tmp_path / "t.db"), Security(tls_cert=str(pki / "server.pem"), tls_key=str(pki / "server.key"))).start()
+    try:
+        with zenoh.open(client_config(ep, Security(tls_ca=str(pki / "ca.pem")))) as s:
+            up = Uplink(s, SITE, "devtls", tmp_path / "sp")
+            try:
+                assert up.wait_connected()
+                up.send(steps=_steps(3))
+                assert up.wait_acked(timeout=10)
+            finally:
+                up.close()
+        with pytest.raises(zenoh.ZError):  # a client trusting another CA refuses the server
+            zenoh.open(client_config(ep, Security(tls_ca=str(tmp_path / "other" / "ca.pem"))))
+    finally:
+        srv.stop()
