@@ -25,6 +25,7 @@ demo: $(STAMP)
 	$(BIN)/hybridloc demo
 
 bench: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,plot,postgres]'
 	$(BIN)/python -m benchmarks
 
 clean:

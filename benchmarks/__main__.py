@@ -1,6 +1,8 @@
 """Run every benchmark: ``python -m benchmarks`` (``make bench``)."""
 
-from . import bench_foot_ins, bench_foot_loops, bench_phone_pdr, bench_radiomap, bench_sim
+from pathlib import Path
+
+from . import bench_foot_ins, bench_foot_loops, bench_phone_pdr, bench_radiomap, bench_server, bench_sim
 
 if __name__ == "__main__":
     bench_phone_pdr.main([])
@@ -8,3 +10,4 @@ if __name__ == "__main__":
     bench_foot_loops.main([])
     bench_radiomap.main([])
     bench_sim.main([])
+    bench_server.main(["--postgres"] if Path("/usr/lib/postgresql").is_dir() else [])

@@ -1,0 +1,207 @@
+"""Server throughput and latency with real client processes over loopback.
+
+* Ingest: ``--clients`` processes (spawned, each its own Zenoh client session and device) send batches
+  of 100 steps + 10 WiFi scans through the reliable uplink (spool + acks, at most 64 batches in
+  flight); the server (``hybridloc serve`` in its own process) persists them to SQLite (WAL). Printed:
+  steps/s and scans/s persisted with zero loss (checked in the database), and the cost per 1,000
+  messages as the load doubles (1, 2, 4 clients). Goal: >= 20,000 steps/s with >= 2,000 scans/s.
+* Locate: 200 queries/s for ``--seconds`` s against a synthetic map (1,000 transmitters); p50/p99
+  latency of the round trip (goal p50 <= 5 ms, p99 <= 20 ms).
+* ``--postgres``: the same ingest against a PostgreSQL server started by the benchmark (Debian's
+  postgresql package, initdb in a temporary folder), figures side by side.
+
+    python -m benchmarks.bench_server [--batches 200] [--postgres]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _free_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
+
+
+def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
+    import zenoh
+
+    from hybridloc.clients.uplink import Uplink
+    from hybridloc.types import StepEvent
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.zconfig import client_config
+
+    steps = [StepEvent(float(i) * 0.5, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(100)]
+    scans = [P.ScanRecord(float(i), "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(10)]
+    with zenoh.open(client_config(ep)) as s:
+        up = Uplink(s, "bench", device, spool, resend_after=5.0)
+        up.wait_connected(20)
+        t0 = time.perf_counter()
+        for _ in range(n_batches):
+            while up.pending >= 64:
+                up.wait_acked(up.acked + 1, timeout=0.5)
+            up.send(steps=steps, scans=scans)
+        ok = up.wait_acked(timeout=120)
+        q.put((device, time.perf_counter() - t0, ok, up.n_resent))
+        up.close()
+
+
+def _serve(ep: str, db: str) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    line = p.stdout.readline()
+    if "listening" not in line:
+        raise RuntimeError(f"server did not start: {line}")
+    return p
+
+
+def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    server = _serve(ep, db_url)
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    tmp = tempfile.mkdtemp()
+    try:
+        t0 = time.perf_counter()
+        procs = [ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q)) for i in range(n_clients)]
+        for p in procs:
+            p.start()
+        res = [q.get(timeout=600) for _ in procs]
+        for p in procs:
+            p.join()
+        wall = max(r[1] for r in res)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+        shutil.rmtree(tmp, ignore_errors=True)
+    from sqlalchemy import func, select
+    from sqlalchemy.orm import Session
+
+    from hybridloc.server import db as m
+
+    eng = m.make_engine(db_url)
+    with Session(eng) as s:
+        n_steps = s.execute(select(func.count()).select_from(m.Step)).scalar_one()
+        n_scans = s.execute(select(func.count()).select_from(m.Scan)).scalar_one()
+    eng.dispose()
+    expect_steps, expect_scans = n_clients * n_batches * 100, n_clients * n_batches * 10
+    return {"clients": n_clients, "wall": wall, "steps": n_steps, "scans": n_scans, "lossless": n_steps == expect_steps and n_scans == expect_scans and all(r[2] for r in res),
+            "resent": sum(r[3] for r in res)}
+
+
+def locate_run(seconds: float, rate: float = 200.0) -> np.ndarray:
+    import zenoh
+
+    from hybridloc.radio.radiomap import build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+    from hybridloc.types import RfScan
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.zconfig import client_config
+
+    rng = np.random.default_rng(1)
+    aps = rng.uniform(0, 106, (1000, 2))
+    names = [f"ap{i:04d}" for i in range(1000)]
+
+    def scan(p):
+        r = -45 - 35 * np.log10(np.maximum(1, np.linalg.norm(aps - p, axis=1))) + 4 * rng.standard_normal(1000)
+        return {names[j]: float(r[j]) for j in np.flatnonzero(r > -90)}
+
+    refs = [LabelledScan(RfScan(float(i), "wifi", scan(p)), p, 0.5, "F1") for i, p in enumerate(rng.uniform(0, 106, (20000, 2)))]
+    tmp = Path(tempfile.mkdtemp())
+    build_radio_map(refs, site="bench").save(tmp / "m.npz")
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    p = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp / "l.db"), "--map", f"bench={tmp / 'm.npz'}"],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert "listening" in p.stdout.readline()
+    lat = []
+    try:
+        with zenoh.open(client_config(ep)) as s:
+            qr = s.declare_querier(P.key_locate("bench", "devq"), timeout=2.0)
+            queries = [json.dumps({"schema": P.LOCATE_SCHEMA, "scan": {"t": 0.0, "tech": "wifi", "rssi": scan(rng.uniform(5, 100, 2))}}) for _ in range(50)]
+            t_next = time.perf_counter()
+            t_end = t_next + seconds
+            i = 0
+            while time.perf_counter() < t_end:
+                t0 = time.perf_counter()
+                replies = list(qr.get(payload=queries[i % len(queries)]))
+                lat.append(time.perf_counter() - t0)
+                assert replies and replies[0].ok
+                i += 1
+                t_next += 1.0 / rate
+                time.sleep(max(0.0, t_next - time.perf_counter()))
+            qr.undeclare()
+    finally:
+        p.terminate()
+        p.wait(timeout=30)
+        shutil.rmtree(tmp, ignore_errors=True)
+    return np.array(lat) * 1e3
+
+
+def start_postgres(tmp: Path) -> tuple[str, callable]:
+    pg_bin = next((Path(p) for p in sorted(Path("/usr/lib/postgresql").glob("*/bin"))), None) if Path("/usr/lib/postgresql").exists() else None
+    if pg_bin is None:
+        raise RuntimeError("PostgreSQL server binaries not found (apt-get install postgresql)")
+    port = _free_port()
+    data = tmp / "pg"
+    data.mkdir(parents=True)
+    shutil.chown(tmp, "postgres")
+    shutil.chown(data, "postgres")
+    run = lambda cmd: subprocess.run(["su", "postgres", "-c", cmd], check=True, capture_output=True)  # noqa: E731
+    run(f"{pg_bin}/initdb -D {data} -A trust -U postgres --no-sync")
+    run(f"{pg_bin}/pg_ctl -D {data} -o '-p {port} -k {tmp} -c listen_addresses=127.0.0.1 -c fsync=off' -l {tmp}/log -w start")
+    run(f"{pg_bin}/createdb -h 127.0.0.1 -p {port} -U postgres bench")
+    return f"postgresql+psycopg://postgres@127.0.0.1:{port}/bench", lambda: run(f"{pg_bin}/pg_ctl -D {data} -m fast stop")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--batches", type=int, default=200, help="batches per client (100 steps + 10 scans each)")
+    ap.add_argument("--seconds", type=float, default=10.0, help="duration of the locate test")
+    ap.add_argument("--postgres", action="store_true")
+    args = ap.parse_args(argv)
+    backends = [("SQLite (WAL)", None)]
+    if args.postgres:
+        backends.append(("PostgreSQL", "pg"))
+    for label, kind in backends:
+        prev = None
+        for n in (1, 2, 4):
+            tmp = Path(tempfile.mkdtemp())
+            stop = None
+            try:
+                if kind == "pg":
+                    url, stop = start_postgres(tmp)
+                else:
+                    url = str(tmp / "bench.db")
+                r = ingest_run(url, n, args.batches)
+            finally:
+                if stop:
+                    stop()
+                shutil.rmtree(tmp, ignore_errors=True)
+            msgs = r["steps"] + r["scans"]
+            cost = r["wall"] / msgs * 1000 * 1000  # ms per 1,000 messages
+            growth = f", x{cost / prev:.2f} vs half the load" if prev else ""
+            prev = cost
+            print(f"{label} ingest, {n} client process(es): {r['steps'] / r['wall']:,.0f} steps/s + {r['scans'] / r['wall']:,.0f} scans/s persisted, "
+                  f"{'zero loss' if r['lossless'] else 'LOSS'} ({r['steps']} steps, {r['scans']} scans, {r['resent']} resent); "
+                  f"{cost:.2f} ms per 1,000 messages{growth}")
+    lat = locate_run(args.seconds)
+    print(f"locate at 200 queries/s over Zenoh (client -> router/server): p50 {np.percentile(lat, 50):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms "
+          f"over {len(lat)} queries (goal p50 <= 5 ms, p99 <= 20 ms)")
+
+
+if __name__ == "__main__":
+    main()
