@@ -375,6 +375,28 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_map_rebuild(args: argparse.Namespace) -> int:
+    from .server.rebuild import rebuild
+    from .server.store import Store
+
+    st = Store(args.db)
+    width = 30
+
+    def progress(i, n, dev):
+        done = int(width * i / n)
+        print(f"\r[{'#' * done}{'.' * (width - done)}] {i}/{n} devices ({dev})", end="" if i < n else "\n", file=sys.stderr, flush=True)
+
+    try:
+        v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)
+    finally:
+        st.close()
+    if v is None:
+        print(f"site {args.site}: no survey (devices with at least two marks) in {args.db}; no map built", file=sys.stderr)
+        return 1
+    print(f"site {args.site}: radio map version {v} from {n} labelled scans ({relabelled} device(s) relabelled, the rest from the cache)")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -447,6 +469,12 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("--db", default="hybridloc.db")
     me.add_argument("--out", required=True, metavar="MAP")
     me.set_defaults(func=_cmd_map_export)
+
+    mr = msub.add_parser("rebuild", help="rebuild a site's radio map from the surveys stored in the database (incremental, resumable)")
+    mr.add_argument("--site", required=True)
+    mr.add_argument("--db", default="hybridloc.db")
+    mr.add_argument("--cache", help="folder for per-device labelled scans (default <db>.rebuild)")
+    mr.set_defaults(func=_cmd_map_rebuild)
 
     sv = sub.add_parser("serve", help="run the server: Zenoh router + ingest + locate/map/status services")
     sv.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")

@@ -255,3 +255,34 @@ def test_tls_with_the_test_ca_script(tmp_path):
             zenoh.open(client_config(ep, Security(tls_ca=str(tmp_path / "other" / "ca.pem"))))
     finally:
         srv.stop()
+
+
+def test_map_rebuild_from_stored_surveys_is_incremental(tmp_path):
+    from hybridloc.io.msft import find_ilc_traces, read_ilc_trace
+    from hybridloc.pdr.phone import run_phone_pdr
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.server.rebuild import rebuild
+    from hybridloc.server.store import Store
+
+    st = Store(str(tmp_path / "r.db"))
+    batches = []
+    for i, p in enumerate(find_ilc_traces(ILC_SITE1_F1)[:6]):
+        tr = read_ilc_trace(p)
+        steps, _ = run_phone_pdr(tr.imu)
+        scans = [P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm)) for s in tr.wifi_scans]
+        marks = [P.MarkRecord(float(t), float(x), float(y), "F1") for t, (x, y) in zip(tr.waypoints.t, tr.waypoints.pos_enu)]
+        chunks = [dict(steps=steps, marks=marks)] + [dict(scans=scans[k : k + 8]) for k in range(0, len(scans), 8)]
+        for seq, c in enumerate(chunks, 1):  # batches stay under the protocol's size limit
+            batches.append(P.decode_batch(P.encode_batch("mall", f"surveyor{i}", seq, **c)))
+    st.persist(batches)
+    v, n, relabelled = rebuild(st, "mall", tmp_path / "cache")
+    assert v == 1 and n > 50 and relabelled == 6
+    v2, n2, relabelled2 = rebuild(st, "mall", tmp_path / "cache")  # nothing changed: all from the cache
+    assert v2 == 2 and n2 == n and relabelled2 == 0
+    st.close()
+    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "map", "export", "--site", "mall", "--db", str(tmp_path / "r.db"), "--out", str(tmp_path / "m.npz")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    from hybridloc.radio.radiomap import RadioMap
+
+    assert RadioMap.load(tmp_path / "m.npz").site == "mall"

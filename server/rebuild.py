@@ -1,0 +1,87 @@
+"""``hybridloc map rebuild --site S``: a radio map from the surveys stored in the database.
+
+A survey is a device's stream of steps, scans and survey marks. For each device of the site that sent
+at least two marks, its scans are labelled by the PDR bridged between consecutive marks
+(:func:`hybridloc.radio.survey.label_scans`, the same passive-survey labelling as ``map build``), and
+the labelled scans of all devices build the site's new radio map version.
+
+Incremental and resumable: each device's labelled scans are cached in ``<cache>/<site>/<device>.json``
+together with the device's last batch sequence number; a device whose data did not change since is
+not labelled again, and a rebuild interrupted half-way resumes with the devices already done.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from hybridloc.radio.radiomap import build_radio_map
+from hybridloc.radio.survey import LabelledScan, label_scans
+from hybridloc.types import RfScan, StepEvent, Waypoints
+
+from . import db as m
+from .store import Store
+
+
+def _device_survey(s: Session, device: str):
+    steps = [StepEvent(r.t, r.length, r.heading, r.sigma_length, r.sigma_heading, r.heading_change, None, floor_change=r.floor_change)
+             for r in s.execute(select(m.Step).where(m.Step.device_id == device).order_by(m.Step.t)).scalars()]
+    marks = s.execute(select(m.SurveyMark).where(m.SurveyMark.device_id == device).order_by(m.SurveyMark.t)).scalars().all()
+    scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {})) for r in s.execute(
+        select(m.Scan).where(m.Scan.device_id == device, m.Scan.technology == "wifi").order_by(m.Scan.t)).scalars()]
+    return steps, marks, scans
+
+
+def rebuild(store: Store, site: str, cache_dir: str | os.PathLike, progress=None) -> tuple[int | None, int, int]:
+    """(new map version or None, labelled scans, devices relabelled)."""
+    cache = Path(cache_dir) / site
+    cache.mkdir(parents=True, exist_ok=True)
+    labelled: list[LabelledScan] = []
+    relabelled = 0
+    with Session(store.engine) as s:
+        devices = s.execute(select(m.Device).where(m.Device.site_id == site).order_by(m.Device.id)).scalars().all()
+        for i, dev in enumerate(devices, 1):
+            f = cache / f"{dev.id}.json"
+            cached = None
+            if f.is_file():
+                try:
+                    cached = json.loads(f.read_text())
+                except ValueError:
+                    cached = None
+            if cached is None or cached.get("last_seq") != dev.last_seq:
+                steps, marks, scans = _device_survey(s, dev.id)
+                rows = []
+                by_floor: dict[str, list] = {}
+                for mk in marks:
+                    by_floor.setdefault(mk.floor, []).append(mk)
+                if len(marks) >= 2 and steps:
+                    # marks of one floor at a time (a survey walk changing floor is split there)
+                    for floor, mks in by_floor.items():
+                        if len(mks) < 2:
+                            continue
+                        wp = Waypoints(np.array([k.t for k in mks]), np.array([[k.x, k.y] for k in mks]), floor)
+                        for ls in label_scans(scans, steps, wp, steps[0].t - 1.0, source=dev.id):
+                            rows.append({"t": ls.scan.t, "x": float(ls.pos_enu[0]), "y": float(ls.pos_enu[1]), "sigma": ls.sigma, "floor": floor,
+                                         "rssi": dict(ls.scan.rssi_dbm)})
+                tmp = f.with_suffix(".tmp")
+                tmp.write_text(json.dumps({"last_seq": dev.last_seq, "model": dev.model, "scans": rows}))
+                os.replace(tmp, f)
+                cached = json.loads(f.read_text())
+                relabelled += 1
+            for r in cached["scans"]:
+                labelled.append(LabelledScan(RfScan(r["t"], "wifi", r["rssi"], device_model=cached.get("model", "")), np.array([r["x"], r["y"]]), r["sigma"], r["floor"], dev.id))
+            if progress:
+                progress(i, len(devices), dev.id)
+    if not labelled:
+        return None, 0, relabelled
+    rmap = build_radio_map(labelled, site=site)
+    tmpf = Path(cache) / "map.tmp.npz"
+    rmap.save(tmpf)
+    data = tmpf.read_bytes()
+    tmpf.unlink()
+    return store.save_map(site, data, len(labelled)), len(labelled), relabelled
