@@ -311,7 +311,7 @@ def _security(args: argparse.Namespace):
 def _cmd_serve(args: argparse.Namespace) -> int:
     from .server.service import Server, serve_forever
 
-    server = Server(args.endpoint, args.db, _security(args))
+    server = Server(args.endpoint, args.db, _security(args), method=args.method)
     for spec in args.map or []:
         site, _, path = spec.partition("=")
         if not path:
@@ -397,10 +397,46 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_client(args: argparse.Namespace) -> int:
+    import zenoh
+
+    from .clients.agent import Agent, PoseWriter, replay_foot, replay_phone
+    from .wire.zconfig import client_config
+
+    if not args.replay:
+        raise ValueError("live sensor input is not available on this platform; use --replay FILE")
+    device = args.device or f"{args.kind}-{stem_safe(args.replay)}"
+    spool = args.spool or f".hybridloc-spool/{device}"
+    pose = PoseWriter(args.pose_out, args.pose_format)
+    with zenoh.open(client_config(args.endpoint, _security(args))) as s:
+        if args.kind == "foot":
+            imu, _, _ = _load_imu(args.replay, args.format, args.rate)
+            agent = Agent(s, args.site, device, spool, pose)
+            replay_foot(agent, imu, args.speed)
+        else:
+            from .io.msft import read_ilc_trace
+
+            tr = read_ilc_trace(args.replay)
+            agent = Agent(s, args.site, device, spool, pose, tr.device_model)
+            replay_phone(agent, tr, args.speed, survey=args.kind == "survey")
+        r = agent.close(wait=args.ack_timeout)
+    print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
+          f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
+    return 0
+
+
+def stem_safe(path: str) -> str:
+    import re
+
+    from .io.common import stem_of
+
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", stem_of(path))[:40]
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
-    return run_demo(Path(args.out), sim=args.sim)
+    return run_demo(Path(args.out), sim=args.sim, speed=args.speed)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -476,11 +512,33 @@ def build_parser() -> argparse.ArgumentParser:
     mr.add_argument("--cache", help="folder for per-device labelled scans (default <db>.rebuild)")
     mr.set_defaults(func=_cmd_map_rebuild)
 
+    cl = sub.add_parser("client", help="client agents: phone, foot or survey, replaying a recording against a server")
+    csub = cl.add_subparsers(dest="kind", required=True)
+    for kind, helptext in (("phone", "a phone: step-and-heading PDR, WiFi scans, fused fixes"), ("foot", "a foot-mounted IMU: ZUPT INS strides, fused fixes"),
+                           ("survey", "an operator surveying by walking: steps, scans and survey marks (waypoints)")):
+        c = csub.add_parser(kind, help=helptext)
+        c.add_argument("--endpoint", default="tcp/127.0.0.1:7447")
+        c.add_argument("--site", required=True)
+        c.add_argument("--device", help="device id (default: from the recording's name)")
+        c.add_argument("--replay", metavar="FILE", help="recording to replay (ILC trace for phone/survey; IMU file for foot)")
+        c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
+        c.add_argument("--pose-out", metavar="FILE", help="live pose output: .csv (t,x,y,floor,sigma_x,sigma_y), .jsonl or .nmea")
+        c.add_argument("--pose-format", choices=("csv", "jsonl", "nmea"))
+        c.add_argument("--spool", help="folder for unacknowledged batches (default .hybridloc-spool/<device>)")
+        c.add_argument("--ack-timeout", type=float, default=10.0, help="seconds to wait for acknowledgements at the end")
+        c.add_argument("--user")
+        c.add_argument("--password")
+        c.add_argument("--tls-ca")
+        c.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="foot recording format (detected by default)")
+        c.add_argument("--rate", type=float, help="foot IMU rate for files without timestamps")
+        c.set_defaults(func=_cmd_client)
+
     sv = sub.add_parser("serve", help="run the server: Zenoh router + ingest + locate/map/status services")
     sv.add_argument("--endpoint", default="tcp/127.0.0.1:7447", help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
     sv.add_argument("--db", default="hybridloc.db", help="SQLite file or database URL (postgresql+psycopg://...)")
     sv.add_argument("--map", action="append", metavar="SITE=FILE", help="load a radio map file for a site (stored as a new version)")
     sv.add_argument("--site", action="append", help="serve the newest stored radio map of this site")
+    sv.add_argument("--method", choices=("knn", "prob"), default="knn", help="positioning method of the locate service (default knn)")
     sv.add_argument("--users", help="user:password dictionary file (enables authentication)")
     sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
     sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
@@ -554,9 +612,10 @@ def build_parser() -> argparse.ArgumentParser:
     esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
     esr.set_defaults(func=_cmd_eval_sim_realism)
 
-    demo = sub.add_parser("demo", help="run the platform end to end on the bundled sample")
+    demo = sub.add_parser("demo", help="the platform end to end: server, surveys, radio map, phone clients, scores, PNG")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     demo.add_argument("--sim", action="store_true", help="use a simulated building instead of the bundled real sample")
+    demo.add_argument("--speed", type=float, default=20.0, help="replay speed of the phone clients (default 20x)")
     demo.set_defaults(func=_cmd_demo)
     return ap
 

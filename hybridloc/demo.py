@@ -1,69 +1,192 @@
-"""``hybridloc demo``: the platform on the bundled real sample.
+"""``hybridloc demo``: the whole platform on one machine, in one command.
 
-Until the end-to-end server/client demo lands, the demo runs what the library offers on the bundled
-Indoor Location Competition sample (16 traces of site1 F1): reading and checking every trace and the
-floor plan, the phone PDR on every trace (steps.csv + trajectory.csv), the PDR evaluation against the
-ground-truth waypoints, and a radio map built from some traces used as surveys that locates the others.
+1. starts a server (Zenoh router on a loopback port, SQLite file) in this process;
+2. replays some traces of the bundled real sample (Indoor Location Competition site1, floor F1) as
+   operator surveys (steps, scans and waypoint marks) through real client sessions, concurrently;
+3. rebuilds the site's radio map from the stored surveys (``map rebuild``) and serves it;
+4. replays the other traces as concurrent phone clients at accelerated speed: each runs its PDR,
+   uploads steps and scans, receives the fixes the server pushes and fuses them;
+5. prints, per client and overall, the error at the waypoints of PDR alone (started at the first
+   waypoint, its heading aligned on the first segment) versus fused (causal, started by the first fix),
+   and writes ``demo.png`` (floor plan, true waypoints, tracks, containment regions) and ``demo.geojson``.
+
+``--sim`` runs the same on a simulated building (generated, written in the same formats).
 """
 
 from __future__ import annotations
 
+import concurrent.futures as cf
+import math
+import socket
 import time
 from pathlib import Path
 
-import csv
-
 import numpy as np
 
-from .inspect import inspect_file
-from .io.msft import find_ilc_traces, read_ilc_site
+from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
+from .metrics import interpolate_positions, summarize_errors
 from .samples import ILC_SITE1_F1
 
 
-def run_demo(out: Path, sim: bool = False) -> int:
-    from .cli import main as cli_main
+def _free_port() -> int:
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    p = s.getsockname()[1]
+    s.close()
+    return p
 
-    if sim:
-        raise ValueError("--sim needs the simulator, which is not built yet (issue: Simulator)")
-    t0 = time.monotonic()
+
+def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
+    """PDR alone from the first waypoint, heading aligned on the first waypoint segment."""
+    if len(steps) < 2 or len(wp_t) < 2:
+        return np.zeros(0)
+    t = np.array([steps[0].t - 1.0] + [s.t for s in steps])
+    d = np.array([s.displacement_enu for s in steps])
+    p = np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
+    est = np.column_stack([np.interp(wp_t, t, p[:, 0]), np.interp(wp_t, t, p[:, 1])])
+    de, dt_ = est[1] - est[0], wp_xy[1] - wp_xy[0]
+    rot = math.atan2(dt_[1], dt_[0]) - math.atan2(de[1], de[0]) if np.linalg.norm(de) > 0.1 else 0.0
+    c, s = math.cos(rot), math.sin(rot)
+    al = (est - est[0]) @ np.array([[c, s], [-s, c]]) + wp_xy[0]
+    return np.linalg.norm(al[1:] - wp_xy[1:], axis=1)
+
+
+def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
+    if len(poses) < 2:
+        return np.full(max(len(wp_t) - 1, 0), np.nan)
+    pts = sorted({p[0]: p for p in poses}.values())
+    t = np.array([p[0] for p in pts])
+    xy = np.array([[p[1], p[2]] for p in pts])
+    est = interpolate_positions(t, xy, wp_t[1:])
+    return np.linalg.norm(est - wp_xy[1:], axis=1)
+
+
+def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4) -> int:
+    import zenoh  # noqa: F401  (fail early with a clear import error)
+
+    from .clients.agent import Agent, PoseWriter, replay_phone
+    from .server.rebuild import rebuild
+    from .server.service import Server
+    from .wire.zconfig import client_config
+
+    t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
-    plan = read_ilc_site(ILC_SITE1_F1)
-    traces = find_ilc_traces(ILC_SITE1_F1)
-    print(f"[demo 1/3] bundled sample: {len(traces)} traces on {', '.join(plan.floor_names)} ({ILC_SITE1_F1})", flush=True)
-    report = [inspect_file(p, "msft").render() for p in traces]
-    (out / "inspect.txt").write_text("\n\n".join(report) + "\n", encoding="utf-8")
-    print(f"[demo 1/3] data inspection written to {out / 'inspect.txt'}", flush=True)
-    print("[demo 2/4] phone PDR on every trace", flush=True)
-    rc = cli_main(["pdr", "phone", *map(str, traces), "--out", str(out / "pdr")])
-    print("[demo 3/4] phone PDR against the waypoints", flush=True)
-    rc |= cli_main(["eval", "pdr-phone", str(ILC_SITE1_F1)])
+    if sim:
+        from .sim.run import make_world, simulate_walks
+
+        site_dir = out / "sim-world"
+        make_world(7, 2, str(site_dir))
+        from .sim.run import load_world
+
+        walks_dir = out / "sim-walks"
+        simulate_walks(load_world(str(site_dir)), 12, 3.0, "phone", str(walks_dir), seed=7)
+        traces = sorted(walks_dir.glob("w*.txt.gz"))
+        plan = read_ilc_site(site_dir)
+    else:
+        traces = find_ilc_traces(ILC_SITE1_F1)
+        plan = read_ilc_site(ILC_SITE1_F1)
     survey, others = traces[::2] + traces[1::4], traces[3::4]
-    print(f"[demo 4/4] radio map from {len(survey)} traces used as surveys; WiFi positioning of the other {len(others)}", flush=True)
-    rc |= cli_main(["map", "build", "--format", "msft", *map(str, survey), "--out", str(out / "radiomap.npz")])
-    rc |= cli_main(["locate", "--map", str(out / "radiomap.npz"), "--format", "msft", *map(str, others), "--out", str(out / "locate")])
-    rc |= cli_main(["map", "show", str(out / "radiomap.npz"), "--out", str(out / "radiomap.png")])
-    errs = _wifi_errors(others, out / "locate")
-    if errs.size:
-        print(f"[demo] WiFi-only error at waypoints of the {len(others)} located traces: mean {errs.mean():.2f} m, median {np.median(errs):.2f} m (n={errs.size})")
-    print(f"[demo] done in {time.monotonic() - t0:.1f} s; outputs in {out}")
-    return rc
+    site = read_ilc_trace(traces[0]).site or "site"
+    db = out / "server.db"
+    if db.exists():
+        db.unlink()
+    ep = f"tcp/127.0.0.1:{_free_port()}"
+    print(f"[demo] server on {ep}, database {db}; {len(survey)} survey traces, {len(others)} phone clients", flush=True)
+    server = Server(ep, str(db)).start()
+    try:
+        def run_agent(path, kind, spd):
+            tr = read_ilc_trace(path)
+            dev = f"{kind}-{Path(path).name[:12].replace('.', '_')}"
+            with zenoh_open(client_config(ep)) as s:
+                ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model)
+                ag.uplink.wait_connected(10)
+                replay_phone(ag, tr, spd, survey=kind == "survey")
+                return tr, ag.close(wait=30)
+
+        (out / "poses").mkdir(exist_ok=True)
+        with cf.ThreadPoolExecutor(workers) as ex:
+            done = 0
+            for _ in ex.map(lambda p: run_agent(p, "survey", 0.0), survey):
+                done += 1
+                print(f"\r[demo] surveys uploaded {done}/{len(survey)}", end="", flush=True)
+        print(flush=True)
+        v, n_lab, _ = rebuild(server.store, site, out / "rebuild-cache")
+        if v is None:
+            raise RuntimeError("no radio map could be built from the surveys")
+        server.load_map(site)
+        print(f"[demo] radio map version {v} rebuilt from {n_lab} labelled scans of the stored surveys", flush=True)
+        results = []
+        with cf.ThreadPoolExecutor(workers) as ex:
+            futs = [ex.submit(run_agent, p, "phone", speed) for p in others]
+            for i, f in enumerate(cf.as_completed(futs), 1):
+                results.append(f.result())
+                print(f"\r[demo] phone clients finished {i}/{len(others)} (replayed at {speed:g}x)", end="", flush=True)
+        print(flush=True)
+    finally:
+        server.stop()
+    # ---------------------------------------------------------------- scores
+    all_pdr, all_fused = [], []
+    print(f"{'client':<28} {'waypoints':>9} {'PDR alone mean':>15} {'fused mean':>11} {'fixes used':>11}")
+    for tr, r in sorted(results, key=lambda x: x[1].device):
+        e_p = _pdr_only_errors(r.step_events, tr.waypoints.t, tr.waypoints.pos_enu)
+        e_f = _fused_errors(r.poses, tr.waypoints.t, tr.waypoints.pos_enu)
+        all_pdr += e_p.tolist()
+        all_fused += e_f.tolist()
+        print(f"{r.device:<28} {len(tr.waypoints) - 1:9d} {np.nanmean(e_p) if e_p.size else float('nan'):14.2f}m {np.nanmean(e_f):10.2f}m {r.fixes_accepted:5d}/{r.fixes_received:<5d}")
+    sp, sf = summarize_errors(all_pdr), summarize_errors(all_fused)
+    print(f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}), fused mean {sf.mean:.2f} m (p75 {sf.p75:.2f})")
+    _write_outputs(out, plan, results)
+    print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
+    return 0
 
 
-def _wifi_errors(traces, loc_dir: Path) -> np.ndarray:
-    """Error of each trace's WiFi fixes at its waypoints (fix track interpolated to waypoint times)."""
-    from .io.common import stem_of
-    from .io.msft import read_ilc_trace
-    from .metrics import error_at_points
+def zenoh_open(conf):
+    import zenoh
 
-    errs = []
-    for p in traces:
-        rows = [r for r in csv.DictReader(open(loc_dir / f"{stem_of(p)}.csv", encoding="utf-8")) if r["x"]]
-        if len(rows) < 2:
-            continue
-        t = np.array([float(r["t"]) for r in rows])
-        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
-        t, i = np.unique(t, return_index=True)
-        wp = read_ilc_trace(p).waypoints
-        e = error_at_points(t, xy[i], wp.t, wp.pos_enu)
-        errs.extend(e[np.isfinite(e)].tolist())
-    return np.array(errs)
+    return zenoh.open(conf)
+
+
+def _write_outputs(out: Path, plan, results) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io.writers import floorplan_features, point_features, write_geojson
+    from .types import Trajectory
+
+    fig, ax = plt.subplots(figsize=(11, 8))
+    fl = plan.floors[0]
+    for poly in fl.outline.geoms:
+        ax.plot(*poly.exterior.xy, color="0.3", lw=1)
+    for _, room in fl.rooms:
+        ax.fill(*room.exterior.xy, color="0.9", ec="0.75", lw=0.5)
+    feats = floorplan_features(plan)
+    colors = plt.cm.tab10.colors
+    for i, (tr, r) in enumerate(results):
+        c = colors[i % len(colors)]
+        wp = tr.waypoints.pos_enu
+        ax.plot(wp[:, 0], wp[:, 1], "o--", color=c, ms=4, lw=0.8, alpha=0.6)
+        if r.poses:
+            xy = np.array([[p[1], p[2]] for p in r.poses])
+            ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=r.device)
+            t = np.array([p[0] for p in r.poses])
+            order = np.argsort(t, kind="stable")
+            tt, idx = np.unique(t[order], return_index=True)
+            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
+                          "properties": {"kind": "track", "device": r.device}})
+            # a containment-style disc of 2 sigma at the last fix, for the eye
+            last = r.poses[-1]
+            circ = plt.Circle((last[1], last[2]), 2.45 * max(last[4], last[5]), color=c, alpha=0.15)
+            ax.add_patch(circ)
+        feats += point_features(tr.waypoints.t, wp, kind="true_waypoint", trace=Path(tr.path).name)
+        _ = Trajectory
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("hybridloc demo: fused tracks (solid), true waypoints (dashed), 95 % regions at the last fix")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(out / "demo.png", dpi=90)
+    plt.close(fig)
+    write_geojson(out / "demo.geojson", feats)

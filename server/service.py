@@ -24,7 +24,7 @@ from collections import Counter
 
 import zenoh
 
-from hybridloc.radio.locate import ProbabilisticLocator
+from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
 from hybridloc.types import RfScan
 from hybridloc.wire import protocol as P
@@ -36,7 +36,8 @@ log = logging.getLogger("hybridloc.server")
 
 
 class Server:
-    def __init__(self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02):
+    def __init__(self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02,
+                 method: str = "knn"):
         self.endpoint = endpoint
         self.store = Store(db_url)
         self.security = security
@@ -50,6 +51,9 @@ class Server:
         self._worker: threading.Thread | None = None
         self._lock = threading.Lock()
         self.worker_error: BaseException | None = None
+        if method not in ("knn", "prob"):
+            raise ValueError("method must be knn or prob")
+        self.method = method
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> "Server":
@@ -99,8 +103,11 @@ class Server:
             return None
         version, blob = got
         rmap = RadioMap.load(io.BytesIO(blob))
+        # weighted kNN over the map's reference scans by default (calibrated 95 % regions on the
+        # Indoor Location Competition data); the cell likelihood when asked or without references
+        loc = _KnnOne(KnnLocator(rmap.references, max_age_s=8.0)) if self.method == "knn" and rmap.references else ProbabilisticLocator(rmap, max_age_s=8.0)
         with self._lock:
-            self.locators[site] = (version, ProbabilisticLocator(rmap), blob)
+            self.locators[site] = (version, loc, blob)
         return version
 
     # ------------------------------------------------------------ ingest
@@ -211,6 +218,16 @@ class Server:
             self.online.add(device)
         else:
             self.online.discard(device)
+
+
+class _KnnOne:
+    """One-scan ``locate`` on top of the batch kNN locator."""
+
+    def __init__(self, knn: KnnLocator):
+        self.knn = knn
+
+    def locate(self, scan):
+        return self.knn.locate_many([scan])[0]
 
 
 def serve_forever(server: Server) -> None:

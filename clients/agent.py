@@ -1,0 +1,212 @@
+"""Client agents: a phone, a foot-mounted IMU or a surveying operator, talking to the server over Zenoh.
+
+An agent runs its PDR locally, batches steps (and scans, and survey marks for a surveyor) into the
+reliable :class:`~.uplink.Uplink` (disk spool, acknowledgements, resend), receives the fixes the
+server pushes, fuses them with its steps (:class:`hybridloc.fusion.LocalFusion`) and writes its live
+pose - one row per step or fix, each the estimate available at that moment - as CSV
+(``t,x,y,floor,sigma_x,sigma_y``), JSON lines or NMEA-0183, and publishes it on its ``pose`` key.
+When the server is down it keeps dead reckoning; the spool catches up after.
+
+Replay (``--replay FILE --speed K``) feeds a recording at K times real time: the agent sleeps so that
+recording time t is reached at wall time (t - t0) / K.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from hybridloc.fusion import Estimate, LocalFusion
+from hybridloc.geo import GeodeticOrigin
+from hybridloc.io.writers import gga_sentence
+from hybridloc.pdr.phone import PhonePdr
+from hybridloc.types import Technology
+from hybridloc.units import DEG
+from hybridloc.wire import protocol as P
+
+from .uplink import Uplink
+
+
+class PoseWriter:
+    """Live pose output: CSV (``t,x,y,floor,sigma_x,sigma_y``), JSON lines, or NMEA GGA (needs an origin)."""
+
+    def __init__(self, path: str | Path | None, fmt: str | None = None, origin: GeodeticOrigin | None = None):
+        self.path = Path(path) if path else None
+        self.fmt = fmt or (("jsonl" if self.path.suffix in (".jsonl", ".json") else "nmea" if self.path.suffix == ".nmea" else "csv") if self.path else "csv")
+        if self.fmt == "nmea" and origin is None:
+            raise ValueError("NMEA output needs the site's geodetic origin")
+        self.origin = origin
+        self.rows: list[tuple] = []
+        self._f = open(self.path, "w", encoding="utf-8", newline="") if self.path else None
+        if self._f and self.fmt == "csv":
+            self._f.write("t,x,y,floor,sigma_x,sigma_y,kind\n")
+
+    def write(self, e: Estimate) -> None:
+        sx, sy = math.sqrt(max(e.cov[0, 0], 0.0)), math.sqrt(max(e.cov[1, 1], 0.0))
+        self.rows.append((e.t, float(e.pos[0]), float(e.pos[1]), e.floor, sx, sy, e.kind))
+        if self._f is None:
+            return
+        if self.fmt == "csv":
+            self._f.write(f"{e.t:.3f},{e.pos[0]:.3f},{e.pos[1]:.3f},{e.floor or ''},{sx:.3f},{sy:.3f},{e.kind}\n")
+        elif self.fmt == "jsonl":
+            self._f.write(json.dumps({"t": e.t, "x": float(e.pos[0]), "y": float(e.pos[1]), "floor": e.floor, "sigma_x": sx, "sigma_y": sy, "kind": e.kind}) + "\n")
+        else:
+            lat, lon, h = self.origin.enu_to_geodetic(np.array([e.pos[0], e.pos[1]]))
+            self._f.write(gga_sentence(e.t, float(lat) / DEG, float(lon) / DEG, float(h), hdop=max(sx, sy) / 3.0) + "\r\n")
+        self._f.flush()
+
+    def close(self) -> None:
+        if self._f:
+            self._f.close()
+
+
+@dataclass
+class AgentResult:
+    device: str
+    steps: int
+    fixes_received: int
+    fixes_accepted: int
+    batches: int
+    acked: int
+    poses: list = field(default_factory=list)
+    step_events: list = field(default_factory=list)
+
+
+class Agent:
+    """Shared machinery: uplink, fix subscription, fusion, pose output, liveliness."""
+
+    def __init__(self, session: zenoh.Session, site: str, device: str, spool: str | Path, pose: PoseWriter, device_model: str = "",
+                 batch_period: float = 1.0, init: tuple[float, float, float] | None = None):
+        self.session = session
+        self.site, self.device = site, device
+        self.uplink = Uplink(session, site, device, spool, device_model)
+        self.fusion = LocalFusion(init=init)
+        self.pose = pose
+        self.batch_period = batch_period
+        self.fixes: "queue.Queue" = queue.Queue()
+        self._fix_sub = session.declare_subscriber(P.key_fix(site, device), lambda s: self.fixes.put(s.payload.to_bytes()))
+        self._token = session.liveliness().declare_token(P.key_alive(site, device))
+        self.n_fixes = self.n_accepted = 0
+        self._steps: list = []
+        self._scans: list = []
+        self._marks: list = []
+        self._last_flush = -math.inf
+        self.all_steps: list = []
+
+    def on_step(self, step) -> None:
+        self._steps.append(step)
+        self.all_steps.append(step)
+        e = self.fusion.predict(step)
+        if self.fusion.initialised:
+            self.pose.write(e)
+            self.session.put(P.key_pose(self.site, self.device), json.dumps({"schema": P.POSE_SCHEMA, "t": e.t, "x": float(e.pos[0]), "y": float(e.pos[1]), "floor": e.floor}))
+
+    def drain_fixes(self) -> None:
+        while True:
+            try:
+                raw = self.fixes.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                fix, _, _ = P.fix_from_dict(json.loads(raw))
+            except (ValueError, KeyError, TypeError):
+                continue
+            if fix is None:
+                continue
+            self.n_fixes += 1
+            ok, e = self.fusion.correct(fix)
+            if ok:
+                self.n_accepted += 1
+                self.pose.write(e)
+
+    def maybe_flush(self, t: float, force: bool = False) -> None:
+        if not force and t - self._last_flush < self.batch_period:
+            return
+        # keep batches under the protocol size limit: scans are the big items
+        while self._steps or self._scans or self._marks:
+            scans, self._scans = self._scans[:8], self._scans[8:]
+            steps, self._steps = self._steps, []
+            marks, self._marks = self._marks, []
+            self.uplink.send(steps=steps, scans=scans, marks=marks)
+        self._last_flush = t
+
+    def close(self, wait: float = 10.0) -> AgentResult:
+        self.uplink.wait_acked(timeout=wait)
+        self.drain_fixes()
+        for e in (self._fix_sub, self._token):
+            try:
+                e.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        self.uplink.close()
+        self.pose.close()
+        return AgentResult(self.device, len(self.all_steps), self.n_fixes, self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
+                           list(self.pose.rows), list(self.all_steps))
+
+
+def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25) -> None:
+    """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x."""
+    imu = trace.imu
+    if imu is None:
+        raise ValueError(f"{trace.path}: no IMU data to replay")
+    pdr = PhonePdr(imu.rate_hz)
+    scans = [s for s in trace.scans if s.technology is Technology.WIFI]
+    marks = list(zip(trace.waypoints.t, trace.waypoints.pos_enu)) if survey else []
+    t0 = float(imu.t[0])
+    wall0 = time.monotonic()
+    i_scan = i_mark = 0
+    acc, gyr = imu.accel_body.tolist(), imu.gyro_body.tolist()
+    mag = imu.mag_body.tolist() if imu.mag_body is not None else None
+    ts = imu.t.tolist()
+    k = 0
+    n = len(ts)
+    while k < n:
+        t_chunk_end = ts[k] + chunk
+        while k < n and ts[k] < t_chunk_end:
+            for st in pdr.update(ts[k], acc[k], gyr[k], mag[k] if mag is not None else None):
+                agent.on_step(st)
+            k += 1
+        t_now = ts[k - 1]
+        while i_scan < len(scans) and scans[i_scan].t <= t_now:
+            s = scans[i_scan]
+            agent._scans.append(P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm)))
+            i_scan += 1
+        while i_mark < len(marks) and marks[i_mark][0] <= t_now:
+            tm, xy = marks[i_mark]
+            agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
+            i_mark += 1
+        agent.maybe_flush(t_now)
+        agent.drain_fixes()
+        if speed > 0:
+            lag = (t_now - t0) / speed - (time.monotonic() - wall0)
+            if lag > 0:
+                time.sleep(lag)
+    for tm, xy in marks[i_mark:]:
+        agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
+    agent.maybe_flush(ts[-1], force=True)
+
+
+def replay_foot(agent: Agent, imu, speed: float = 1.0) -> None:
+    """A foot-mounted IMU recording: the INS runs over it and its strides are sent as steps (paced)."""
+    from hybridloc.ins.foot import run_foot_ins, strides
+
+    res = run_foot_ins(imu)
+    t0 = float(imu.t[0])
+    wall0 = time.monotonic()
+    for st in strides(res):
+        if speed > 0:
+            lag = (st.t - t0) / speed - (time.monotonic() - wall0)
+            if lag > 0:
+                time.sleep(lag)
+        agent.on_step(st)
+        agent.maybe_flush(st.t)
+        agent.drain_fixes()
+    agent.maybe_flush(float(imu.t[-1]), force=True)

@@ -1,0 +1,72 @@
+"""Local fusion and the client agents against a real server on loopback."""
+
+import math
+
+import numpy as np
+import pytest
+import zenoh
+
+from hybridloc.fusion import LocalFusion
+from hybridloc.types import AbsoluteFix, StepEvent
+
+
+def _walk(n, heading, length=0.7, t0=0.0):
+    return [StepEvent(t0 + 0.5 * i, length, heading, 0.05, math.radians(2), 0.0, math.radians(1)) for i in range(n)]
+
+
+def test_fusion_learns_heading_bias_and_step_scale_from_fixes():
+    """Steps report heading 0 and 0.7 m; the truth walks at +10 deg with 0.8 m steps; fixes every 10 steps."""
+    rng = np.random.default_rng(0)
+    f = LocalFusion(init=(0.0, 0.0, 0.5))
+    true = np.zeros(2)
+    bias, scale = math.radians(10), 0.8 / 0.7
+    for k in range(40):
+        for st in _walk(10, 0.0, t0=5.0 * k):
+            f.predict(st)
+            true += 0.8 * np.array([math.cos(bias), math.sin(bias)])
+        ok, _ = f.correct(AbsoluteFix(5.0 * k + 5, true + rng.normal(0, 1.0, 2), np.eye(2) * 1.0, "wifi", "F1", 0.99))
+    # consistent (within 3 sigma of its own covariance) and informative (sigma well below the prior)
+    sb, ss = math.sqrt(f.P[2, 2]), math.sqrt(f.P[3, 3])
+    assert abs(f.x[2] - bias) < 3 * sb and sb < math.radians(6)
+    assert abs(f.x[3] - scale) < 3 * ss and ss < 0.05
+    assert np.linalg.norm(f.x[:2] - true) < 2.0
+    assert np.allclose(f.P, f.P.T) and np.linalg.eigvalsh(f.P).min() > 0
+
+
+def test_fusion_rejects_outliers_outside_the_95_region_and_reinitialises_when_lost():
+    f = LocalFusion(init=(0.0, 0.0, 0.5))
+    for st in _walk(10, 0.0):
+        f.predict(st)
+    ok, _ = f.correct(AbsoluteFix(5.0, [40.0, 0.0], np.eye(2), "gps", "F1"))  # multipath: 33 m off
+    assert not ok and f.n_rejected == 1
+    for i in range(5):  # the world keeps saying we are elsewhere: the filter gives in and restarts there
+        ok, e = f.correct(AbsoluteFix(6.0 + i, [100.0, 50.0], np.eye(2), "wifi", "F2", 0.95))
+    assert ok and np.linalg.norm(f.x[:2] - [100, 50]) < 1e-6 and f.floor == "F2"
+
+
+def test_phone_agent_end_to_end_with_server_down_then_up(tmp_path):
+    from hybridloc.clients.agent import Agent, PoseWriter, replay_phone
+    from hybridloc.io.msft import find_ilc_traces, read_ilc_trace
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.server.service import Server
+    from hybridloc.wire.zconfig import client_config
+
+    ep = f"unixsock-stream/{tmp_path}/s.sock"
+    traces = find_ilc_traces(ILC_SITE1_F1)
+    tr = read_ilc_trace(traces[0])
+    # the server is not up yet: the agent dead-reckons and spools (a peer keeps retrying to connect)
+    conf = client_config(ep)
+    conf.insert_json5("mode", '"peer"')
+    with zenoh.open(conf) as s:
+        ag = Agent(s, "site1", "phoneA", tmp_path / "spool", PoseWriter(tmp_path / "pose.csv"), tr.device_model, init=(0.0, 0.0, 1.0))
+        replay_phone(ag, tr, speed=0.0)
+        assert ag.uplink.acked == 0 and ag.uplink.pending > 0
+        n_sent = ag.uplink.next_seq - 1
+        srv = Server(ep, str(tmp_path / "db.sqlite")).start()
+        try:
+            res = ag.close(wait=30)  # catches up: resends the spool once the server is there
+        finally:
+            srv.stop()
+    assert res.acked == n_sent and res.steps > 20
+    lines = (tmp_path / "pose.csv").read_text().splitlines()
+    assert lines[0] == "t,x,y,floor,sigma_x,sigma_y,kind" and len(lines) > res.steps
