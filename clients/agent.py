@@ -35,6 +35,13 @@ from hybridloc.wire import protocol as P
 from .uplink import Uplink
 
 
+def open_client(endpoint: str, security=None) -> zenoh.Session:
+    """A client-mode Zenoh session to a server endpoint (scouting off; see hybridloc.wire.zconfig)."""
+    from hybridloc.wire.zconfig import client_config
+
+    return zenoh.open(client_config(endpoint, security))
+
+
 class PoseWriter:
     """Live pose output: CSV (``t,x,y,floor,sigma_x,sigma_y``), JSON lines, or NMEA GGA (needs an origin)."""
 

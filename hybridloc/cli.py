@@ -398,17 +398,14 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
 
 
 def _cmd_client(args: argparse.Namespace) -> int:
-    import zenoh
-
-    from .clients.agent import Agent, PoseWriter, replay_foot, replay_phone
-    from .wire.zconfig import client_config
+    from .clients.agent import Agent, PoseWriter, open_client, replay_foot, replay_phone
 
     if not args.replay:
         raise ValueError("live sensor input is not available on this platform; use --replay FILE")
     device = args.device or f"{args.kind}-{stem_safe(args.replay)}"
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)
-    with zenoh.open(client_config(args.endpoint, _security(args))) as s:
+    with open_client(args.endpoint, _security(args)) as s:
         if args.kind == "foot":
             imu, _, _ = _load_imu(args.replay, args.format, args.rate)
             agent = Agent(s, args.site, device, spool, pose)

@@ -62,12 +62,9 @@ def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
 
 
 def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4) -> int:
-    import zenoh  # noqa: F401  (fail early with a clear import error)
-
-    from .clients.agent import Agent, PoseWriter, replay_phone
+    from .clients.agent import Agent, PoseWriter, open_client, replay_phone
     from .server.rebuild import rebuild
     from .server.service import Server
-    from .wire.zconfig import client_config
 
     t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
@@ -97,7 +94,7 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         def run_agent(path, kind, spd):
             tr = read_ilc_trace(path)
             dev = f"{kind}-{Path(path).name[:12].replace('.', '_')}"
-            with zenoh_open(client_config(ep)) as s:
+            with open_client(ep) as s:
                 ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model)
                 ag.uplink.wait_connected(10)
                 replay_phone(ag, tr, spd, survey=kind == "survey")
@@ -138,12 +135,6 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
     _write_outputs(out, plan, results)
     print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
     return 0
-
-
-def zenoh_open(conf):
-    import zenoh
-
-    return zenoh.open(conf)
 
 
 def _write_outputs(out: Path, plan, results) -> None:
