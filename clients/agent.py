@@ -85,6 +85,7 @@ class AgentResult:
     acked: int
     poses: list = field(default_factory=list)
     step_events: list = field(default_factory=list)
+    raw_fixes: list = field(default_factory=list)
 
 
 class Agent:
@@ -107,6 +108,7 @@ class Agent:
         self._marks: list = []
         self._last_flush = -math.inf
         self.all_steps: list = []
+        self.raw_fixes: list = []  # (t, x, y, floor) of every fix received, before fusion
 
     def on_step(self, step) -> None:
         self._steps.append(step)
@@ -129,6 +131,7 @@ class Agent:
             if fix is None:
                 continue
             self.n_fixes += 1
+            self.raw_fixes.append((fix.t, float(fix.pos_enu[0]), float(fix.pos_enu[1]), fix.floor))
             ok, e = self.fusion.correct(fix)
             if ok:
                 self.n_accepted += 1
@@ -156,7 +159,7 @@ class Agent:
         self.uplink.close()
         self.pose.close()
         return AgentResult(self.device, len(self.all_steps), self.n_fixes, self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
-                           list(self.pose.rows), list(self.all_steps))
+                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes))
 
 
 def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25) -> None:
@@ -184,7 +187,7 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
         t_now = ts[k - 1]
         while i_scan < len(scans) and scans[i_scan].t <= t_now:
             s = scans[i_scan]
-            agent._scans.append(P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm)))
+            agent._scans.append(P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm), age=dict(s.age_s)))
             i_scan += 1
         while i_mark < len(marks) and marks[i_mark][0] <= t_now:
             tm, xy = marks[i_mark]

@@ -430,6 +430,12 @@ def stem_safe(path: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem_of(path))[:40]
 
 
+def _cmd_eval_fusion(args: argparse.Namespace) -> int:
+    from .demo import run_fusion_eval
+
+    return run_fusion_eval(args.dir, Path(args.out), args.replay_every, args.every)
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import run_demo
 
@@ -608,6 +614,13 @@ def build_parser() -> argparse.ArgumentParser:
     esr.add_argument("--minutes", type=float, default=5.0)
     esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
     esr.set_defaults(func=_cmd_eval_sim_realism)
+
+    efu = esub.add_parser("fusion", help="PDR only, WiFi only and fused at waypoints, through the real client and server path")
+    efu.add_argument("dir", help="Indoor Location Competition site folder, e.g. ../shared/data/msft-ilc/site1")
+    efu.add_argument("--out", default="out/eval-fusion")
+    efu.add_argument("--replay-every", type=int, default=4, help="every N-th trace is a phone client, the rest are surveys (default 4)")
+    efu.add_argument("--every", type=int, default=1, help="use every N-th trace of the site")
+    efu.set_defaults(func=_cmd_eval_fusion)
 
     demo = sub.add_parser("demo", help="the platform end to end: server, surveys, radio map, phone clients, scores, PNG")
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")

@@ -20,7 +20,7 @@ import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from hybridloc.radio.radiomap import build_radio_map
+from hybridloc.radio.radiomap import BuildParams, build_radio_map
 from hybridloc.radio.survey import LabelledScan, label_scans
 from hybridloc.types import RfScan, StepEvent, Waypoints
 
@@ -32,7 +32,7 @@ def _device_survey(s: Session, device: str):
     steps = [StepEvent(r.t, r.length, r.heading, r.sigma_length, r.sigma_heading, r.heading_change, None, floor_change=r.floor_change)
              for r in s.execute(select(m.Step).where(m.Step.device_id == device).order_by(m.Step.t)).scalars()]
     marks = s.execute(select(m.SurveyMark).where(m.SurveyMark.device_id == device).order_by(m.SurveyMark.t)).scalars().all()
-    scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {})) for r in s.execute(
+    scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {}), r.readings.get("age", {})) for r in s.execute(
         select(m.Scan).where(m.Scan.device_id == device, m.Scan.technology == "wifi").order_by(m.Scan.t)).scalars()]
     return steps, marks, scans
 
@@ -67,19 +67,20 @@ def rebuild(store: Store, site: str, cache_dir: str | os.PathLike, progress=None
                         wp = Waypoints(np.array([k.t for k in mks]), np.array([[k.x, k.y] for k in mks]), floor)
                         for ls in label_scans(scans, steps, wp, steps[0].t - 1.0, source=dev.id):
                             rows.append({"t": ls.scan.t, "x": float(ls.pos_enu[0]), "y": float(ls.pos_enu[1]), "sigma": ls.sigma, "floor": floor,
-                                         "rssi": dict(ls.scan.rssi_dbm)})
+                                         "rssi": dict(ls.scan.rssi_dbm), "age": dict(ls.scan.age_s)})
                 tmp = f.with_suffix(".tmp")
                 tmp.write_text(json.dumps({"last_seq": dev.last_seq, "model": dev.model, "scans": rows}))
                 os.replace(tmp, f)
                 cached = json.loads(f.read_text())
                 relabelled += 1
             for r in cached["scans"]:
-                labelled.append(LabelledScan(RfScan(r["t"], "wifi", r["rssi"], device_model=cached.get("model", "")), np.array([r["x"], r["y"]]), r["sigma"], r["floor"], dev.id))
+                labelled.append(LabelledScan(RfScan(r["t"], "wifi", r["rssi"], age_s=r.get("age", {}), device_model=cached.get("model", "")),
+                                             np.array([r["x"], r["y"]]), r["sigma"], r["floor"], dev.id))
             if progress:
                 progress(i, len(devices), dev.id)
     if not labelled:
         return None, 0, relabelled
-    rmap = build_radio_map(labelled, site=site)
+    rmap = build_radio_map(labelled, site=site, params=BuildParams(max_age_s=8.0))
     tmpf = Path(cache) / "map.tmp.npz"
     rmap.save(tmpf)
     data = tmpf.read_bytes()

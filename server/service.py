@@ -163,7 +163,7 @@ class Server:
             scans = [sc for sc in b.scans if sc.technology == "wifi"]
             if scans and b.site in self.locators:
                 sc = scans[-1]
-                res = self.locators[b.site][1].locate(RfScan(sc.t, "wifi", sc.rssi, device_model=b.device_model))
+                res = self.locators[b.site][1].locate(RfScan(sc.t, "wifi", sc.rssi, age_s=sc.age, device_model=b.device_model))
                 if res.fix is not None:
                     self.store.add_fix(b.device, res.fix)
                     self.session.put(P.key_fix(b.site, b.device), json.dumps(P.fix_to_dict(res.fix, res.region)), encoding=P.encoding(P.FIX_SCHEMA))
@@ -177,7 +177,8 @@ class Server:
             if msg.get("schema") != P.LOCATE_SCHEMA:
                 raise P.Rejected("schema-version", "locate/1 expected")
             sc = msg["scan"]
-            scan = RfScan(float(sc["t"]), sc.get("tech", "wifi"), {str(k): float(v) for k, v in sc["rssi"].items()}, device_model=str(msg.get("device_model", "")))
+            scan = RfScan(float(sc["t"]), sc.get("tech", "wifi"), {str(k): float(v) for k, v in sc["rssi"].items()},
+                          age_s={str(k): float(v) for k, v in (sc.get("age") or {}).items()}, device_model=str(msg.get("device_model", "")))
             loc = self.locators.get(site)
             if loc is None:
                 body = P.fix_to_dict(None, reason=f"no radio map for site {site!r}")

@@ -72,7 +72,8 @@ class Store:
                 if b.scans:
                     s.execute(insert(m.Scan), [
                         {"batch_id": row.id, "device_id": b.device, "t": sc.t, "technology": sc.technology,
-                         "readings": {"rssi": sc.rssi, **({"freq": sc.frequency} if sc.frequency else {})}} for sc in b.scans])
+                         "readings": {"rssi": sc.rssi, **({"freq": sc.frequency} if sc.frequency else {}), **({"age": sc.age} if sc.age else {})}}
+                        for sc in b.scans])
                 if b.marks:
                     s.execute(insert(m.SurveyMark), [{"batch_id": row.id, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for mk in b.marks])
                 dev.last_seq = b.seq

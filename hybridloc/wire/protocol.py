@@ -116,6 +116,7 @@ class ScanRecord:
     technology: str
     rssi: dict
     frequency: dict = field(default_factory=dict)
+    age: dict = field(default_factory=dict)  # transmitter -> seconds since the reading was taken (Android's cache)
 
 
 @dataclass(frozen=True)
@@ -172,7 +173,8 @@ def encode_batch(site: str, device: str, seq: int, steps=(), scans=(), marks=(),
     msg = {
         "schema": BATCH_SCHEMA, "site": site, "device": device, "seq": int(seq), "device_model": device_model, "sent_at": sent_at,
         "steps": [step_to_dict(s) for s in steps],
-        "scans": [{"t": s.t, "tech": s.technology, "rssi": dict(s.rssi), **({"freq": dict(s.frequency)} if s.frequency else {})} for s in scans],
+        "scans": [{"t": s.t, "tech": s.technology, "rssi": dict(s.rssi), **({"freq": dict(s.frequency)} if s.frequency else {}),
+                   **({"age": dict(s.age)} if s.age else {})} for s in scans],
         "marks": [{"t": m.t, "x": m.x, "y": m.y, "floor": m.floor} for m in marks],
     }
     return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
@@ -233,7 +235,8 @@ def decode_batch(payload: bytes, key_site: str | None = None, key_device: str | 
             if tech not in ("wifi", "ble", "rfid"):
                 raise Rejected("bad-scan", f"technology {tech!r}")
             freq = {str(k)[:64]: _finite(v, "freq") for k, v in (s.get("freq") or {}).items()}
-            scans.append(ScanRecord(_finite(s["t"], "scan t"), tech, clean, freq))
+            age = {str(k)[:64]: _finite(v, "age") for k, v in (s.get("age") or {}).items()}
+            scans.append(ScanRecord(_finite(s["t"], "scan t"), tech, clean, freq, age))
         marks = [MarkRecord(_finite(m["t"], "mark t"), _finite(m["x"], "x"), _finite(m["y"], "y"), str(m.get("floor", ""))[:32]) for m in marks_in]
     except Rejected:
         raise
