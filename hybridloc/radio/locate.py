@@ -39,6 +39,8 @@ from .survey import LabelledScan
 
 #: Log-likelihood of hearing a transmitter the floor's map does not hold (p_d 0.005, weak reading).
 UNMAPPED_LOGLIK = math.log(0.005) - 0.5 * 9.0 - math.log(10.0)
+#: Standard deviation per axis added to every kNN fix, m (see KnnLocator.locate_many).
+KNN_SIGMA_FLOOR = 3.0
 #: Value used for "not heard" in fingerprint vectors, dBm.
 MISSING_DBM = -110.0
 
@@ -261,7 +263,10 @@ class KnnLocator:
             w /= w.sum()
             mean = w @ self.pos[nb]
             dxy = self.pos[nb] - mean
-            cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + 0.25)
+            # neighbours' spread + their labels' uncertainty + a floor for what the neighbours cannot
+            # show: when all k agree on a wrong place (a similar-looking corridor) the spread is small
+            # but the error is not. 3 m per axis ~ the median WiFi error on the ILC data.
+            cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + KNN_SIGMA_FLOOR**2)
             fix = AbsoluteFix(s.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i][b]))
             rad = 2.0 * math.sqrt(max(np.linalg.eigvalsh(cov).max(), 1e-6))
             region = ContainmentRegion(fl or None, shapely.union_all(shapely.buffer(shapely.points(self.pos[nb]), rad)), 0.95, s.t)
