@@ -20,7 +20,6 @@ import json
 import multiprocessing as mp
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -29,13 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hybridloc.wire.zconfig import free_port
 
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
 
 
 def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
@@ -70,7 +64,7 @@ def _serve(ep: str, db: str) -> subprocess.Popen:
 
 
 def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     server = _serve(ep, db_url)
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
@@ -123,7 +117,7 @@ def locate_run(seconds: float, rate: float = 200.0) -> np.ndarray:
     refs = [LabelledScan(RfScan(float(i), "wifi", scan(p)), p, 0.5, "F1") for i, p in enumerate(rng.uniform(0, 106, (20000, 2)))]
     tmp = Path(tempfile.mkdtemp())
     build_radio_map(refs, site="bench").save(tmp / "m.npz")
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     p = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp / "l.db"), "--map", f"bench={tmp / 'm.npz'}"],
                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert "listening" in p.stdout.readline()
@@ -155,7 +149,7 @@ def start_postgres(tmp: Path) -> tuple[str, callable]:
     pg_bin = next((Path(p) for p in sorted(Path("/usr/lib/postgresql").glob("*/bin"))), None) if Path("/usr/lib/postgresql").exists() else None
     if pg_bin is None:
         raise RuntimeError("PostgreSQL server binaries not found (apt-get install postgresql)")
-    port = _free_port()
+    port = free_port()
     data = tmp / "pg"
     data.mkdir(parents=True)
     shutil.chown(tmp, "postgres")

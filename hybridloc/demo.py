@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import math
-import socket
 import time
 from pathlib import Path
 
@@ -27,13 +26,6 @@ from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .metrics import interpolate_positions, summarize_errors
 from .samples import ILC_SITE1_F1
 
-
-def _free_port() -> int:
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
 
 
 def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
@@ -66,11 +58,12 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
 
     Returns [(trace, AgentResult)] of the phone clients.
     """
+    import shutil
+
     from .clients.agent import Agent, PoseWriter, open_client, replay_phone
     from .server.rebuild import rebuild
     from .server.service import Server
-
-    import shutil
+    from .wire.zconfig import free_port
 
     out.mkdir(parents=True, exist_ok=True)
     # a fresh database, so the clients' spools and the rebuild cache of an earlier run must go too
@@ -81,7 +74,7 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
     db = out / "server.db"
     for suffix in ("", "-wal", "-shm"):
         Path(str(db) + suffix).unlink(missing_ok=True)
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     say = print if progress else (lambda *a, **k: None)
     say(f"[pipeline] server on {ep}, database {db}; {len(survey)} survey traces, {len(others)} phone clients", flush=True)
     server = Server(ep, str(db)).start()

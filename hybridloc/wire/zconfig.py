@@ -36,6 +36,17 @@ class Security:
     server_user: str = "server"
 
 
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port free right now on ``host`` (bind to port 0 and release; a small race remains)."""
+    import socket
+
+    s = socket.socket()
+    s.bind((host, 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
 def _base(mode: str) -> zenoh.Config:
     c = zenoh.Config()
     c.insert_json5("mode", json.dumps(mode))
