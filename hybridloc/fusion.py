@@ -60,6 +60,7 @@ class LocalFusion:
         self.n_rejected = 0
         self._rejected_run = 0
         self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
+        self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
         if init is not None:
             self.x[:2] = init[:2]
             self.P[0, 0] = self.P[1, 1] = init[2] ** 2
@@ -89,9 +90,26 @@ class LocalFusion:
         self.P = F @ self.P @ F.T + Q
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
+        self._hist.append((step.t, float(self.x[0]), float(self.x[1])))
+        if len(self._hist) > 200:
+            del self._hist[:100]
         if step.floor_change and self.floor is not None:
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
+
+    def _position_at(self, t: float) -> np.ndarray:
+        if not self._hist or t >= self._hist[-1][0]:
+            return self.x[:2].copy()
+        h = self._hist
+        if t <= h[0][0]:
+            return np.array(h[0][1:])
+        k = next(i for i in range(len(h) - 1, -1, -1) if h[i][0] <= t)
+        (t0, x0, y0), (t1, x1, y1) = h[k], h[k + 1]
+        a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+        # where we were then = our track then, shifted by every correction made since (the history
+        # stores the track as it was; corrections move the present only)
+        shift = self.x[:2] - np.array(h[-1][1:])
+        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)]) + shift
 
     def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
         """One gated position update; returns (accepted, estimate)."""
@@ -99,6 +117,7 @@ class LocalFusion:
         R = np.asarray(fix.cov, float)[:2, :2]
         if not self.initialised:
             self.x[:2] = z
+            self._hist.clear()
             self.P[:2, :2] = R
             self.P[:2, 2:] = 0.0
             self.P[2:, :2] = 0.0
@@ -108,7 +127,10 @@ class LocalFusion:
             return True, self.estimate("init")
         H = np.zeros((2, 4))
         H[0, 0] = H[1, 1] = 1.0
-        y = z - self.x[:2]
+        # A fix arrives after the scan it comes from (network, server batching): compare it with where
+        # we were at the scan's time, and shift the present by the same correction (the steps since
+        # then are kept as they are).
+        y = z - self._position_at(fix.t)
         S = self.P[:2, :2] + R
         nis = float(y @ np.linalg.solve(S, y))
         if nis > self._gate:
