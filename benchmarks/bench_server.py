@@ -70,7 +70,6 @@ def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
     q = ctx.Queue()
     tmp = tempfile.mkdtemp()
     try:
-        t0 = time.perf_counter()
         procs = [ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q)) for i in range(n_clients)]
         for p in procs:
             p.start()

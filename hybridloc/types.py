@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon
-from shapely.geometry.base import BaseGeometry
 
 from .units import wrap_angle
 

@@ -147,10 +147,7 @@ class Server:
                 self.counts["batches-received"] += 1
             except P.Rejected as rej:
                 bad[(device, rej.reason)] += 1
-        for (_, reason), n in bad.items():
-            self.counts[f"rejected:{reason}"] += n
-        self.store.count_rejections(bad)
-        acked, rejected, written = self.store.persist(batches)
+        acked, rejected, written = self.store.persist(batches, bad)
         for (_, reason), n in rejected.items():
             self.counts[f"rejected:{reason}"] += n
         self.counts["batches-persisted"] += written

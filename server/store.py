@@ -3,8 +3,8 @@
 :meth:`Store.persist` takes decoded batches in arrival order and returns, per device, the highest
 sequence number now persisted (what the server acknowledges). A batch is written only if it is the
 next one of its device; duplicates and gaps are counted as rejections (reasons ``duplicate`` and
-``out-of-order``) and change nothing. Validation failures before this point are counted with
-:meth:`Store.count_rejections`.
+``out-of-order``) and change nothing. Validation failures before this point are passed in and stored
+in the same transaction.
 """
 
 from __future__ import annotations
@@ -30,12 +30,16 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
-    def persist(self, batches: list[Batch]) -> tuple[dict[str, int], Counter, int]:
-        """(highest persisted seq per device, rejections by (device, reason), batches written)."""
+    def persist(self, batches: list[Batch], invalid: Counter | None = None) -> tuple[dict[str, int], Counter, int]:
+        """(highest persisted seq per device, rejections by (device, reason), batches written).
+
+        ``invalid`` counts messages already refused by validation; they are stored in the same
+        transaction (and included in the returned rejections).
+        """
         acked: dict[str, int] = {}
-        rejected: Counter = Counter()
+        rejected: Counter = Counter(invalid or {})
         written = 0
-        if not batches:
+        if not batches and not rejected:
             return acked, rejected, written
         with Session(self.engine) as s, s.begin():
             devices: dict[str, m.Device] = {}
@@ -84,11 +88,6 @@ class Store:
                 written += 1
             self._add_rejections(s, rejected)
         return acked, rejected, written
-
-    def count_rejections(self, counts: Counter) -> None:
-        if counts:
-            with Session(self.engine) as s, s.begin():
-                self._add_rejections(s, counts)
 
     @staticmethod
     def _add_rejections(s: Session, counts: Counter) -> None:

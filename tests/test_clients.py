@@ -3,7 +3,6 @@
 import math
 
 import numpy as np
-import pytest
 import zenoh
 
 from hybridloc.fusion import LocalFusion

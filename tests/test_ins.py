@@ -7,7 +7,7 @@ import pytest
 
 from hybridloc.ins import stance
 from hybridloc.ins.eskf import ErrorStateEkf, ImuNoise
-from hybridloc.ins.foot import FootInsConfig, dedrift_i, run_foot_ins, strides
+from hybridloc.ins.foot import dedrift_i, run_foot_ins, strides
 from hybridloc.ins.measurements import Heading, PositionFix, ZeroAngularRate, ZeroVelocity, jacobian_fd
 from hybridloc.ins.strapdown import NominalState, level_from_accel, mechanise, quat_from_rotvec, quat_to_dcm
 from hybridloc.types import ImuBlock

@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-import shapely
 
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import BuildParams, RadioMap, build_radio_map

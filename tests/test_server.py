@@ -1,7 +1,6 @@
 """Server over real Zenoh sessions on loopback, real SQLite files and real Alembic migrations."""
 
 import json
-import os
 import signal
 import socket
 import subprocess

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from .measurements import DBA, DBG, DP, DTH, DV, MeasurementModel
+from .measurements import DP, DTH, MeasurementModel
 from .strapdown import NominalState, quat_to_dcm, skew
 
 

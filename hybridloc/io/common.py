@@ -135,3 +135,22 @@ def stem_of(path: str | os.PathLike) -> str:
             name = name[: -len(ext)]
     return name
 
+
+
+def sort_unique(t, cols: list, report: ReadReport, name: str):
+    """Sort samples by time (noting how many went back) and drop repeated timestamps (noted).
+
+    ``t`` (N,) times and ``cols`` arrays with N rows; returns (t, cols) with the same rows kept.
+    """
+    import numpy as np
+
+    back = int(np.sum(np.diff(t) < 0))
+    if back:
+        report.note("out-of-order", back, f"{name}: {back} samples went back in time; re-sorted")
+        order = np.argsort(t, kind="stable")
+        t, cols = t[order], [c[order] for c in cols]
+    dup = np.concatenate([[False], np.diff(t) == 0]) if len(t) else np.zeros(0, bool)
+    if dup.any():
+        report.note("duplicate-timestamp", int(dup.sum()), f"{name}: {int(dup.sum())} repeated timestamps dropped")
+        t, cols = t[~dup], [c[~dup] for c in cols]
+    return t, cols

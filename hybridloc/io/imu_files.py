@@ -27,7 +27,7 @@ import scipy.io
 
 from ..types import ImuBlock, Trajectory
 from ..units import DEG, G0, UT_TO_T
-from .common import DataFormatError, OnError, ReadReport, iter_lines
+from .common import DataFormatError, OnError, ReadReport, iter_lines, sort_unique
 
 IMU_CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz")
 IMU_CSV_MAG_COLUMNS = ("mx", "my", "mz")
@@ -48,19 +48,6 @@ def check_imu_units(accel: np.ndarray, gyro: np.ndarray, path: str) -> None:
         peak = float(np.max(np.abs(gyro)))
         if peak > MAX_PLAUSIBLE_GYRO * 1.5:
             raise DataFormatError(path, None, f"gyroscope peak {peak:.0f}: looks like deg/s, not rad/s")
-
-
-def _sort_unique(t: np.ndarray, cols: list[np.ndarray], report: ReadReport, name: str):
-    back = int(np.sum(np.diff(t) < 0))
-    if back:
-        report.note("out-of-order", back, f"{name}: {back} samples went back in time; re-sorted")
-        order = np.argsort(t, kind="stable")
-        t, cols = t[order], [c[order] for c in cols]
-    dup = np.concatenate([[False], np.diff(t) == 0]) if len(t) else np.zeros(0, bool)
-    if dup.any():
-        report.note("duplicate-timestamp", int(dup.sum()), f"{name}: repeated timestamps dropped")
-        t, cols = t[~dup], [c[~dup] for c in cols]
-    return t, cols
 
 
 @dataclass(frozen=True, eq=False)
@@ -113,7 +100,7 @@ def read_imu_csv(path: str | os.PathLike, accel_unit: str = "m/s^2", mag_unit: s
     if header is None or len(rows) < 2:
         raise DataFormatError(path, None, "no IMU samples")
     a = np.asarray(rows)
-    t, (acc, gyr, mag) = _sort_unique(a[:, 0], [a[:, 1:4], a[:, 4:7], a[:, 7:10] if a.shape[1] == 10 else np.zeros((len(a), 0))], report, "imu")
+    t, (acc, gyr, mag) = sort_unique(a[:, 0], [a[:, 1:4], a[:, 4:7], a[:, 7:10] if a.shape[1] == 10 else np.zeros((len(a), 0))], report, "imu")
     if accel_unit == "g":
         acc = acc * G0
     check_imu_units(acc, gyr, path)
@@ -178,7 +165,7 @@ def read_pyshoe_mat(path: str | os.PathLike, on_error: OnError = "skip") -> ImuR
         if k.startswith("zv_") and np.size(v) == len(ts):
             cols.append(np.asarray(v).ravel()[good].astype(bool))
             extras[k] = len(cols) - 1
-    t, cols = _sort_unique(ts[good], cols, report, "imu")
+    t, cols = sort_unique(ts[good], cols, report, "imu")
     for k in list(extras):
         extras[k] = cols[extras[k]]
     imu_s = cols[0]

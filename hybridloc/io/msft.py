@@ -57,7 +57,7 @@ from ..types import (
     Waypoints,
 )
 from ..units import DEG, MHZ_TO_HZ, MS_TO_S, UT_TO_T
-from .common import DataFormatError, OnError, ReadReport, iter_lines
+from .common import DataFormatError, OnError, ReadReport, iter_lines, sort_unique
 
 SENSOR_TYPES = {
     "TYPE_ACCELEROMETER": "acc",
@@ -239,7 +239,11 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
             report.problem(lineno, "unknown-record", rtype)
 
     model = " ".join(v for v in (meta.get("Brand", ""), meta.get("Model", "")) if v)
-    streams = {k: _sorted_unique(np.asarray(v, dtype=float).reshape(-1, 4), k, report) for k, v in sensors.items()}
+    streams = {}
+    for k, v in sensors.items():
+        a = np.asarray(v, dtype=float).reshape(-1, 4)
+        t, (vals,) = sort_unique(a[:, 0], [a[:, 1:]], report, k)
+        streams[k] = np.column_stack([t, vals])
     imu = _assemble_imu(streams, path, report)
     rv = None
     if len(streams["rv"]):
@@ -254,21 +258,6 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
     wps.sort()
     wp = Waypoints(np.array([w[0] for w in wps]), np.array([[w[1], w[2]] for w in wps]).reshape(-1, 2), meta.get("FloorName") or None)
     return IlcTrace(path, meta, imu, rv, tuple(scans), wp, report)
-
-
-def _sorted_unique(a: np.ndarray, name: str, report: ReadReport) -> np.ndarray:
-    """Sort samples by time (noting how many were out of order) and drop duplicate timestamps."""
-    if len(a) == 0:
-        return a
-    back = int(np.sum(np.diff(a[:, 0]) < 0))
-    if back:
-        report.note("out-of-order", back, f"{name}: {back} samples went back in time; re-sorted")
-        a = a[np.argsort(a[:, 0], kind="stable")]
-    dup = np.concatenate([[False], np.diff(a[:, 0]) == 0])
-    if dup.any():
-        report.note("duplicate-timestamp", int(dup.sum()), f"{name}: {int(dup.sum())} repeated timestamps dropped")
-        a = a[~dup]
-    return a
 
 
 def _interp_rows(t_src: np.ndarray, v_src: np.ndarray, t_dst: np.ndarray) -> np.ndarray:

@@ -10,20 +10,16 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import shapely
 
 from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
-from ..pdr.phone import PhonePdr
-from ..pdr.steplength import make_model
-from ..types import RfScan, Technology
+from ..types import RfScan
 from .locate import KnnLocator, LocateResult, ProbabilisticLocator
 from .radiomap import BuildParams, build_radio_map
-from .survey import LabelledScan, label_scans
+from .survey import LabelledScan, label_trace
 
 
 @dataclass
@@ -42,10 +38,8 @@ def load_site_surveys(site_dir: str | Path, every: int = 1, technology: str = "w
         tr = read_ilc_trace(p)
         if tr.imu is None or len(tr.waypoints) < 2:
             continue
-        pdr = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), heading0=0.0)
-        steps = pdr.process(tr.imu)
         scans = [s for s in tr.scans if s.technology.value == technology]
-        lab = label_scans(scans, steps, tr.waypoints, float(tr.imu.t[0]), source=p.name)
+        lab = label_trace(tr, source=p.name)
         out.append(TraceData(p.name, tr.floor or "", lab, tr.waypoints.t, tr.waypoints.pos_enu, scans))
     return out
 

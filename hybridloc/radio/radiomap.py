@@ -32,9 +32,7 @@ one array set per floor: ``<floor>/cells`` (n, 2) cell centres, ``<floor>/mu``, 
 from __future__ import annotations
 
 import json
-import math
 import os
-from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -24,10 +24,8 @@ import numpy as np
 from ..io.common import DataFormatError
 from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from ..io.uji import read_uji
-from ..pdr.phone import PhonePdr
-from ..pdr.steplength import make_model
 from ..types import FloorPlan, RfScan, Technology
-from .survey import LabelledScan, label_scans
+from .survey import LabelledScan, label_trace
 
 FORMATS = ("msft", "ujiindoorloc", "csv")
 
@@ -67,10 +65,7 @@ def labelled_from_inputs(fmt: str, inputs: list[str], floorplan: str | None = No
         for p in paths:
             tr = read_ilc_trace(p)
             site = site or (tr.site or "")
-            if tr.imu is None or len(tr.waypoints) < 2:
-                continue
-            steps = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), heading0=0.0).process(tr.imu)
-            out += label_scans([s for s in tr.scans if s.technology is Technology.WIFI], steps, tr.waypoints, float(tr.imu.t[0]), source=p.name)
+            out += label_trace(tr, source=p.name)
         plan = None
         sd = Path(floorplan) if floorplan else _site_dir_of(inputs)
         if sd is not None:

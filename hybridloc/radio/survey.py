@@ -77,3 +77,15 @@ def label_scans(scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoint
         sigma = sigma0 + rel_sigma * nw * 2.0 * min(u, 1.0 - u)
         out.append(LabelledScan(scan, pos, float(sigma), waypoints.floor, source))
     return out
+
+
+def label_trace(trace, source: str = "") -> list[LabelledScan]:
+    """A waypointed recording (an Indoor Location Competition trace) as a passive survey: its phone
+    PDR bridged between consecutive waypoints labels its WiFi scans (:func:`label_scans`)."""
+    from ..pdr.phone import PhonePdr
+    from ..pdr.steplength import make_model
+
+    if trace.imu is None or len(trace.waypoints) < 2:
+        return []
+    steps = PhonePdr(trace.imu.rate_hz, make_model("weinberg"), heading0=0.0).process(trace.imu)
+    return label_scans(list(trace.wifi_scans), steps, trace.waypoints, float(trace.imu.t[0]), source=source)

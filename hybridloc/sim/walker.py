@@ -111,7 +111,7 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         t_stop = math.inf if close_loop else t_end  # a closing walk finishes its route
         while k < len(pts) - 1 and t < t_stop:
             if pts[k][2] != pts[k + 1][2]:
-                (xa, ya, fa, ka), (xb, yb, fb, kb) = pts[k], pts[k + 1]
+                (_, _, fa, ka), (xb, yb, fb, _) = pts[k], pts[k + 1]
                 if ka == "lift":  # ride: stand for 10 s per storey
                     dt = 10.0 * abs(fb - fa)
                     lifts.append((t, t + dt))
