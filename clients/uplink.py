@@ -106,10 +106,16 @@ class Uplink:
                 return 0
             files = sorted(p for p in self.spool.glob("*.json") if p.stem.isdigit() and int(p.stem) > self.acked)
             self._last_progress = time.monotonic()
+        n = 0
         for p in files:
-            self._put(p.read_bytes())
-        self.n_resent += len(files)
-        return len(files)
+            try:
+                payload = p.read_bytes()
+            except FileNotFoundError:  # acknowledged (and deleted) since the listing: nothing to resend
+                continue
+            self._put(payload)
+            n += 1
+        self.n_resent += n
+        return n
 
     def wait_connected(self, timeout: float = 10.0) -> bool:
         """Wait until the server is reachable (its status queryable answers)."""

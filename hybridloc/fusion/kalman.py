@@ -1,0 +1,166 @@
+"""Local fusion on the client: steps from any PDR + absolute fixes, in a small Kalman filter.
+
+State (Kourogi et al. 2006 position-domain filter, extended): x = (p_x, p_y, b_psi, s) with p the
+position in the site frame (m), b_psi a heading bias (rad) and s a step-length scale (-).
+
+* **Predict with a step** (Kourogi eqs 9-12): p <- p + s L (cos(psi + b_psi), sin(psi + b_psi)), with
+  the step's own stride and direction variances entering as process noise (eqs 13-14) and slow random
+  walks on b_psi and s. Steps from the phone PDR and from the foot INS (strides) are treated alike.
+* **Correct with a fix** (eq 16 family): z = p + noise(R_fix). Every fix goes through one ``correct``
+  with a chi-square gate: a fix outside the 95 % region of the dead-reckoned estimate is rejected
+  (Kourogi sec. 3.3), which keeps multipath GPS and wrong-floor WiFi out. Because the bias and scale
+  states are correlated with the position through the steps, consistent fixes teach the filter the
+  walker's heading bias (a consistent turn) and step-length scale.
+* **Floor**: the floor of the most recent accepted fixes, switching when a fix names another floor with
+  probability above ``floor_switch``, or when a step reports a floor change.
+* **Start**: until the first accepted fix the position is unknown; the first fix initialises it with
+  its covariance (a client that knows its start passes ``init``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from ..types import AbsoluteFix, StepEvent
+
+
+@dataclass
+class FusionConfig:
+    gate_probability: float = 0.95  # Kourogi: reject fixes outside the 95 % region
+    sigma_bias0: float = math.radians(30.0)  # initial heading-bias uncertainty
+    sigma_scale0: float = 0.15  # initial step-length scale uncertainty
+    bias_rw: float = math.radians(0.5)  # heading-bias random walk per step
+    scale_rw: float = 0.002  # scale random walk per step
+    floor_switch: float = 0.8
+    reinit_after: int = 5  # consecutive rejected fixes that re-initialise the position (lost track)
+
+
+@dataclass
+class Estimate:
+    t: float
+    pos: np.ndarray
+    cov: np.ndarray
+    floor: str | None
+    kind: str  # "step" | "fix" | "init"
+
+
+class LocalFusion:
+    def __init__(self, config: FusionConfig | None = None, init: tuple[float, float, float] | None = None, floor: str | None = None):
+        self.cfg = config or FusionConfig()
+        self.x = np.zeros(4)
+        self.x[3] = 1.0
+        self.P = np.diag([1e6, 1e6, self.cfg.sigma_bias0**2, self.cfg.sigma_scale0**2])
+        self.initialised = False
+        self.floor = floor
+        self.t = -math.inf
+        self.n_rejected = 0
+        self._rejected_run = 0
+        self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
+        self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
+        if init is not None:
+            self.x[:2] = init[:2]
+            self.P[0, 0] = self.P[1, 1] = init[2] ** 2
+            self.initialised = True
+
+    def estimate(self, kind: str) -> Estimate:
+        return Estimate(self.t, self.x[:2].copy(), self.P[:2, :2].copy(), self.floor, kind)
+
+    def predict(self, step: StepEvent) -> Estimate:
+        """Dead-reckon one step (Kourogi eqs 9-14)."""
+        b, s = self.x[2], self.x[3]
+        psi = step.heading + b
+        c, sn = math.cos(psi), math.sin(psi)
+        L = step.length
+        self.x[0] += s * L * c
+        self.x[1] += s * L * sn
+        # Jacobian of the new state w.r.t. (p, b, s)
+        F = np.eye(4)
+        F[0, 2], F[1, 2] = -s * L * sn, s * L * c
+        F[0, 3], F[1, 3] = L * c, L * sn
+        # step noise: stride and direction errors (eq 14), through the scaled geometry
+        G = np.array([[s * c, -s * L * sn], [s * sn, s * L * c]])
+        Q = np.zeros((4, 4))
+        Q[:2, :2] = G @ np.diag([step.sigma_length**2, step.sigma_heading_change**2 if step.sigma_heading_change else step.sigma_heading**2]) @ G.T
+        Q[2, 2] = self.cfg.bias_rw**2
+        Q[3, 3] = self.cfg.scale_rw**2
+        self.P = F @ self.P @ F.T + Q
+        self.P = 0.5 * (self.P + self.P.T)
+        self.t = step.t
+        self._hist.append((step.t, float(self.x[0]), float(self.x[1])))
+        if len(self._hist) > 200:
+            del self._hist[:100]
+        if step.floor_change and self.floor is not None:
+            self.floor = _shift_floor(self.floor, step.floor_change)
+        return self.estimate("step")
+
+    def _position_at(self, t: float) -> np.ndarray:
+        if not self._hist or t >= self._hist[-1][0]:
+            return self.x[:2].copy()
+        h = self._hist
+        if t <= h[0][0]:
+            return np.array(h[0][1:])
+        k = next(i for i in range(len(h) - 1, -1, -1) if h[i][0] <= t)
+        (t0, x0, y0), (t1, x1, y1) = h[k], h[k + 1]
+        a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+        # where we were then = our track then, shifted by every correction made since (the history
+        # stores the track as it was; corrections move the present only)
+        shift = self.x[:2] - np.array(h[-1][1:])
+        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)]) + shift
+
+    def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
+        """One gated position update; returns (accepted, estimate)."""
+        z = np.asarray(fix.pos_enu, float)[:2]
+        R = np.asarray(fix.cov, float)[:2, :2]
+        if not self.initialised:
+            self.x[:2] = z
+            self._hist.clear()
+            self.P[:2, :2] = R
+            self.P[:2, 2:] = 0.0
+            self.P[2:, :2] = 0.0
+            self.initialised = True
+            self.t = max(self.t, fix.t)
+            self.floor = fix.floor or self.floor
+            return True, self.estimate("init")
+        H = np.zeros((2, 4))
+        H[0, 0] = H[1, 1] = 1.0
+        # A fix arrives after the scan it comes from (network, server batching): compare it with where
+        # we were at the scan's time, and shift the present by the same correction (the steps since
+        # then are kept as they are).
+        y = z - self._position_at(fix.t)
+        S = self.P[:2, :2] + R
+        nis = float(y @ np.linalg.solve(S, y))
+        if nis > self._gate:
+            self.n_rejected += 1
+            self._rejected_run += 1
+            if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
+                self.initialised = False
+                self._rejected_run = 0
+                return self.correct(fix)
+            return False, self.estimate("fix-rejected")
+        self._rejected_run = 0
+        K = self.P @ H.T @ np.linalg.inv(S)
+        self.x = self.x + K @ y
+        IKH = np.eye(4) - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T  # Joseph form
+        self.P = 0.5 * (self.P + self.P.T)
+        self.x[3] = min(max(self.x[3], 0.5), 1.5)
+        self.t = max(self.t, fix.t)
+        if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
+            self.floor = fix.floor
+        return True, self.estimate("fix")
+
+
+def _shift_floor(name: str, delta: int) -> str:
+    from ..io.msft import floor_level
+
+    try:
+        lvl = floor_level(name) + delta
+    except ValueError:
+        return name
+    if name.upper().startswith(("F", "L", "B")):
+        return f"F{lvl + 1}" if lvl >= 0 else f"B{-lvl}"
+    return str(lvl)
