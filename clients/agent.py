@@ -85,29 +85,38 @@ class AgentResult:
     poses: list = field(default_factory=list)
     step_events: list = field(default_factory=list)
     raw_fixes: list = field(default_factory=list)
+    fix_lags: list = field(default_factory=list)  # recording-clock seconds from scan to fix use
+    fix_log: list = field(default_factory=list)  # (steps processed when it arrived, AbsoluteFix), for fusion.run_fusion
 
 
 class Agent:
     """Shared machinery: uplink, fix subscription, fusion, pose output, liveliness."""
 
     def __init__(self, session: zenoh.Session, site: str, device: str, spool: str | Path, pose: PoseWriter, device_model: str = "",
-                 batch_period: float = 1.0, init: tuple[float, float, float] | None = None):
+                 batch_period: float = 1.0, init: tuple[float, float, float] | None = None, fusion=None,
+                 floor: str | None = None):
         self.session = session
         self.site, self.device = site, device
         self.uplink = Uplink(session, site, device, spool, device_model)
-        self.fusion = LocalFusion(init=init)
+        # any filter with the predict/correct step API (hybridloc.fusion); Kourogi's Kalman filter by default
+        self.fusion = fusion if fusion is not None else LocalFusion(init=init, floor=floor)
         self.pose = pose
         self.batch_period = batch_period
         self.fixes: "queue.Queue" = queue.Queue()
         self._fix_sub = session.declare_subscriber(P.key_fix(site, device), lambda s: self.fixes.put(s.payload.to_bytes()))
         self._token = session.liveliness().declare_token(P.key_alive(site, device))
         self.n_fixes = self.n_accepted = 0
+        self.n_answers = 0  # server answers (fix or "no fix") received
+        self.n_asked = 0  # batches sent with a WiFi scan (each gets one answer)
+        self._answers_flowing = True
         self._steps: list = []
         self._scans: list = []
         self._marks: list = []
         self._last_flush = -math.inf
         self.all_steps: list = []
         self.raw_fixes: list = []  # (t, x, y, floor) of every fix received, before fusion
+        self.fix_lags: list = []  # how late each fix was used: newest step time - scan time, s
+        self.fix_log: list = []  # (steps processed when the fix arrived, fix)
 
     def on_step(self, step) -> None:
         self._steps.append(step)
@@ -123,18 +132,26 @@ class Agent:
                 raw = self.fixes.get_nowait()
             except queue.Empty:
                 return
-            try:
-                fix, _, _ = P.fix_from_dict(json.loads(raw))
-            except (ValueError, KeyError, TypeError):
-                continue
-            if fix is None:
-                continue
-            self.n_fixes += 1
-            self.raw_fixes.append((fix.t, float(fix.pos_enu[0]), float(fix.pos_enu[1]), fix.floor))
-            ok, e = self.fusion.correct(fix)
-            if ok:
-                self.n_accepted += 1
-                self.pose.write(e)
+            self._handle(raw)
+
+    def _handle(self, raw: bytes) -> None:
+        """One server answer: a fix is fused; "no fix" is only counted."""
+        try:
+            fix, _, _ = P.fix_from_dict(json.loads(raw))
+        except (ValueError, KeyError, TypeError):
+            return
+        self.n_answers += 1
+        self._answers_flowing = True
+        if fix is None:
+            return
+        self.n_fixes += 1
+        self.raw_fixes.append((fix.t, float(fix.pos_enu[0]), float(fix.pos_enu[1]), fix.floor))
+        self.fix_lags.append(max(self.fusion.t - fix.t, 0.0) if math.isfinite(self.fusion.t) else 0.0)
+        self.fix_log.append((len(self.all_steps), fix))
+        ok, e = self.fusion.correct(fix)
+        if ok:
+            self.n_accepted += 1
+            self.pose.write(e)
 
     def maybe_flush(self, t: float, force: bool = False) -> None:
         if not force and t - self._last_flush < self.batch_period:
@@ -145,7 +162,29 @@ class Agent:
             steps, self._steps = self._steps, []
             marks, self._marks = self._marks, []
             self.uplink.send(steps=steps, scans=scans, marks=marks)
+            self.n_asked += any(sc.technology == "wifi" for sc in scans)
         self._last_flush = t
+
+    def wait_answers(self, timeout: float = 2.0) -> bool:
+        """Lock-step replay: block until the server has answered every scan sent, fusing the fixes.
+
+        Replaying K times faster than real time multiplies every wall-clock delay by K on the
+        recording's clock; waiting here makes the fixes reach the filter as they would live (network
+        and server latency a small fraction of a step). If the server stays silent for ``timeout`` the
+        agent stops waiting (dead reckoning on) until answers flow again.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            self.drain_fixes()
+            if self.n_answers >= self.n_asked:
+                return True
+            if not self._answers_flowing or time.monotonic() >= deadline:
+                self._answers_flowing = False
+                return False
+            try:
+                self._handle(self.fixes.get(timeout=min(0.05, max(deadline - time.monotonic(), 0.001))))
+            except queue.Empty:
+                pass
 
     def close(self, wait: float = 10.0) -> AgentResult:
         self.uplink.wait_acked(timeout=wait)
@@ -158,11 +197,26 @@ class Agent:
         self.uplink.close()
         self.pose.close()
         return AgentResult(self.device, len(self.all_steps), self.n_fixes, self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
-                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes))
+                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes), list(self.fix_lags), list(self.fix_log))
 
 
-def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25) -> None:
-    """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x."""
+def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: float = 10.0):
+    """The site's radio map from the server (``map`` queryable) turned into a walk prior for
+    :class:`hybridloc.fusion.ParticleFusion`; None when the server has no map for the site."""
+    import io
+
+    from hybridloc.fusion import WalkPrior
+    from hybridloc.radio.radiomap import RadioMap
+
+    for r in session.get(P.key_map(site), timeout=timeout):
+        if r.ok:
+            return WalkPrior.from_radio_map(RadioMap.load(io.BytesIO(r.ok.payload.to_bytes())), plan)
+    return None
+
+
+def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False) -> None:
+    """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x
+    (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`)."""
     imu = trace.imu
     if imu is None:
         raise ValueError(f"{trace.path}: no IMU data to replay")
@@ -193,6 +247,8 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
             agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
             i_mark += 1
         agent.maybe_flush(t_now)
+        if lockstep:
+            agent.wait_answers()
         agent.drain_fixes()
         if speed > 0:
             lag = (t_now - t0) / speed - (time.monotonic() - wall0)

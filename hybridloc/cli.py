@@ -405,21 +405,48 @@ def _cmd_client(args: argparse.Namespace) -> int:
     device = args.device or f"{args.kind}-{stem_safe(args.replay)}"
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)
+    init = _parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
     with open_client(args.endpoint, _security(args)) as s:
+        fusion = None
+        if args.filter == "particle":
+            from .clients.agent import fetch_walk_prior
+            from .fusion import ParticleFusion
+
+            plan = None
+            if args.floorplan:
+                from .io.msft import read_ilc_site
+
+                plan = read_ilc_site(args.floorplan)
+            prior = fetch_walk_prior(s, args.site, plan)
+            if prior is None:
+                print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
+            fusion = ParticleFusion(prior, init=init, floor=args.floor)
         if args.kind == "foot":
             imu, _, _ = _load_imu(args.replay, args.format, args.rate)
-            agent = Agent(s, args.site, device, spool, pose)
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             replay_foot(agent, imu, args.speed)
         else:
             from .io.msft import read_ilc_trace
 
             tr = read_ilc_trace(args.replay)
-            agent = Agent(s, args.site, device, spool, pose, tr.device_model)
-            replay_phone(agent, tr, args.speed, survey=args.kind == "survey")
+            agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor)
+            replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep)
         r = agent.close(wait=args.ack_timeout)
     print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
           f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
     return 0
+
+
+def _parse_floats(text: str, n: int, what: str) -> tuple[float, ...]:
+    import math
+
+    try:
+        vals = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        raise ValueError(f"{what} expected, got {text!r}") from None
+    if len(vals) != n or not all(math.isfinite(v) for v in vals):
+        raise ValueError(f"{what} expected ({n} finite numbers), got {text!r}")
+    return vals
 
 
 def stem_safe(path: str) -> str:
@@ -525,6 +552,13 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--device", help="device id (default: from the recording's name)")
         c.add_argument("--replay", metavar="FILE", help="recording to replay (ILC trace for phone/survey; IMU file for foot)")
         c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
+        c.add_argument("--filter", choices=("kalman", "particle"), default="kalman",
+                       help="local fusion: Kourogi's Kalman filter, or a particle filter with the site's walls and walk prior (default kalman)")
+        c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout), for --filter particle")
+        c.add_argument("--start", metavar="X,Y,SIGMA", help="known start position in the site frame (m) and its standard deviation")
+        c.add_argument("--floor", help="floor at the start (with --start)")
+        c.add_argument("--lockstep", action="store_true",
+                       help="wait for the server's answer to each scan before replaying on (fixes arrive as they would live, whatever K)")
         c.add_argument("--pose-out", metavar="FILE", help="live pose output: .csv (t,x,y,floor,sigma_x,sigma_y), .jsonl or .nmea")
         c.add_argument("--pose-format", choices=("csv", "jsonl", "nmea"))
         c.add_argument("--spool", help="folder for unacknowledged batches (default .hybridloc-spool/<device>)")

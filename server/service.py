@@ -49,6 +49,7 @@ class Server:
         self.locators: dict[str, tuple[int, ProbabilisticLocator, bytes]] = {}
         self._entities: list = []
         self._worker: threading.Thread | None = None
+        self._stopping = threading.Event()
         self._lock = threading.Lock()
         self.worker_error: BaseException | None = None
         if method not in ("knn", "prob"):
@@ -72,14 +73,15 @@ class Server:
         return self
 
     def stop(self) -> None:
+        self._stopping.set()
+        if self._worker is not None:
+            self._worker.join(timeout=10)
         for e in self._entities:
             try:
                 e.undeclare()
             except Exception:  # noqa: BLE001 - already gone at shutdown
                 pass
         self._entities.clear()
-        if self._worker is not None:
-            self._worker.join(timeout=10)
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -114,10 +116,17 @@ class Server:
     def _run(self) -> None:
         try:
             while True:
+                # poll (a blocking recv() is not woken when the subscriber is undeclared, which made
+                # every stop wait for the join timeout); messages already queued are still ingested
                 try:
-                    first = self._sub.recv()
+                    first = self._sub.try_recv()
                 except zenoh.ZError:
                     return  # undeclared or closed: shutting down
+                if first is None:
+                    if self._stopping.is_set():
+                        return
+                    time.sleep(0.002)
+                    continue
                 group = [first]
                 deadline = time.monotonic() + self.max_wait
                 while len(group) < self.max_group:
@@ -155,16 +164,32 @@ class Server:
         for device, seq in acked.items():
             self.session.put(P.key_ack(by_dev[device].site, device), P.encode_ack(device, seq), encoding=P.encoding(P.ACK_SCHEMA),
                              congestion_control=zenoh.CongestionControl.BLOCK)
-        # push a fix for the newest WiFi scan of each batch that brought one
+        # answer the newest WiFi scan of each batch that brought one: a fix, or "no fix" with the
+        # reason (no map for the site, no known transmitter...), so a client always hears back.
+        # The fixes are stored in one transaction before any is pushed.
+        answers, found = [], []
         for b in batches:
             scans = [sc for sc in b.scans if sc.technology == "wifi"]
-            if scans and b.site in self.locators:
-                sc = scans[-1]
-                res = self.locators[b.site][1].locate(RfScan(sc.t, "wifi", sc.rssi, age_s=sc.age, device_model=b.device_model))
+            if not scans:
+                continue
+            sc = scans[-1]
+            loc = self.locators.get(b.site)
+            if loc is None:
+                body = P.fix_to_dict(None, reason=f"no radio map for site {b.site!r}", t=sc.t)
+                self.counts["no-fix-pushed"] += 1
+            else:
+                res = loc[1].locate(RfScan(sc.t, "wifi", sc.rssi, age_s=sc.age, device_model=b.device_model))
                 if res.fix is not None:
-                    self.store.add_fix(b.device, res.fix)
-                    self.session.put(P.key_fix(b.site, b.device), json.dumps(P.fix_to_dict(res.fix, res.region)), encoding=P.encoding(P.FIX_SCHEMA))
+                    found.append((b.device, res.fix))
+                    body = P.fix_to_dict(res.fix, res.region)
                     self.counts["fixes-pushed"] += 1
+                else:
+                    body = P.fix_to_dict(None, reason=res.reason, t=sc.t)
+                    self.counts["no-fix-pushed"] += 1
+            answers.append((P.key_fix(b.site, b.device), json.dumps(body)))
+        self.store.add_fixes(found)
+        for key, body in answers:
+            self.session.put(key, body, encoding=P.encoding(P.FIX_SCHEMA))
 
     # ------------------------------------------------------------ queryables
     def _on_locate(self, q: zenoh.Query) -> None:

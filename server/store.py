@@ -104,8 +104,15 @@ class Store:
             return dev.last_seq if dev else 0
 
     def add_fix(self, device: str, fix) -> None:
+        self.add_fixes([(device, fix)])
+
+    def add_fixes(self, fixes: list) -> None:
+        """Store (device, AbsoluteFix) pairs in one transaction."""
+        if not fixes:
+            return
         with Session(self.engine) as s, s.begin():
-            s.add(m.Fix(device_id=device, t=fix.t, x=float(fix.pos_enu[0]), y=float(fix.pos_enu[1]), floor=fix.floor, cov=fix.cov.tolist(), source=fix.source.value))
+            s.add_all([m.Fix(device_id=d, t=f.t, x=float(f.pos_enu[0]), y=float(f.pos_enu[1]), floor=f.floor, cov=f.cov.tolist(), source=f.source.value)
+                       for d, f in fixes])
 
     # -------------------------------------------------------------- radio maps
     def save_map(self, site: str, data: bytes, n_scans: int = 0) -> int:

@@ -92,3 +92,50 @@ def test_uplink_resend_skips_a_batch_acknowledged_while_resending(tmp_path):
         up._put = put_then_ack_next
         assert up.resend_if_stalled() == 2 and len(sent) == 2
         up.close()
+
+
+def test_lockstep_agent_gets_an_answer_per_scan_and_run_fusion_replays_it_exactly(tmp_path):
+    """Every scan sent gets an answer (a fix, or "no fix" with a reason for a scan of unknown
+    transmitters); the fixes and the step counts at which they arrived, fed to the same filter by
+    ``run_fusion``, reproduce the live pose rows exactly."""
+    from hybridloc.clients.agent import Agent, PoseWriter
+    from hybridloc.fusion import run_fusion
+    from hybridloc.radio.radiomap import BuildParams, build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+    from hybridloc.server.service import Server
+    from hybridloc.types import RfScan
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.zconfig import client_config, free_port
+
+    rng = np.random.default_rng(0)
+    aps = {"a1": (0, 0), "a2": (30, 0), "a3": (0, 20), "a4": (30, 20)}
+
+    def reading(p):
+        return {k: -40 - 30 * np.log10(max(1.0, np.hypot(p[0] - q[0], p[1] - q[1]))) + rng.normal(0, 1.5) for k, q in aps.items()}
+
+    refs = [LabelledScan(RfScan(float(i), "wifi", reading(p)), p, 0.5, "F1") for i, p in enumerate(rng.uniform(0, [30, 20], (800, 2)))]
+    build_radio_map(refs, site="site1", params=BuildParams()).save(tmp_path / "m.npz")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    srv = Server(ep, str(tmp_path / "db.sqlite")).start()
+    try:
+        srv.load_map("site1", (tmp_path / "m.npz").read_bytes())
+        with zenoh.open(client_config(ep)) as s:
+            ag = Agent(s, "site1", "phoneL", tmp_path / "spool", PoseWriter(None), init=(2.0, 10.0, 1.0))
+            assert ag.uplink.wait_connected()
+            steps = _walk(60, 0.0, t0=0.0)  # 0.7 m every 0.5 s along +x from (2, 10)
+            for i, st in enumerate(steps):
+                ag.on_step(st)
+                if i % 4 == 3:  # a scan every 2 s; one of unknown transmitters only
+                    rssi = {"zz:zz": -60.0} if i == 31 else reading((2.0 + 0.7 * (i + 1), 10.0))
+                    ag._scans.append(P.ScanRecord(st.t, "wifi", rssi))
+                    ag.maybe_flush(st.t, force=True)
+                    assert ag.wait_answers(timeout=10.0)
+            r = ag.close(wait=10)
+    finally:
+        srv.stop()
+    assert ag.n_asked == 15 and ag.n_answers == 15 and r.fixes_received == 14  # one "no fix" answer
+    assert srv.counts["no-fix-pushed"] == 1
+    replay = run_fusion(LocalFusion(init=(2.0, 10.0, 1.0)), r.step_events, [f for _, f in r.fix_log], [a for a, _ in r.fix_log])
+    live = [(row[0], row[1], row[2]) for row in r.poses]
+    assert len(replay) == len(live)
+    assert np.allclose([(e.t, e.pos[0], e.pos[1]) for e in replay], live, atol=1e-9)

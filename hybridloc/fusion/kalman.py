@@ -49,11 +49,16 @@ class Estimate:
 
 
 class LocalFusion:
-    def __init__(self, config: FusionConfig | None = None, init: tuple[float, float, float] | None = None, floor: str | None = None):
+    def __init__(self, config: FusionConfig | None = None, init: tuple[float, float, float] | None = None, floor: str | None = None,
+                 heading_bias: tuple[float, float] | None = None):
+        """``init`` = (x, y, sigma) of a known start; ``heading_bias`` = (mean, sigma) rad of the PDR's
+        heading bias when known (e.g. aligned on a known first leg), else 0 +- ``sigma_bias0``."""
         self.cfg = config or FusionConfig()
         self.x = np.zeros(4)
         self.x[3] = 1.0
         self.P = np.diag([1e6, 1e6, self.cfg.sigma_bias0**2, self.cfg.sigma_scale0**2])
+        if heading_bias is not None:
+            self.x[2], self.P[2, 2] = heading_bias[0], heading_bias[1] ** 2
         self.initialised = False
         self.floor = floor
         self.t = -math.inf

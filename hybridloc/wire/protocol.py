@@ -258,9 +258,13 @@ def decode_ack(payload: bytes) -> int:
     return int(msg["acked_seq"])
 
 
-def fix_to_dict(fix, region=None, reason: str = "") -> dict:
+def fix_to_dict(fix, region=None, reason: str = "", t: float | None = None) -> dict:
+    """A fix message; with ``fix`` None a "no fix" answer giving ``reason`` (and the scan time ``t``)."""
     if fix is None:
-        return {"schema": FIX_SCHEMA, "fix": None, "reason": reason}
+        d = {"schema": FIX_SCHEMA, "fix": None, "reason": reason}
+        if t is not None:
+            d["t"] = float(t)
+        return d
     d = {"schema": FIX_SCHEMA, "fix": {"t": fix.t, "x": float(fix.pos_enu[0]), "y": float(fix.pos_enu[1]), "cov": fix.cov[:2, :2].tolist(),
                                        "floor": fix.floor, "floor_prob": fix.floor_prob, "source": fix.source.value}}
     if region is not None:

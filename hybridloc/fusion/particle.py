@@ -1,0 +1,232 @@
+"""Particle filter fusion of PDR steps, absolute fixes and the site's map.
+
+Each particle is a hypothesis (p_x, p_y, b_psi, s): position in the site frame (m), heading bias of
+the PDR (rad) and step-length scale (-), the same state as :class:`~.kalman.LocalFusion`, so the two
+filters answer alike; what the particles add is the map, which no Gaussian can carry.
+
+* **Predict with a step** (Kourogi eqs 9-14, sampled): every particle moves by
+  s (L + n_L) (cos(psi + b + n_psi), sin(psi + b + n_psi)), n_L ~ N(0, sigma_L^2) the stride error and
+  n_psi ~ N(0, sigma_dpsi^2) the direction error of this step; b and s random-walk slowly. A particle
+  whose move crosses a wall dies; the others are weighted by the walk prior at their new place
+  (:mod:`.walkprior`): the motion model is the PDR's Gaussian times "where people walk", which pulls
+  the cloud into corridors and through doors the way walkers go.
+* **Correct with a fix**: one gated ``correct``. The gate is Kourogi sec. 3.3's, on the cloud's mean and
+  covariance (a fix outside the 95 % region of the dead-reckoned estimate is rejected); accepted fixes
+  weight particles by a heavy-tailed likelihood - (1 - eps) N(z; p, R) + eps N(z; p, k^2 R) - because
+  WiFi fixes now and then land on a look-alike place. A fix that arrives after later steps (network and
+  server latency) is compared with each particle's position at the scan's time, kept in a short
+  per-particle history.
+* **Resampling**: systematic, when the effective sample size falls below ``resample_ess`` N.
+* **Start**: from the first fix (or ``init``): positions drawn from the fix's Gaussian where the map
+  allows, bias and scale from their priors. After ``reinit_after`` consecutive rejected fixes the
+  track is considered lost and restarts from the fix (as LocalFusion does).
+
+Random numbers come from an explicit ``numpy.random.Generator`` (default: seeded from ``config.seed``),
+so a replay is reproducible.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from ..types import AbsoluteFix, StepEvent
+from .kalman import Estimate, _shift_floor
+from .walkprior import WalkPrior
+
+
+@dataclass
+class ParticleConfig:
+    n_particles: int = 1000
+    gate_probability: float = 0.95  # Kourogi sec. 3.3
+    sigma_bias0: float = math.radians(20.0)  # initial heading-bias spread (magnetometer heading indoors)
+    sigma_scale0: float = 0.15  # initial step-length scale spread
+    bias_rw: float = math.radians(0.5)  # per step
+    scale_rw: float = 0.003  # per step
+    min_sigma_turn: float = math.radians(2.0)  # per-step direction noise floor (the PDR's own is optimistic)
+    min_sigma_length: float = 0.05  # m, per-step stride noise floor
+    outlier_prob: float = 0.1  # share of fixes from a look-alike place
+    outlier_scale: float = 3.0  # their spread, in fix sigmas
+    resample_ess: float = 0.5
+    reinit_after: int = 5
+    floor_switch: float = 0.8
+    history: int = 64  # steps of per-particle history for late fixes
+    seed: int = 0
+
+
+class ParticleFusion:
+    """Particle filter with the :class:`~.kalman.LocalFusion` interface (``predict``, ``correct``, ``estimate``)."""
+
+    def __init__(self, prior: WalkPrior | None = None, config: ParticleConfig | None = None, init: tuple[float, float, float] | None = None,
+                 floor: str | None = None, rng: np.random.Generator | None = None, heading_bias: tuple[float, float] | None = None):
+        """``init`` = (x, y, sigma) of a known start; ``heading_bias`` = (mean, sigma) rad of the PDR's
+        heading bias when known, else 0 +- ``config.sigma_bias0``."""
+        self.cfg = config or ParticleConfig()
+        if self.cfg.n_particles < 10:
+            raise ValueError("a particle filter needs at least 10 particles")
+        self.prior = prior or WalkPrior({})
+        self.rng = rng if rng is not None else np.random.default_rng(self.cfg.seed)
+        n = self.cfg.n_particles
+        self.p = np.zeros((n, 2))
+        self.b = np.zeros(n)
+        self.s = np.ones(n)
+        self.w = np.full(n, 1.0 / n)
+        self._pi = np.ones(n)  # walk prior at each particle's place
+        self.floor = floor
+        self._bias0 = heading_bias if heading_bias is not None else (0.0, self.cfg.sigma_bias0)
+        self.t = -math.inf
+        self.initialised = False
+        self.n_rejected = 0
+        self.n_map_conflicts = 0  # steps after which no particle was left where the map allows
+        self._rejected_run = 0
+        self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
+        H = self.cfg.history
+        self._hist_p = np.zeros((H, n, 2))
+        self._hist_t = np.full(H, -math.inf)
+        self._hist_k = 0  # number of steps recorded (ring index = k % H)
+        if init is not None:
+            self._start(np.asarray(init[:2], float), np.eye(2) * init[2] ** 2, None)
+
+    # ------------------------------------------------------------------ state summaries
+    def _mean_cov(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        m = self.w @ p
+        d = p - m
+        cov = (d * self.w[:, None]).T @ d
+        return m, 0.5 * (cov + cov.T) + np.eye(2) * 1e-9
+
+    def estimate(self, kind: str) -> Estimate:
+        m, c = self._mean_cov(self.p)
+        return Estimate(self.t, m, c, self.floor, kind)
+
+    # ------------------------------------------------------------------ start
+    def _start(self, z: np.ndarray, R: np.ndarray, floor: str | None) -> None:
+        n = self.cfg.n_particles
+        if floor is not None:
+            self.floor = floor
+        L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
+        # draw where the map allows (a few rounds of rejection; what is left stays where it fell)
+        p = z + self.rng.standard_normal((n, 2)) @ L.T
+        for _ in range(10):
+            bad = self.prior.at(self.floor, p) <= 0.0
+            if not bad.any():
+                break
+            p[bad] = z + self.rng.standard_normal((int(bad.sum()), 2)) @ L.T
+        self.p = p
+        self.b = self.rng.normal(self._bias0[0], self._bias0[1], n)
+        self.s = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
+        self.w = np.full(n, 1.0 / n)
+        self._pi = self.prior.at(self.floor, self.p)
+        self._weigh(self._pi.copy())
+        self._hist_t[:] = -math.inf
+        self._hist_k = 0
+        self.initialised = True
+
+    # ------------------------------------------------------------------ weights
+    def _weigh(self, like: np.ndarray) -> bool:
+        """Multiply the weights by ``like``; False (weights untouched) if that leaves nothing."""
+        w = self.w * like
+        tot = float(w.sum())
+        if not np.isfinite(tot) or tot <= 0.0:
+            return False
+        self.w = w / tot
+        if 1.0 / float(self.w @ self.w) < self.cfg.resample_ess * len(self.w):
+            self._resample()
+        return True
+
+    def _resample(self) -> None:
+        n = len(self.w)
+        c = np.cumsum(self.w)
+        c[-1] = 1.0
+        idx = np.searchsorted(c, (self.rng.random() + np.arange(n)) / n)
+        self.p, self.b, self.s, self._pi = self.p[idx], self.b[idx], self.s[idx], self._pi[idx]
+        self._hist_p = self._hist_p[:, idx]
+        self.w = np.full(n, 1.0 / n)
+
+    # ------------------------------------------------------------------ predict
+    def predict(self, step: StepEvent) -> Estimate:
+        """Move every particle by one step (Kourogi eqs 9-14, sampled) and weigh it by the map."""
+        self.t = step.t
+        if step.floor_change and self.floor is not None:
+            self.floor = _shift_floor(self.floor, step.floor_change)
+        if not self.initialised:
+            return self.estimate("step")
+        n = len(self.w)
+        cfg = self.cfg
+        sig_l = max(step.sigma_length, cfg.min_sigma_length)
+        sig_psi = max(step.sigma_heading_change or 0.0, cfg.min_sigma_turn)
+        self.b = self.b + self.rng.normal(0.0, cfg.bias_rw, n)
+        self.s = np.clip(self.s + self.rng.normal(0.0, cfg.scale_rw, n), 0.5, 1.5)
+        L = self.s * np.maximum(step.length + self.rng.normal(0.0, sig_l, n), 0.0)
+        psi = step.heading + self.b + self.rng.normal(0.0, sig_psi, n)
+        q = self.p + np.column_stack([L * np.cos(psi), L * np.sin(psi)])
+        pi_new = self.prior.at(self.floor, q)
+        pi_new[self.prior.crosses_wall(self.floor, self.p, q)] = 0.0
+        # the prior enters once, at the particle's present place: weight by pi(new) / pi(old), so a
+        # particle that stays in a sparsely walked spot is not penalised again at every step
+        like = pi_new / np.maximum(self._pi, 1e-12)
+        self.p = q
+        if self._weigh(like):
+            self._pi = pi_new
+        else:
+            # nobody is where the map allows: the map or the track is wrong here - keep dead reckoning
+            self.n_map_conflicts += 1
+        k = self._hist_k % cfg.history
+        self._hist_p[k] = self.p
+        self._hist_t[k] = step.t
+        self._hist_k += 1
+        return self.estimate("step")
+
+    def _positions_at(self, t: float) -> np.ndarray:
+        """Each particle's position at time t (linear between recorded steps; now if t is newer)."""
+        H = self.cfg.history
+        m = min(self._hist_k, H)
+        if m == 0 or t >= self._hist_t[(self._hist_k - 1) % H]:
+            return self.p
+        order = [(self._hist_k - m + i) % H for i in range(m)]  # oldest .. newest
+        ts = self._hist_t[order]
+        j = int(np.searchsorted(ts, t, side="right"))  # ts[j-1] <= t < ts[j]
+        if j == 0:
+            return self._hist_p[order[0]]
+        a, b = order[j - 1], order[j]
+        u = (t - ts[j - 1]) / max(ts[j] - ts[j - 1], 1e-9)
+        return (1.0 - u) * self._hist_p[a] + u * self._hist_p[b]
+
+    # ------------------------------------------------------------------ correct
+    def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
+        """One gated position update; returns (accepted, estimate)."""
+        z = np.asarray(fix.pos_enu, float)[:2]
+        R = np.asarray(fix.cov, float)[:2, :2]
+        if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
+            raise ValueError("a fix needs a finite position and a positive-definite covariance")
+        if not self.initialised:
+            self._start(z, R, fix.floor)
+            self.t = max(self.t, fix.t)
+            return True, self.estimate("init")
+        p_then = self._positions_at(fix.t)
+        m, C = self._mean_cov(p_then)
+        y = z - m
+        nis = float(y @ np.linalg.solve(C + R, y))
+        if nis > self._gate:
+            self.n_rejected += 1
+            self._rejected_run += 1
+            if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
+                self._rejected_run = 0
+                self._start(z, R, fix.floor)
+                self.t = max(self.t, fix.t)
+                return True, self.estimate("init")
+            return False, self.estimate("fix-rejected")
+        self._rejected_run = 0
+        d = z - p_then
+        Ri = np.linalg.inv(R)
+        e = np.einsum("ni,ij,nj->n", d, Ri, d)
+        k2 = self.cfg.outlier_scale**2
+        eps = self.cfg.outlier_prob
+        like = (1.0 - eps) * np.exp(-0.5 * e) + eps / k2 * np.exp(-0.5 * e / k2)
+        self._weigh(like)
+        self.t = max(self.t, fix.t)
+        if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
+            self.floor = fix.floor
+        return True, self.estimate("fix")

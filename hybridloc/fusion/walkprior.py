@@ -1,0 +1,139 @@
+"""Walk prior: where on a floor people are, as a raster a particle filter weighs its particles with.
+
+Crowd-sourced: the radio map already carries every labelled reference scan with its position (the
+surveys and crowd traces the server labelled), so the places people walk are known without any
+manual drawing - corridors come out dense, shop interiors and dead space sparse. The prior is
+
+    pi(x) = eps + (1 - eps) * min(1, k(x) / k_ref)
+
+with k the Gaussian kernel density of the reference positions (bandwidth ``bandwidth`` m), k_ref its
+``saturation`` quantile over the places people were (so the well-walked half of the corridors all count
+as fully walkable, the prior does not pull towards the single busiest spot), and eps the floor for
+places walkable but never walked. Outside the floor plan's walkable area pi = 0 (a hard constraint),
+and the plan's wall segments may not be crossed (:meth:`WalkPrior.crosses_wall`). Without a plan the
+raster covers the data plus a margin and everything beyond it is eps.
+
+This is the causal, probabilistic form of what the Indoor Location Competition winners did offline by
+snapping positions to the grid of training waypoints (Harle's survey sec. VII: maps from PDR traces,
+particle filters constrained by the building).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from scipy import ndimage
+
+from ..types import FloorPlan
+
+
+@dataclass(frozen=True)
+class FloorPrior:
+    name: str
+    x0: float  # lower-left corner of the raster, m
+    y0: float
+    cell: float  # m
+    pi: np.ndarray  # (ny, nx) prior in [0, 1]
+    outside: float  # prior beyond the raster
+    walls: np.ndarray  # (M, 2, 2) wall segments, m
+
+    def at(self, xy: np.ndarray) -> np.ndarray:
+        """Prior at points ``xy`` (N, 2)."""
+        ix = np.floor((xy[:, 0] - self.x0) / self.cell).astype(np.int64)
+        iy = np.floor((xy[:, 1] - self.y0) / self.cell).astype(np.int64)
+        ny, nx = self.pi.shape
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        out = np.full(len(xy), self.outside)
+        out[inside] = self.pi[iy[inside], ix[inside]]
+        return out
+
+
+class WalkPrior:
+    """Per-floor walk priors (see the module docstring)."""
+
+    def __init__(self, floors: dict[str, FloorPrior]):
+        self.floors = floors
+
+    @classmethod
+    def from_points(cls, points_by_floor: dict[str, np.ndarray], plan: FloorPlan | None = None, cell: float = 0.5,
+                    bandwidth: float = 1.5, eps: float = 0.05, saturation: float = 0.5, margin: float = 10.0) -> "WalkPrior":
+        """Build from walked positions (per floor name, (N, 2) m) and an optional floor plan."""
+        if not 0.0 <= eps <= 1.0:
+            raise ValueError(f"eps must be in [0, 1], got {eps}")
+        if cell <= 0 or bandwidth <= 0:
+            raise ValueError("cell and bandwidth must be positive")
+        floors: dict[str, FloorPrior] = {}
+        names = set(points_by_floor) | ({f.name for f in plan.floors} if plan else set())
+        for name in sorted(names):
+            pts = np.asarray(points_by_floor.get(name, np.zeros((0, 2))), float).reshape(-1, 2)
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            fl = None
+            if plan is not None:
+                try:
+                    fl = plan.floor(name)
+                except KeyError:
+                    fl = None
+            if fl is not None:
+                bx0, by0, bx1, by1 = fl.walkable.bounds
+            elif len(pts):
+                (bx0, by0), (bx1, by1) = pts.min(0) - margin, pts.max(0) + margin
+            else:
+                continue
+            nx, ny = int(np.ceil((bx1 - bx0) / cell)) + 1, int(np.ceil((by1 - by0) / cell)) + 1
+            if nx * ny > 50_000_000:
+                raise ValueError(f"floor {name}: a {nx} x {ny} raster at {cell} m is too large; use a coarser cell")
+            counts = np.zeros((ny, nx))
+            if len(pts):
+                ix = np.clip(((pts[:, 0] - bx0) / cell).astype(int), 0, nx - 1)
+                iy = np.clip(((pts[:, 1] - by0) / cell).astype(int), 0, ny - 1)
+                np.add.at(counts, (iy, ix), 1.0)
+            dens = ndimage.gaussian_filter(counts, bandwidth / cell, mode="constant")
+            pi = np.full((ny, nx), eps)
+            if len(pts):
+                ref = float(np.quantile(dens[counts > 0], saturation))
+                pi = eps + (1.0 - eps) * np.minimum(1.0, dens / max(ref, 1e-12))
+            if fl is not None:
+                gx = bx0 + (np.arange(nx) + 0.5) * cell
+                gy = by0 + (np.arange(ny) + 0.5) * cell
+                X, Y = np.meshgrid(gx, gy)
+                pi = np.where(shapely.contains_xy(fl.walkable, X, Y), pi, 0.0)
+                walls = np.asarray(fl.walls, float).reshape(-1, 2, 2)
+            else:
+                walls = np.zeros((0, 2, 2))
+            floors[name] = FloorPrior(name, bx0, by0, cell, pi, 0.0 if fl is not None else eps, walls)
+        return cls(floors)
+
+    @classmethod
+    def from_radio_map(cls, rmap, plan: FloorPlan | None = None, **kw) -> "WalkPrior":
+        """The positions of a radio map's labelled reference scans are where people walked."""
+        by_floor: dict[str, list] = {}
+        for r in rmap.references:
+            by_floor.setdefault(r.floor or "", []).append(r.pos_enu)
+        return cls.from_points({k: np.array(v) for k, v in by_floor.items()}, plan, **kw)
+
+    def at(self, floor: str | None, xy: np.ndarray) -> np.ndarray:
+        fp = self.floors.get(floor or "")
+        return np.ones(len(xy)) if fp is None else fp.at(xy)
+
+    def crosses_wall(self, floor: str | None, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Which moves p -> q ((N, 2) each) cross a wall segment of the floor."""
+        fp = self.floors.get(floor or "")
+        if fp is None or len(fp.walls) == 0:
+            return np.zeros(len(p), bool)
+        a, b = fp.walls[:, 0], fp.walls[:, 1]  # (M, 2)
+        # proper segment intersection by orientation signs (collinear touching is not a crossing)
+        d = q - p  # (N, 2)
+        e = b - a  # (M, 2)
+
+        def cross(u, v):
+            return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+        ap = a[None, :, :] - p[:, None, :]  # (N, M, 2)
+        denom = cross(d[:, None, :], e[None, :, :])  # (N, M)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tt = cross(ap, e[None, :, :]) / denom
+            uu = cross(ap, d[:, None, :]) / denom
+        hit = (denom != 0) & (tt > 0) & (tt <= 1) & (uu >= 0) & (uu <= 1)
+        return hit.any(axis=1)

@@ -1,0 +1,112 @@
+"""Fusion filters: the particle filter with the map, the walk prior, the batch runner."""
+
+import math
+
+import numpy as np
+import pytest
+import shapely
+
+from hybridloc.fusion import LocalFusion, ParticleConfig, ParticleFusion, WalkPrior, run_fusion
+from hybridloc.types import AbsoluteFix, Floor, FloorPlan, StepEvent
+
+
+def _walk(n, heading, length=0.7, t0=0.0, dt=0.5):
+    return [StepEvent(t0 + dt * (i + 1), length, heading, 0.05, math.radians(2), 0.0, math.radians(1)) for i in range(n)]
+
+
+def _corridor_plan(length=60.0, width=2.0) -> FloorPlan:
+    """One floor: a straight corridor along +x, ``width`` m wide, walls along both sides."""
+    poly = shapely.box(-2.0, -width / 2, length, width / 2)
+    walls = [[[-2.0, -width / 2], [length, -width / 2]], [[-2.0, width / 2], [length, width / 2]],
+             [[-2.0, -width / 2], [-2.0, width / 2]], [[length, -width / 2], [length, width / 2]]]
+    mp = shapely.MultiPolygon([poly])
+    return FloorPlan("test", (Floor("F1", 0, 0.0, mp, mp, np.array(walls)),))
+
+
+def test_walk_prior_from_points_and_plan():
+    plan = _corridor_plan()
+    walked = np.column_stack([np.linspace(0, 30, 200), np.zeros(200)])  # people walked the first 30 m
+    pr = WalkPrior.from_points({"F1": walked}, plan, eps=0.05)
+    v = pr.at("F1", np.array([[10.0, 0.0], [50.0, 0.0], [10.0, 5.0]]))
+    assert v[0] == pytest.approx(1.0, abs=0.02)  # well walked
+    assert v[1] == pytest.approx(0.05, abs=1e-3)  # walkable, never walked: the floor eps
+    assert v[2] == 0.0  # outside the plan
+    hit = pr.crosses_wall("F1", np.array([[5.0, 0.0], [5.0, 0.0]]), np.array([[5.0, 2.0], [6.0, 0.5]]))
+    assert hit.tolist() == [True, False]
+    assert pr.at("nofloor", np.zeros((2, 2))).tolist() == [1.0, 1.0]  # unknown floor: no constraint
+    with pytest.raises(ValueError):
+        WalkPrior.from_points({"F1": walked}, plan, eps=2.0)
+
+
+def test_particle_filter_keeps_a_biased_walk_inside_the_corridor():
+    """The PDR heading is 10 deg off: after 40 m dead reckoning alone is 40 sin 10 = 6.9 m out of a 2 m
+    wide corridor; the particles that left it died at the walls, so the estimate stays inside and
+    its along-track position keeps the step lengths (within the step noise, a few % of 40 m)."""
+    plan = _corridor_plan(length=80.0)
+    prior = WalkPrior.from_points({}, plan)
+    steps = _walk(57, math.radians(10.0))  # 57 x 0.7 = 39.9 m
+    kf = LocalFusion(init=(0.0, 0.0, 0.3), floor="F1", heading_bias=(0.0, math.radians(20)))
+    # step scale known to 3 %: walls tell nothing about it (the cloud keeps the scale of its survivors)
+    pf = ParticleFusion(prior, ParticleConfig(n_particles=500, sigma_scale0=0.03), init=(0.0, 0.0, 0.3), floor="F1", heading_bias=(0.0, math.radians(20)))
+    for st in steps:
+        e_kf = kf.predict(st)
+        e_pf = pf.predict(st)
+    assert abs(e_kf.pos[1]) > 5.0
+    assert abs(e_pf.pos[1]) < 1.0 and abs(e_pf.pos[0] - 39.9) < 3 * 0.03 * 39.9 + 0.5
+    assert np.all(np.abs(pf.p[:, 1]) <= 1.0)  # no particle beyond the walls
+    assert np.isfinite(e_pf.cov).all() and np.linalg.eigvalsh(e_pf.cov).min() > 0
+    # the corridor taught the filter the heading bias: its particles' mean bias is about -10 deg
+    assert abs(float(pf.w @ pf.b) + math.radians(10.0)) < math.radians(6.0)
+
+
+def test_particle_filter_fixes_gate_reinit_and_reproducibility():
+    rng = np.random.default_rng(1)
+    runs = []
+    for _ in range(2):
+        pf = ParticleFusion(None, ParticleConfig(n_particles=400, seed=3))
+        ok, e = pf.correct(AbsoluteFix(0.0, [5.0, 5.0], np.eye(2) * 4.0, "wifi", "F1", 0.9))
+        assert ok and e.kind == "init" and pf.floor == "F1"
+        true = np.array([5.0, 5.0])
+        for k in range(20):
+            for st in _walk(4, 0.0, t0=2.0 * k):
+                pf.predict(st)
+                true = true + [0.7, 0.0]
+            pf.correct(AbsoluteFix(2.0 * k + 2.0, true + rng.normal(0, 1.0, 2), np.eye(2), "wifi", "F1", 0.9))
+        runs.append(pf.estimate("x").pos)
+        # converged: within a few fix sigmas of the truth after 20 fixes
+        assert np.linalg.norm(pf.estimate("x").pos - true) < 2.0
+        n_rej = pf.n_rejected  # the 95 % gate also turns away ~5 % of good fixes
+        ok, _ = pf.correct(AbsoluteFix(41.0, true + [60.0, 0.0], np.eye(2), "gps", "F1"))  # multipath
+        assert not ok and pf.n_rejected == n_rej + 1
+        for i in range(5):  # the world insists: lost, restart there
+            ok, e = pf.correct(AbsoluteFix(42.0 + i, [200.0, 50.0], np.eye(2), "wifi", "F2", 0.95))
+        assert ok and np.linalg.norm(e.pos - [200, 50]) < 1.0 and pf.floor == "F2"
+        rng = np.random.default_rng(1)
+    # the same seed and inputs give the same answer
+    assert np.allclose(runs[0], runs[1])
+
+
+def test_late_fix_is_compared_with_the_position_at_its_scan_time():
+    """A fix for a scan 10 steps ago that agrees with where we were then must barely move us."""
+    for make in (lambda: LocalFusion(init=(0.0, 0.0, 2.0)), lambda: ParticleFusion(None, init=(0.0, 0.0, 2.0))):
+        f = make()
+        for st in _walk(20, 0.0):
+            f.predict(st)
+        before = f.estimate("x").pos.copy()
+        ok, e = f.correct(AbsoluteFix(5.0, [7.0, 0.0], np.eye(2) * 0.25, "wifi"))  # t=5 s: 10 steps, 7 m
+        # where we were then (7 m) plus the 10 steps since (7 m): 14 m; an estimate compared with the
+        # present position instead would have been dragged back towards 7 m
+        assert ok and np.linalg.norm(e.pos - [14.0, 0.0]) < 0.7 and np.linalg.norm(e.pos - before) < 1.5
+
+
+def test_run_fusion_reproduces_arrival_order():
+    steps = _walk(30, 0.0)
+    fixes = [AbsoluteFix(3.0 * k, [2.1 * k, 0.3], np.eye(2), "wifi") for k in range(1, 5)]
+    # fixes arriving right after their scan (by time) or at given step counts: same result when they agree
+    by_time = run_fusion(LocalFusion(init=(0.0, 0.0, 1.0)), steps, fixes)
+    arrivals = [sum(1 for s in steps if s.t < f.t) for f in fixes]
+    by_count = run_fusion(LocalFusion(init=(0.0, 0.0, 1.0)), steps, fixes, arrivals)
+    assert len(by_time) == len(by_count) == 30 + 4
+    assert all(np.allclose(a.pos, b.pos) and a.kind == b.kind for a, b in zip(by_time, by_count))
+    with pytest.raises(ValueError):
+        run_fusion(LocalFusion(), steps, fixes, arrivals[:2])
