@@ -139,3 +139,44 @@ def test_lockstep_agent_gets_an_answer_per_scan_and_run_fusion_replays_it_exactl
     live = [(row[0], row[1], row[2]) for row in r.poses]
     assert len(replay) == len(live)
     assert np.allclose([(e.t, e.pos[0], e.pos[1]) for e in replay], live, atol=1e-9)
+
+
+def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_path):
+    """``hybridloc serve --map`` + ``hybridloc client phone --filter particle --lockstep`` on the bundled
+    sample: fixes arrive for the scans, and every live position of the particle filter lies on the
+    floor plan (particles outside it or across its walls die)."""
+    import csv
+    import subprocess
+    import sys
+
+    import shapely
+
+    from hybridloc.io.msft import read_ilc_site, read_ilc_trace
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.wire.zconfig import free_port
+
+    traces = sorted((ILC_SITE1_F1 / "F1" / "path_data_files").glob("*.txt.gz"))
+    run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", *a], capture_output=True, text=True, timeout=300)  # noqa: E731
+    m = tmp_path / "f1.npz"
+    r = run("map", "build", "--format", "msft", *map(str, traces[:12]), "--out", str(m))
+    assert r.returncode == 0, r.stderr
+    site = read_ilc_trace(traces[13]).site
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    srv = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "listening" in srv.stdout.readline()
+        pose = tmp_path / "pose.csv"
+        r = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep",
+                "--filter", "particle", "--floorplan", str(ILC_SITE1_F1), "--spool", str(tmp_path / "spool"), "--pose-out", str(pose))
+        assert r.returncode == 0, r.stderr
+    finally:
+        srv.terminate()
+        srv.wait(30)
+    fixes = int(r.stdout.split(" fixes received")[0].rsplit(" ", 1)[1])
+    assert fixes > 0, r.stdout
+    rows = list(csv.DictReader(open(pose)))
+    assert rows and {"t", "x", "y", "floor", "sigma_x", "sigma_y"} <= set(rows[0])
+    walk = read_ilc_site(ILC_SITE1_F1).floor("F1").walkable.buffer(0.5)  # the mean of a cloud in a bend may cut the corner
+    xy = np.array([[float(w["x"]), float(w["y"])] for w in rows])
+    assert shapely.contains_xy(walk, xy[:, 0], xy[:, 1]).mean() > 0.95

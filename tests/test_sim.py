@@ -137,3 +137,39 @@ def test_realism_statistics_inside_real_ranges(ilc_site1):
         real_peaks += spectrum_peaks(read_ilc_trace(p).imu)
     sim_peaks = np.concatenate([spectrum_peaks(i) for i in imus])
     assert in_range(float(np.median(sim_peaks)), np.array(real_peaks))
+
+
+def test_world_on_a_real_floor_plan_walkers_keep_to_its_corridors(tmp_path):
+    """``sim world --floorplan`` on the bundled Indoor Location Competition floor: walkers route through
+    the corridors (free space = walkable minus shops, whose doors the data lacks), never through a shop
+    or outside the building, and the usual outputs come out readable; the world reloads identically."""
+    import shapely
+    from shapely.ops import unary_union
+
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.sim.run import load_world
+
+    run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", *a], capture_output=True, text=True, timeout=300)  # noqa: E731
+    r = run("sim", "world", "--seed", "4", "--floorplan", str(ILC_SITE1_F1), "--out", str(tmp_path / "w"))
+    assert r.returncode == 0, r.stderr
+    w = load_world(str(tmp_path / "w"))
+    assert w.source and len(w.rooms) > 20 and len(w.aps) >= 10 and len(w.rfid) >= 2
+    fl = read_ilc_site(ILC_SITE1_F1).floor("F1")
+    free = fl.walkable.difference(unary_union([p for _, p in fl.rooms]))
+    # the infrastructure and the graph lie in the building (the outdoor node excepted)
+    indoor = [i for i, k in enumerate(w.node_kind) if k not in ("entrance", "outdoor")]
+    assert shapely.contains_xy(free, w.nodes[indoor, 0], w.nodes[indoor, 1]).all()
+    assert shapely.contains_xy(free, w.aps[:, 0], w.aps[:, 1]).all()
+    assert not shapely.contains_xy(fl.outline, *w.nodes[w.outdoor_node, :2])
+    r = run("sim", "walk", "--world", str(tmp_path / "w"), "--walkers", "3", "--minutes", "1", "--seed", "2", "--out", str(tmp_path / "k"))
+    assert r.returncode == 0, r.stderr
+    for k in range(3):
+        tr = read_ilc_trace(tmp_path / "k" / f"w{k:04d}.txt.gz")
+        assert tr.report.ok and tr.wifi_scans and len(tr.waypoints) >= 2
+        xy = np.loadtxt(tmp_path / "k" / f"w{k:04d}_truth_steps.csv", delimiter=",", skiprows=1, usecols=(1, 2))
+        meta = json.loads((tmp_path / "k" / f"w{k:04d}.json").read_text())
+        inside = shapely.contains_xy(free.buffer(0.3), xy[:, 0], xy[:, 1])
+        if meta["outdoor_start"]:  # from the forecourt through the entrance: the first steps are outside
+            assert inside[len(inside) // 2 :].all()
+        else:
+            assert inside.all()

@@ -58,7 +58,7 @@ class WalkPrior:
 
     @classmethod
     def from_points(cls, points_by_floor: dict[str, np.ndarray], plan: FloorPlan | None = None, cell: float = 0.5,
-                    bandwidth: float = 1.5, eps: float = 0.05, saturation: float = 0.5, margin: float = 10.0) -> "WalkPrior":
+                    bandwidth: float = 1.5, eps: float = 1.0, saturation: float = 0.5, margin: float = 10.0) -> "WalkPrior":
         """Build from walked positions (per floor name, (N, 2) m) and an optional floor plan."""
         if not 0.0 <= eps <= 1.0:
             raise ValueError(f"eps must be in [0, 1], got {eps}")

@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import dijkstra
 from shapely.geometry import MultiPolygon, Polygon, box
 
 from ..geo import GeodeticOrigin
-from ..types import Floor, FloorPlan, FloorTransition, TransitionKind
+from ..types import Floor, FloorPlan, FloorTransition, TransitionKind  # noqa: F401
 
 STOREY = 3.5  # m
 
@@ -62,6 +62,12 @@ class World:
     origin: GeodeticOrigin
     _dist: np.ndarray | None = field(default=None, repr=False)
     _pred: np.ndarray | None = field(default=None, repr=False)
+    #: lower-left corner of the building's bounding box (generated buildings start at the origin)
+    x_min: float = 0.0
+    y_min: float = 0.0
+    #: the real floor plan folder the world was made from (None: generated)
+    source: str | None = None
+    _comp: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n_floors(self) -> int:
@@ -69,6 +75,22 @@ class World:
 
     def floor_name(self, i: int) -> str:
         return self.plan.floors[i].name
+
+    @property
+    def component(self) -> np.ndarray:
+        """Connected component of every graph node (a real plan without stairs data has one per floor)."""
+        if self._comp is None:
+            from scipy.sparse.csgraph import connected_components
+
+            n = len(self.nodes)
+            rows = [i for i, _ in self.edges]
+            cols = [j for _, j in self.edges]
+            _, self._comp = connected_components(csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+        return self._comp
+
+    def inside(self, pos: np.ndarray) -> np.ndarray:
+        """Which positions (N, 2) lie inside the ground floor's outline."""
+        return shapely.contains_xy(self.plan.floors[0].outline, pos[:, 0], pos[:, 1])
 
     def shortest_path(self, a: int, b: int) -> list[int]:
         if self._dist is None:
@@ -219,3 +241,149 @@ def walkable_points(world: World, floor: int, pts: np.ndarray) -> np.ndarray:
     return shapely.contains_xy(world.plan.floors[floor].walkable, pts[:, 0], pts[:, 1])
 
 
+
+
+def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, spacing: float = 2.0, origin: GeodeticOrigin | None = None,
+                    source: str | None = None) -> World:
+    """A simulated world on a real floor plan (e.g. an Indoor Location Competition site).
+
+    Walkable graph: a grid of nodes every ``spacing`` m over each floor's free space - the walkable area
+    minus its rooms (shops in those plans have no doors in the data, and the recorded walkers keep to
+    the corridors), shrunk by 0.4 m so nobody brushes a wall - joined to their 8 neighbours where the
+    straight link stays in the free space. Destinations ("room" nodes) are the shop fronts: the node
+    nearest each room. Floors are joined where the plan has transitions (stairs, lifts); without them
+    every floor is its own component and walkers stay on theirs. The entrance is the ground-floor point
+    of the outline nearest the free space's centre-most boundary node, with an outdoor node 12 m out.
+    Infrastructure is placed like real deployments: WiFi APs (2.4 and 5 GHz) every ~15 m and BLE
+    beacons every ~8 m over the corridors (farthest-point spacing), RFID readers at the entrance and
+    every fifth shop front.
+    """
+    from shapely.ops import unary_union
+
+    origin = origin or plan.origin or GeodeticOrigin.from_degrees(47.3769, 8.5417, 410.0)
+    nodes: list[tuple[float, float, int]] = []
+    kinds: list[str] = []
+    edges: list[tuple[int, int]] = []
+    rooms: list[Room] = []
+    rfid: list[tuple[float, float, int]] = []
+    aps, ap_ids, freqs, beacons = [], [], [], []
+
+    def add(x, y, f, kind):
+        nodes.append((float(x), float(y), int(f)))
+        kinds.append(kind)
+        return len(nodes) - 1
+
+    def spaced(pts: np.ndarray, d: float) -> np.ndarray:
+        """Farthest-point sampling until every point is within d of a chosen one."""
+        if len(pts) == 0:
+            return pts
+        chosen = [int(rng.integers(len(pts)))]
+        dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+        while dist.max() > d:
+            k = int(np.argmax(dist))
+            chosen.append(k)
+            dist = np.minimum(dist, np.linalg.norm(pts - pts[k], axis=1))
+        return pts[chosen]
+
+    floor_nodes: dict[int, np.ndarray] = {}
+    for fi, fl in enumerate(plan.floors):
+        free = fl.walkable
+        if fl.rooms:
+            free = free.difference(unary_union([r for _, r in fl.rooms]))
+        free = free.buffer(-0.4)
+        if free.is_empty:
+            continue
+        x0, y0, x1, y1 = free.bounds
+        gx = np.arange(x0 + spacing / 2, x1, spacing)
+        gy = np.arange(y0 + spacing / 2, y1, spacing)
+        X, Y = np.meshgrid(gx, gy)
+        ok = shapely.contains_xy(free, X, Y)
+        ids = np.full(ok.shape, -1)
+        for iy, ix in zip(*np.nonzero(ok)):
+            ids[iy, ix] = add(X[iy, ix], Y[iy, ix], fi, "corridor")
+        a_list, b_list = [], []
+        ny, nx = ids.shape
+
+        def shift(d: int, n: int) -> tuple[slice, slice]:
+            return (slice(0, n - d), slice(d, n)) if d >= 0 else (slice(-d, n), slice(0, n + d))
+
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # 8-neighbourhood, each link once
+            (sy, ty), (sx, tx) = shift(dy, ny), shift(dx, nx)
+            src, dst = ids[sy, sx], ids[ty, tx]
+            m = (src >= 0) & (dst >= 0)
+            a_list.append(src[m])
+            b_list.append(dst[m])
+        a_ids, b_ids = np.concatenate(a_list), np.concatenate(b_list)
+        if len(a_ids):
+            P = np.array(nodes, float)
+            segs = shapely.linestrings(np.stack([P[a_ids, :2], P[b_ids, :2]], axis=1))
+            keep = shapely.contains(free, segs)
+            edges += list(zip(a_ids[keep].tolist(), b_ids[keep].tolist()))
+        idx = np.nonzero(ids.ravel() >= 0)[0]
+        fn = ids.ravel()[idx]
+        floor_nodes[fi] = fn
+        pts = np.array(nodes, float)[fn, :2]
+        # shop fronts: the free-space node nearest each room is where walkers go
+        if fl.rooms and len(pts):
+            for k, (name, poly) in enumerate(fl.rooms):
+                d = shapely.distance(poly, shapely.points(pts))
+                j = int(np.argmin(d))
+                if d[j] > 3.0 * spacing:
+                    continue
+                kinds[int(fn[j])] = "room"
+                c = poly.representative_point()
+                rooms.append(Room(fi, str(name), poly, (float(pts[j, 0]), float(pts[j, 1])), (c.x, c.y)))
+                if len(rooms) % 5 == 0:
+                    rfid.append((float(pts[j, 0]), float(pts[j, 1]), fi))
+        elif len(pts):  # no rooms in the plan: a fifth of the places are destinations
+            for j in rng.choice(len(fn), max(1, len(fn) // 5), replace=False):
+                kinds[int(fn[j])] = "room"
+        for x, y in spaced(pts, 15.0):
+            for fmhz in (2437.0, 5180.0):
+                aps.append((float(x), float(y), fi))
+                ap_ids.append(f"02:01:{seed % 256:02x}:{fi:02x}:{len(ap_ids) // 256 % 256:02x}:{len(ap_ids) % 256:02x}")
+                freqs.append(fmhz)
+        beacons += [(float(x), float(y), fi) for x, y in spaced(pts, 8.0)]
+    if not nodes:
+        raise ValueError("the floor plan has no free walkable space for walkers")
+    P = np.array(nodes, float)
+    names = [f.name for f in plan.floors]
+    for tr in plan.transitions:
+        try:
+            fa, fb = names.index(tr.floor_from), names.index(tr.floor_to)
+        except ValueError:
+            continue
+        if fa not in floor_nodes or fb not in floor_nodes:
+            continue
+        na = int(floor_nodes[fa][np.argmin(np.linalg.norm(P[floor_nodes[fa], :2] - tr.pos_from, axis=1))])
+        nb = int(floor_nodes[fb][np.argmin(np.linalg.norm(P[floor_nodes[fb], :2] - tr.pos_to, axis=1))])
+        kind = "lift" if tr.kind is TransitionKind.LIFT else "stairs"
+        kinds[na] = kinds[nb] = kind
+        edges.append((na, nb))
+    # entrance on the ground floor: the outline point nearest to a free-space node, 12 m out of doors
+    g = min(floor_nodes) if 0 not in floor_nodes else 0
+    outline = plan.floors[g].outline
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(nodes)
+    _, comp = connected_components(csr_matrix((np.ones(len(edges)), ([a for a, _ in edges], [b for _, b in edges])), shape=(n, n)), directed=False)
+    main = np.bincount(comp[floor_nodes[g]]).argmax()  # the entrance opens onto the ground floor's main concourse
+    floor_nodes[g] = floor_nodes[g][comp[floor_nodes[g]] == main]
+    gp = P[floor_nodes[g], :2]
+    d = shapely.distance(outline.boundary, shapely.points(gp))
+    j = int(np.argmin(d))
+    near = shapely.ops.nearest_points(outline.boundary, shapely.Point(gp[j]))[0]
+    ent = np.array([near.x, near.y])
+    out_dir = ent - gp[j]
+    out_dir = out_dir / max(np.linalg.norm(out_dir), 1e-9)
+    ci = int(floor_nodes[g][j])
+    en = add(ent[0], ent[1], g, "entrance")
+    on = add(ent[0] + 12.0 * out_dir[0], ent[1] + 12.0 * out_dir[1], g, "outdoor")
+    edges += [(ci, en), (en, on)]
+    rfid.insert(0, (float(ent[0]), float(ent[1]), g))
+    bx0, by0, bx1, by1 = unary_union([f.outline for f in plan.floors]).bounds
+    beacon_ids = [f"simp{seed}_{i // 1000}_{i % 1000}" for i in range(len(beacons))]
+    plan2 = FloorPlan(plan.site, plan.floors, plan.transitions, origin)
+    return World(seed, plan2, float(bx1), float(by1), (float(by0), float(by1)), rooms, np.array(nodes, float), kinds, edges,
+                 np.array(aps, float).reshape(-1, 3), ap_ids, np.array(freqs), np.array(beacons, float).reshape(-1, 3), beacon_ids,
+                 np.array(rfid, float).reshape(-1, 3), (float(ent[0]), float(ent[1])), on, origin, x_min=float(bx0), y_min=float(by0), source=source)

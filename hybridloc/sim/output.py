@@ -42,7 +42,7 @@ from .walker import Walk
 def world_to_json(world: World) -> dict:
     return {
         "format": "hybridloc-sim-world", "version": 1, "seed": world.seed, "floors": world.n_floors,
-        "width": world.width, "depth": world.depth,
+        "width": world.width, "depth": world.depth, "floorplan": world.source,
         "origin_deg": [world.origin.lat / DEG, world.origin.lon / DEG, world.origin.height],
         "aps": [{"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2])), "freq_mhz": float(f)} for i, p, f in zip(world.ap_ids, world.aps, world.ap_freq_mhz)],
         "beacons": [{"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2]))} for i, p in zip(world.beacon_ids, world.beacons)],

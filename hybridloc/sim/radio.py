@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import shapely
 
 from ..types import AbsoluteFix, FixSource, RfScan, Technology
 from .building import STOREY, World, wall_crossings
@@ -49,10 +50,10 @@ class RadioModel:
     tx_pos: np.ndarray  # (A + B, 3)
     grid_x: np.ndarray
     grid_y: np.ndarray
-    walls_db: np.ndarray  # (A + B, n_floors, ny, nx) wall attenuation from tx to grid cell on each floor
+    walls_db: np.ndarray | None  # (A + B, n_floors, ny, nx) wall attenuation from tx to grid cell on each floor (None: on demand)
     shadow_x: np.ndarray  # finer grid for the shadowing field
     shadow_y: np.ndarray
-    shadow_db: np.ndarray  # (A + B, nsy, nsx) the shadowing field sampled on it
+    shadow_db: np.ndarray | None  # (A + B, nsy, nsx) the shadowing field sampled on it (None: on demand)
 
 
 def make_radio_model(world: World, rng: np.random.Generator, n_terms: int = 32, grid: float = 1.0) -> RadioModel:
@@ -62,8 +63,14 @@ def make_radio_model(world: World, rng: np.random.Generator, n_terms: int = 32, 
     b = rng.uniform(0, 2 * math.pi, (n_tx, n_terms))
     c = rng.normal(0.0, SHADOW_SD * math.sqrt(2.0 / n_terms), (n_tx, n_terms))
     p0 = np.concatenate([np.where(world.ap_freq_mhz < 3000, -38.0, -45.0), np.full(len(world.beacons), -59.0 + 0.0)])
-    gx = np.arange(-15.0, world.width + 15.0 + grid, grid)
-    gy = np.arange(-15.0, world.depth + 15.0 + grid, grid)
+    gx = np.arange(world.x_min - 15.0, world.width + 15.0 + grid, grid)
+    gy = np.arange(world.y_min - 15.0, world.depth + 15.0 + grid, grid)
+    sx = np.arange(world.x_min - 15.0, world.width + 15.5, 0.5)
+    sy = np.arange(world.y_min - 15.0, world.depth + 15.5, 0.5)
+    if n_tx * len(sx) * len(sy) > 20_000_000:
+        # a large real plan with hundreds of transmitters: precomputed grids would take minutes and
+        # gigabytes; rssi() evaluates the same shadowing sum and wall crossings at the scan positions
+        return RadioModel(world, w, b, c, p0, tx, gx, gy, None, sx, sy, None)
     X, Y = np.meshgrid(gx, gy)
     pts = np.column_stack([X.ravel(), Y.ravel()])
     walls_db = np.zeros((n_tx, world.n_floors, len(gy), len(gx)), np.float32)
@@ -73,8 +80,6 @@ def make_radio_model(world: World, rng: np.random.Generator, n_terms: int = 32, 
         nw = wall_crossings(walls, np.repeat(tx[j : j + 1, :2], len(pts), axis=0), pts)
         walls_db[j, :] = (WALL_DB * nw).reshape(len(gy), len(gx))[None]
     # the shadowing field on a 0.5 m grid (correlation length 3 m: nearest-cell lookup is smooth enough)
-    sx = np.arange(-15.0, world.width + 15.5, 0.5)
-    sy = np.arange(-15.0, world.depth + 15.5, 0.5)
     SX, SY = np.meshgrid(sx, sy)
     sp = np.column_stack([SX.ravel(), SY.ravel()])
     shadow = np.stack([np.cos(sp @ w[j].T + b[j]) @ c[j] for j in range(n_tx)]).reshape(n_tx, len(sy), len(sx)).astype(np.float32)
@@ -90,13 +95,21 @@ def rssi(model: RadioModel, tx_idx: np.ndarray, xy: np.ndarray, floor, rng: np.r
     tx = model.tx_pos[tx_idx]
     dz = (fl[:, None] - tx[None, :, 2]) * STOREY
     d = np.sqrt(np.sum((tx[None, :, :2] - xy[:, None, :]) ** 2, axis=2) + dz**2)
-    jx = np.clip(np.rint((xy[:, 0] - model.shadow_x[0]) / 0.5).astype(int), 0, len(model.shadow_x) - 1)
-    jy = np.clip(np.rint((xy[:, 1] - model.shadow_y[0]) / 0.5).astype(int), 0, len(model.shadow_y) - 1)
-    shadow = model.shadow_db[tx_idx][:, jy, jx].T  # (S, T)
-    ix = np.clip(np.searchsorted(model.grid_x, xy[:, 0]), 0, len(model.grid_x) - 1)
-    iy = np.clip(np.searchsorted(model.grid_y, xy[:, 1]), 0, len(model.grid_y) - 1)
-    flc = np.minimum(fl, model.walls_db.shape[1] - 1)
-    walls = model.walls_db[tx_idx][:, flc, iy, ix].T  # (S, T)
+    if model.shadow_db is not None:
+        jx = np.clip(np.rint((xy[:, 0] - model.shadow_x[0]) / 0.5).astype(int), 0, len(model.shadow_x) - 1)
+        jy = np.clip(np.rint((xy[:, 1] - model.shadow_y[0]) / 0.5).astype(int), 0, len(model.shadow_y) - 1)
+        shadow = model.shadow_db[tx_idx][:, jy, jx].T  # (S, T)
+        ix = np.clip(np.searchsorted(model.grid_x, xy[:, 0]), 0, len(model.grid_x) - 1)
+        iy = np.clip(np.searchsorted(model.grid_y, xy[:, 1]), 0, len(model.grid_y) - 1)
+        flc = np.minimum(fl, model.walls_db.shape[1] - 1)
+        walls = model.walls_db[tx_idx][:, flc, iy, ix].T  # (S, T)
+    else:  # the same sum of random Fourier features and wall crossings, at the positions themselves
+        shadow = np.zeros((len(xy), len(tx_idx)))
+        walls = np.zeros((len(xy), len(tx_idx)))
+        for k, j in enumerate(np.atleast_1d(tx_idx)):
+            shadow[:, k] = np.cos(xy @ model.w[j].T + model.b[j]) @ model.c[j]
+            fw = model.world.plan.floors[int(model.tx_pos[j, 2])].walls
+            walls[:, k] = WALL_DB * wall_crossings(fw, np.repeat(model.tx_pos[j : j + 1, :2], len(xy), axis=0), xy)
     r = (model.p0[tx_idx][None] - 10 * PATH_LOSS_N * np.log10(np.maximum(d, 1.0)) - walls - FLOOR_DB * np.abs(fl[:, None] - tx[None, :, 2])
          + shadow + TEMPORAL_SD * rng.standard_normal(d.shape) + offset)
     return r[0] if single else r
@@ -153,11 +166,14 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
             if d[k] <= 1.5 and row[0] - last > 5.0:
                 rfid.append(AbsoluteFix(float(row[0]), same[k, :2].copy(), np.eye(2) * 0.4**2, FixSource.RFID, world.floor_name(int(row[3]))))
                 last = row[0]
-    # GPS: outdoors (y < 0) and just inside the entrance, 1 Hz
+    # GPS: outdoors and just inside the entrance (within gps_indoor_reach of the facade, 6 m of the
+    # door), 1 Hz
     tg = np.arange(walk.t0, walk.t1, 1.0)
     pos, fl = walk.position_at(tg)
-    inside = pos[:, 1] > 0.0
-    ok = (fl == 0) & (~inside | ((pos[:, 1] <= gps_indoor_reach) & (np.abs(pos[:, 0] - world.entrance[0]) <= 6.0)))
+    inside = world.inside(pos)
+    ent = np.asarray(world.entrance)
+    facade = shapely.distance(world.plan.floors[0].outline.boundary, shapely.points(pos))
+    ok = (fl == 0) & (~inside | ((facade <= gps_indoor_reach) & (np.linalg.norm(pos - ent, axis=1) <= 6.0 + gps_indoor_reach)))
     for t, p, ins in zip(tg[ok], pos[ok], inside[ok]):
         hdop = float(rng.uniform(0.8, 1.6)) if not ins else float(rng.uniform(3.0, 6.0))
         sigma = 3.0 * hdop

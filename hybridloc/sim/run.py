@@ -7,15 +7,23 @@ from pathlib import Path
 
 import numpy as np
 
-from .building import World, generate_world
+from .building import World, generate_world, world_from_plan
 from .imu import disturbance_field, foot_imu, phone_imu
 from .output import write_foot_csv, write_ilc_trace, write_truth, write_world
 from .radio import make_radio_model, simulate_radio
 from .walker import simulate_walk
 
 
-def make_world(seed: int, floors: int, out: str) -> World:
-    world = generate_world(np.random.default_rng(seed), floors, seed)
+def make_world(seed: int, floors: int, out: str, floorplan: str | None = None) -> World:
+    """A generated building of ``floors`` floors, or - with ``floorplan`` (a site folder in the Indoor
+    Location Competition layout) - a world on that real plan (:func:`.building.world_from_plan`)."""
+    if floorplan:
+        from ..io.msft import read_ilc_site
+
+        src = str(Path(floorplan).resolve())
+        world = world_from_plan(read_ilc_site(src), np.random.default_rng(seed), seed, source=src)
+    else:
+        world = generate_world(np.random.default_rng(seed), floors, seed)
     write_world(world, out)
     return world
 
@@ -28,7 +36,15 @@ def load_world(folder: str) -> World:
         raise ValueError(f"{folder}: not a simulated world folder ({exc})") from exc
     if meta.get("format") != "hybridloc-sim-world":
         raise ValueError(f"{p}: not a hybridloc simulated world")
-    world = generate_world(np.random.default_rng(int(meta["seed"])), int(meta["floors"]), int(meta["seed"]))
+    if meta.get("floorplan"):  # a world on a real plan: regenerated from the plan it names
+        from ..io.msft import read_ilc_site
+
+        src = meta["floorplan"]
+        if not Path(src).is_dir():
+            raise ValueError(f"{p}: the floor plan folder it was made from, {src}, is gone")
+        world = world_from_plan(read_ilc_site(src), np.random.default_rng(int(meta["seed"])), int(meta["seed"]), source=src)
+    else:
+        world = generate_world(np.random.default_rng(int(meta["seed"])), int(meta["floors"]), int(meta["seed"]))
     if len(world.aps) != len(meta["aps"]) or abs(world.width - meta["width"]) > 1e-9:
         raise ValueError(f"{p}: the world was made by another hybridloc version (regenerated layout differs)")
     return world

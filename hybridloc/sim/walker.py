@@ -76,9 +76,14 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     L = float(np.clip(rng.normal(0.70, 0.06), 0.5, 0.9))
     K = float(np.clip(rng.normal(0.37, 0.02), 0.3, 0.45))
     cadence = speed / L
-    rooms = [i for i, k in enumerate(world.node_kind) if k == "room"]
+    comp = world.component
+    size = np.bincount(comp)
+    # destinations in parts of the building big enough to walk in (a real plan's grid leaves islands)
+    rooms_all = [i for i, k in enumerate(world.node_kind) if k == "room" and size[comp[i]] >= 0.05 * len(comp)] or \
+        [i for i, k in enumerate(world.node_kind) if k == "room"]
     outdoor = rng.random() < 0.2
-    start_node = world.outdoor_node if outdoor else int(rng.choice(rooms))
+    start_node = world.outdoor_node if outdoor else int(rng.choice(rooms_all))
+    rooms = [i for i in rooms_all if comp[i] == comp[start_node]] or rooms_all  # reachable from the start
     loop = close_loop or rng.random() < 0.3
     x, y, fl = (float(v) for v in world.nodes[start_node])
     fl = int(fl)
