@@ -323,6 +323,51 @@ class AbsoluteFix:
 
 
 @dataclass(frozen=True, eq=False)
+class DisplacementFix:
+    """A measured displacement of the walker between two times, in the site frame.
+
+    Kourogi et al.'s GPS differential mode (eqs 17-18): two GPS positions free of multipath, a few
+    seconds apart, differenced - the biased error e_b (ionosphere, troposphere: locally constant for
+    one satellite set, eq 8) cancels and only the random error remains, so ``cov`` is
+    cov(e_r(t0)) + cov(e_r(t1)), not the fixes' full covariances. It tells a filter the walker's
+    heading and speed (its PDR heading bias and step scale), not where the walker is.
+
+    Attributes
+    ----------
+    t0, t1 : float
+        Times of the two positions, s (t1 > t0).
+    delta_enu : ndarray, shape (2,)
+        p(t1) - p(t0), m.
+    cov : ndarray, shape (2, 2)
+        Covariance of the difference, m^2, symmetric positive definite.
+    source : FixSource
+    """
+
+    t0: float
+    t1: float
+    delta_enu: np.ndarray
+    cov: np.ndarray
+    source: FixSource = FixSource.GPS
+
+    def __post_init__(self) -> None:
+        d = _frozen_array(self.delta_enu, (2,), "delta_enu", ndim=1)
+        c = _frozen_array(self.cov, (2, 2), "cov", ndim=2)
+        if not (math.isfinite(self.t0) and math.isfinite(self.t1) and np.all(np.isfinite(d)) and np.all(np.isfinite(c))):
+            raise ValueError("DisplacementFix: non-finite time, displacement or covariance")
+        if not self.t1 > self.t0:
+            raise ValueError("DisplacementFix needs t1 > t0")
+        if not np.allclose(c, c.T, atol=1e-9 * max(1.0, float(np.abs(c).max()))) or np.linalg.eigvalsh(c).min() <= 0:
+            raise ValueError("DisplacementFix.cov must be symmetric positive definite")
+        object.__setattr__(self, "delta_enu", d)
+        object.__setattr__(self, "cov", c)
+        object.__setattr__(self, "source", FixSource(self.source))
+
+    @property
+    def t(self) -> float:
+        return self.t1
+
+
+@dataclass(frozen=True, eq=False)
 class ContainmentRegion:
     """Where the walker is with a stated probability: polygons on one floor.
 

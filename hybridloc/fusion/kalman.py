@@ -11,6 +11,10 @@ position in the site frame (m), b_psi a heading bias (rad) and s a step-length s
   (Kourogi sec. 3.3), which keeps multipath GPS and wrong-floor WiFi out. Because the bias and scale
   states are correlated with the position through the steps, consistent fixes teach the filter the
   walker's heading bias (a consistent turn) and step-length scale.
+* **Correct with a displacement** (eq 17, GPS differential mode): two GPS positions seconds apart,
+  differenced so their common bias cancels (:class:`~hybridloc.types.DisplacementFix`), against
+  s R(b_psi) times the PDR's own displacement over the window (:class:`.measurements.StepDisplacement`):
+  heading bias and step scale without any absolute position. Same gate, same Joseph update.
 * **Floor**: the floor of the most recent accepted fixes, switching when a fix names another floor with
   probability above ``floor_switch``, or when a step reports a floor change.
 * **Start**: until the first accepted fix the position is unknown; the first fix initialises it with
@@ -25,7 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from ..types import AbsoluteFix, StepEvent
+from ..types import AbsoluteFix, DisplacementFix, StepEvent
+from .measurements import PositionFix, StepDisplacement
 
 
 @dataclass
@@ -66,6 +71,8 @@ class LocalFusion:
         self._rejected_run = 0
         self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
         self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
+        self._raw: list[tuple[float, float, float]] = []  # (t, X, Y): the PDR's own track (sum of L (cos psi, sin psi))
+        self._raw_xy = (0.0, 0.0)
         if init is not None:
             self.x[:2] = init[:2]
             self.P[0, 0] = self.P[1, 1] = init[2] ** 2
@@ -96,8 +103,11 @@ class LocalFusion:
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
         self._hist.append((step.t, float(self.x[0]), float(self.x[1])))
+        self._raw_xy = (self._raw_xy[0] + L * math.cos(step.heading), self._raw_xy[1] + L * math.sin(step.heading))
+        self._raw.append((step.t, *self._raw_xy))
         if len(self._hist) > 200:
             del self._hist[:100]
+            del self._raw[:100]
         if step.floor_change and self.floor is not None:
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
@@ -116,8 +126,24 @@ class LocalFusion:
         shift = self.x[:2] - np.array(h[-1][1:])
         return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)]) + shift
 
-    def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
-        """One gated position update; returns (accepted, estimate)."""
+    def _raw_at(self, t: float) -> np.ndarray | None:
+        """The PDR's own track at time t (linear between steps); None outside the kept history."""
+        r = self._raw
+        if not r or t < r[0][0] or t > r[-1][0]:
+            return None
+        ts = [q[0] for q in r]
+        k = int(np.searchsorted(ts, t, side="right")) - 1
+        if k >= len(r) - 1:
+            return np.array(r[-1][1:])
+        (t0, x0, y0), (t1, x1, y1) = r[k], r[k + 1]
+        a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)])
+
+    def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
+        """One gated update with a position fix or a displacement (GPS differential mode); returns
+        (accepted, estimate). Both pass the same chi-square gate and Joseph-form update."""
+        if isinstance(fix, DisplacementFix):
+            return self._correct_displacement(fix)
         z = np.asarray(fix.pos_enu, float)[:2]
         R = np.asarray(fix.cov, float)[:2, :2]
         if not self.initialised:
@@ -130,15 +156,12 @@ class LocalFusion:
             self.t = max(self.t, fix.t)
             self.floor = fix.floor or self.floor
             return True, self.estimate("init")
-        H = np.zeros((2, 4))
-        H[0, 0] = H[1, 1] = 1.0
         # A fix arrives after the scan it comes from (network, server batching): compare it with where
         # we were at the scan's time, and shift the present by the same correction (the steps since
         # then are kept as they are).
+        model = PositionFix(R)
         y = z - self._position_at(fix.t)
-        S = self.P[:2, :2] + R
-        nis = float(y @ np.linalg.solve(S, y))
-        if nis > self._gate:
+        if not self._update(y, model.jacobian(self.x), model.covariance()):
             self.n_rejected += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
@@ -147,16 +170,38 @@ class LocalFusion:
                 return self.correct(fix)
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
-        K = self.P @ H.T @ np.linalg.inv(S)
-        self.x = self.x + K @ y
-        IKH = np.eye(4) - K @ H
-        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T  # Joseph form
-        self.P = 0.5 * (self.P + self.P.T)
-        self.x[3] = min(max(self.x[3], 0.5), 1.5)
         self.t = max(self.t, fix.t)
         if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
             self.floor = fix.floor
         return True, self.estimate("fix")
+
+    def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
+        """Kourogi eq 17: the displacement between t0 and t1 against s R(b) (PDR displacement)."""
+        a, b = self._raw_at(fix.t0), self._raw_at(fix.t1)
+        if a is None or b is None:
+            self.n_rejected += 1  # the steps of that window are not (or no longer) known
+            return False, self.estimate("displacement-rejected")
+        model = StepDisplacement(b - a, fix.cov)
+        y = np.asarray(fix.delta_enu, float) - model.evaluate(self.x)
+        if not self._update(y, model.jacobian(self.x), model.covariance()):
+            self.n_rejected += 1
+            return False, self.estimate("displacement-rejected")
+        return True, self.estimate("displacement")
+
+    def _update(self, y: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
+        """The one gated Kalman update: reject if the innovation's NIS exceeds the chi-square gate
+        (Kourogi sec. 3.3: outside the 95 % region), else a Joseph-form update."""
+        S = H @ self.P @ H.T + R
+        nis = float(y @ np.linalg.solve(S, y))
+        if nis > self._gate:
+            return False
+        K = self.P @ H.T @ np.linalg.inv(S)
+        self.x = self.x + K @ y
+        IKH = np.eye(len(self.x)) - K @ H
+        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T  # Joseph form
+        self.P = 0.5 * (self.P + self.P.T)
+        self.x[3] = min(max(self.x[3], 0.5), 1.5)
+        return True
 
 
 def _shift_floor(name: str, delta: int) -> str:

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from ..types import AbsoluteFix, StepEvent
+from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from .kalman import Estimate, _shift_floor
 from .walkprior import WalkPrior
 
@@ -195,8 +195,10 @@ class ParticleFusion:
         return (1.0 - u) * self._hist_p[a] + u * self._hist_p[b]
 
     # ------------------------------------------------------------------ correct
-    def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
-        """One gated position update; returns (accepted, estimate)."""
+    def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
+        """One gated update with a position fix or a displacement; returns (accepted, estimate)."""
+        if isinstance(fix, DisplacementFix):
+            return self._correct_displacement(fix)
         z = np.asarray(fix.pos_enu, float)[:2]
         R = np.asarray(fix.cov, float)[:2, :2]
         if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
@@ -206,10 +208,7 @@ class ParticleFusion:
             self.t = max(self.t, fix.t)
             return True, self.estimate("init")
         p_then = self._positions_at(fix.t)
-        m, C = self._mean_cov(p_then)
-        y = z - m
-        nis = float(y @ np.linalg.solve(C + R, y))
-        if nis > self._gate:
+        if not self._gated(z, p_then, R):
             self.n_rejected += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
@@ -219,14 +218,41 @@ class ParticleFusion:
                 return True, self.estimate("init")
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
-        d = z - p_then
-        Ri = np.linalg.inv(R)
-        e = np.einsum("ni,ij,nj->n", d, Ri, d)
-        k2 = self.cfg.outlier_scale**2
-        eps = self.cfg.outlier_prob
-        like = (1.0 - eps) * np.exp(-0.5 * e) + eps / k2 * np.exp(-0.5 * e / k2)
-        self._weigh(like)
+        self._weigh(self._likelihood(z, p_then, R))
         self.t = max(self.t, fix.t)
         if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
             self.floor = fix.floor
         return True, self.estimate("fix")
+
+    def _gated(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
+        """Chi-square gate on the cloud's predicted measurements h (N, 2): is z inside their 95 % region?"""
+        m, C = self._mean_cov(h)
+        y = z - m
+        return float(y @ np.linalg.solve(C + R, y)) <= self._gate
+
+    def _likelihood(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Heavy-tailed (1 - eps) N(z; h, R) + eps N(z; h, k^2 R) per particle."""
+        d = z - h
+        Ri = np.linalg.inv(R)
+        e = np.einsum("ni,ij,nj->n", d, Ri, d)
+        k2 = self.cfg.outlier_scale**2
+        eps = self.cfg.outlier_prob
+        return (1.0 - eps) * np.exp(-0.5 * e) + eps / k2 * np.exp(-0.5 * e / k2)
+
+    def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
+        """Kourogi eq 17 (GPS differential mode): each particle's own displacement between t0 and t1,
+        from its history, against the measured one - no linearisation needed."""
+        H = self.cfg.history
+        m = min(self._hist_k, H)
+        oldest = self._hist_t[(self._hist_k - m) % H] if m else math.inf
+        newest = self._hist_t[(self._hist_k - 1) % H] if m else -math.inf
+        if not self.initialised or fix.t0 < oldest or fix.t1 > newest:
+            self.n_rejected += 1  # the window is older than the particles remember, or its steps are not in yet
+            return False, self.estimate("displacement-rejected")
+        d = self._positions_at(fix.t1) - self._positions_at(fix.t0)
+        z, R = np.asarray(fix.delta_enu, float), np.asarray(fix.cov, float)
+        if not self._gated(z, d, R):
+            self.n_rejected += 1
+            return False, self.estimate("displacement-rejected")
+        self._weigh(self._likelihood(z, d, R))
+        return True, self.estimate("displacement")
