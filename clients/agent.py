@@ -34,11 +34,23 @@ from hybridloc.wire import protocol as P
 from .uplink import Uplink
 
 
-def open_client(endpoint: str, security=None) -> zenoh.Session:
-    """A client-mode Zenoh session to a server endpoint (scouting off; see hybridloc.wire.zconfig)."""
+def open_client(endpoint: str, security=None, log=None) -> zenoh.Session:
+    """A client-mode Zenoh session to a server endpoint (scouting off; see hybridloc.wire.zconfig).
+
+    A client-mode session cannot open while nothing listens at the endpoint; an agent must still
+    work then (dead reckoning, spooling), so it falls back to a peer-mode session that keeps trying
+    the endpoint and connects when the server appears (its spool is resent then).
+    """
     from hybridloc.wire.zconfig import client_config
 
-    return zenoh.open(client_config(endpoint, security))
+    try:
+        return zenoh.open(client_config(endpoint, security))
+    except zenoh.ZError as exc:
+        if log:
+            log(f"server at {endpoint} unreachable ({str(exc).splitlines()[0][:80]}): working offline, connecting when it appears")
+        conf = client_config(endpoint, security)
+        conf.insert_json5("mode", '"peer"')
+        return zenoh.open(conf)
 
 
 class PoseWriter:
@@ -257,6 +269,78 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
     for tm, xy in marks[i_mark:]:
         agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
     agent.maybe_flush(ts[-1], force=True)
+
+
+LIVE_FORMAT = """Live phone input: one record per line, as the sensors produce them (a pipe, a FIFO, stdin):
+
+    t,ax,ay,az,gx,gy,gz[,mx,my,mz]          an IMU sample (s, m/s^2, rad/s, T), the plain IMU CSV row
+    wifi,t,BSSID=RSSI;BSSID=RSSI;...        a WiFi scan (s, dBm)
+
+The header line (``t,ax,...``) and lines starting with # are skipped. Malformed lines are counted and skipped; samples
+out of time order are rejected by the PDR (counted); the stream ends at end of file.
+"""
+
+
+@dataclass
+class LiveStats:
+    samples: int = 0
+    scans: int = 0
+    bad_lines: int = 0
+    first_bad: str = ""
+
+
+def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False) -> LiveStats:
+    """Run the phone PDR on a live line stream (:data:`LIVE_FORMAT`) into ``agent`` as it arrives."""
+    pdr = PhonePdr(rate_hz)
+    st = LiveStats()
+    acc_checked: list[float] = []
+    units_error = ""
+    t_now = -math.inf
+    for raw in lines:
+        line = raw.strip()
+        if not line or line.startswith("#") or line.startswith("t,"):  # blank, comment, the CSV header
+            continue
+        try:
+            if line.startswith("wifi,"):
+                _, t_txt, body = line.split(",", 2)
+                rssi = {}
+                for item in filter(None, body.split(";")):
+                    k, v = item.split("=")
+                    rssi[k.strip().lower()] = float(v)
+                t = float(t_txt)
+                if not (math.isfinite(t) and rssi and all(-130.0 <= v <= 0.0 for v in rssi.values())):
+                    raise ValueError("a scan needs a finite time and readings in [-130, 0] dBm")
+                agent._scans.append(P.ScanRecord(t, "wifi", rssi))
+                st.scans += 1
+            else:
+                v = [float(x) for x in line.split(",")]
+                if len(v) not in (7, 10):
+                    raise ValueError(f"{len(v)} fields (7 or 10 expected)")
+                if len(acc_checked) < 100 and all(map(math.isfinite, v[1:4])):
+                    acc_checked.append(math.sqrt(v[1] ** 2 + v[2] ** 2 + v[3] ** 2))
+                    if len(acc_checked) == 100 and float(np.median(acc_checked)) < 3.0:
+                        units_error = "live input: the accelerometer magnitude is ~1: the stream is in g, hybridloc expects m/s^2"
+                        break
+                t = v[0]
+                for step in pdr.update(t, v[1:4], v[4:7], v[7:10] if len(v) == 10 else None):
+                    agent.on_step(step)
+                st.samples += 1
+        except ValueError as exc:
+            st.bad_lines += 1
+            st.first_bad = st.first_bad or f"{line[:60]!r}: {exc}"
+            continue
+        if math.isfinite(t) and t > t_now:
+            t_now = t
+            agent.maybe_flush(t_now)
+            if lockstep:
+                agent.wait_answers()
+            agent.drain_fixes()
+    if units_error:
+        raise ValueError(units_error)
+    if math.isfinite(t_now):
+        agent.maybe_flush(t_now, force=True)
+    agent.drain_fixes()
+    return st
 
 
 def replay_foot(agent: Agent, imu, speed: float = 1.0) -> None:

@@ -400,13 +400,17 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
 def _cmd_client(args: argparse.Namespace) -> int:
     from .clients.agent import Agent, PoseWriter, open_client, replay_foot, replay_phone
 
-    if not args.replay:
-        raise ValueError("live sensor input is not available on this platform; use --replay FILE")
-    device = args.device or f"{args.kind}-{stem_safe(args.replay)}"
+    if bool(args.replay) == bool(args.live):
+        raise ValueError("give one input: --replay FILE (a recording) or --live SOURCE (a live line stream, - for stdin)")
+    if args.live and args.kind != "phone":
+        raise ValueError("--live is for phone clients (IMU samples and WiFi scans as lines); foot and survey clients replay recordings")
+    if args.live and not args.rate:
+        raise ValueError("--live needs the IMU sample rate: --rate HZ")
+    device = args.device or f"{args.kind}-{stem_safe(args.replay) if args.replay else 'live'}"
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)
     init = _parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
-    with open_client(args.endpoint, _security(args)) as s:
+    with open_client(args.endpoint, _security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
         fusion = None
         if args.filter == "particle":
             from .clients.agent import fetch_walk_prior
@@ -421,7 +425,19 @@ def _cmd_client(args: argparse.Namespace) -> int:
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
             fusion = ParticleFusion(prior, init=init, floor=args.floor)
-        if args.kind == "foot":
+        if args.live:
+            from .clients.agent import live_phone
+
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
+            src = sys.stdin if args.live == "-" else open(args.live, encoding="utf-8")
+            try:
+                ls = live_phone(agent, src, args.rate, lockstep=args.lockstep)
+            finally:
+                if src is not sys.stdin:
+                    src.close()
+            print(f"{device}: live input: {ls.samples} IMU samples, {ls.scans} scans, {ls.bad_lines} malformed lines skipped"
+                  + (f" (first: {ls.first_bad})" if ls.first_bad else ""))
+        elif args.kind == "foot":
             imu, _, _ = _load_imu(args.replay, args.format, args.rate)
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             replay_foot(agent, imu, args.speed)
@@ -551,6 +567,8 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--site", required=True)
         c.add_argument("--device", help="device id (default: from the recording's name)")
         c.add_argument("--replay", metavar="FILE", help="recording to replay (ILC trace for phone/survey; IMU file for foot)")
+        c.add_argument("--live", metavar="SOURCE", help="phone: read live IMU samples and WiFi scans as lines from SOURCE (a pipe or FIFO; - for "
+                       "stdin): 't,ax,ay,az,gx,gy,gz[,mx,my,mz]' and 'wifi,t,BSSID=RSSI;...' (needs --rate)")
         c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
         c.add_argument("--filter", choices=("kalman", "particle"), default="kalman",
                        help="local fusion: Kourogi's Kalman filter, or a particle filter with the site's walls and walk prior (default kalman)")
@@ -567,7 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--password")
         c.add_argument("--tls-ca")
         c.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="foot recording format (detected by default)")
-        c.add_argument("--rate", type=float, help="foot IMU rate for files without timestamps")
+        c.add_argument("--rate", type=float, help="IMU rate: foot files without timestamps, and --live streams")
         c.set_defaults(func=_cmd_client)
 
     sv = sub.add_parser("serve", help="run the server: Zenoh router + ingest + locate/map/status services")

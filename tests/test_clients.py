@@ -180,3 +180,53 @@ def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_p
     walk = read_ilc_site(ILC_SITE1_F1).floor("F1").walkable.buffer(0.5)  # the mean of a cloud in a bend may cut the corner
     xy = np.array([[float(w["x"]), float(w["y"])] for w in rows])
     assert shapely.contains_xy(walk, xy[:, 0], xy[:, 1]).mean() > 0.95
+
+
+def test_cli_phone_client_live_from_a_pipe(tmp_path):
+    """``client phone --live -``: IMU samples and WiFi scans arrive as lines on stdin (what a sensor
+    bridge writes); malformed lines are counted and skipped, the client walks, uploads and gets fixes."""
+    import subprocess
+    import sys
+
+    from hybridloc.io.msft import read_ilc_trace
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.wire.zconfig import free_port
+
+    traces = sorted((ILC_SITE1_F1 / "F1" / "path_data_files").glob("*.txt.gz"))
+    run = lambda *a, **k: subprocess.run([sys.executable, "-m", "hybridloc.cli", *a], capture_output=True, text=True, timeout=300, **k)  # noqa: E731
+    m = tmp_path / "f1.npz"
+    assert run("map", "build", "--format", "msft", *map(str, traces[:12]), "--out", str(m)).returncode == 0
+    tr = read_ilc_trace(traces[13])
+    imu = tr.imu
+    lines = ["t,ax,ay,az,gx,gy,gz,mx,my,mz"]
+    scans = iter(sorted(tr.wifi_scans, key=lambda s: s.t))
+    nxt = next(scans, None)
+    for i in range(len(imu)):
+        while nxt is not None and nxt.t <= imu.t[i]:
+            lines.append(f"wifi,{nxt.t:.3f}," + ";".join(f"{k}={v:.0f}" for k, v in nxt.rssi_dbm.items()))
+            nxt = next(scans, None)
+        row = [imu.t[i], *imu.accel_body[i], *imu.gyro_body[i], *imu.mag_body[i]]
+        lines.append(",".join(f"{v:.6g}" if k else f"{v:.3f}" for k, v in enumerate(row)))
+        if i == 500:
+            lines += ["garbage", "1.0,2.0", "wifi,nan,aa=1"]  # three malformed records
+    site = tr.site
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    srv = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "listening" in srv.stdout.readline()
+        r = run("client", "phone", "--endpoint", ep, "--site", site, "--live", "-", "--rate", f"{imu.rate_hz:.3f}", "--lockstep",
+                "--spool", str(tmp_path / "spool"), "--pose-out", str(tmp_path / "pose.csv"), input="\n".join(lines) + "\n")
+    finally:
+        srv.terminate()
+        srv.wait(30)
+    assert r.returncode == 0, r.stderr
+    assert "3 malformed lines skipped" in r.stdout, r.stdout
+    steps = int(r.stdout.split(" steps,")[0].rsplit(" ", 1)[1])
+    fixes = int(r.stdout.split(" fixes received")[0].rsplit(" ", 1)[1])
+    assert steps > 20 and fixes > 0, r.stdout
+    # a stream in g is refused with a message naming the unit
+    g_lines = [",".join(f"{v:.6g}" for v in [imu.t[i], *(imu.accel_body[i] / 9.80665), *imu.gyro_body[i]]) for i in range(300)]
+    r = run("client", "phone", "--endpoint", ep, "--site", site, "--live", "-", "--rate", "50", "--spool", str(tmp_path / "spool2"),
+            input="\n".join(g_lines) + "\n")
+    assert r.returncode != 0 and "in g" in r.stderr
