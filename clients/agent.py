@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from hybridloc.fusion import Estimate, LocalFusion
+from hybridloc.fusion import Estimate, GpsDifferencer, LocalFusion
 from hybridloc.geo import GeodeticOrigin
 from hybridloc.io.writers import gga_sentence
 from hybridloc.pdr.phone import PhonePdr
@@ -99,6 +99,9 @@ class AgentResult:
     raw_fixes: list = field(default_factory=list)
     fix_lags: list = field(default_factory=list)  # recording-clock seconds from scan to fix use
     fix_log: list = field(default_factory=list)  # (steps processed when it arrived, AbsoluteFix), for fusion.run_fusion
+    local_fixes: int = 0  # the device's own GPS / RFID fixes offered, accepted, and GPS displacements used
+    local_accepted: int = 0
+    displacements: int = 0
 
 
 class Agent:
@@ -119,6 +122,8 @@ class Agent:
         self._token = session.liveliness().declare_token(P.key_alive(site, device))
         self.n_fixes = self.n_accepted = 0
         self.n_answers = 0  # server answers (fix or "no fix") received
+        self.n_local = self.n_local_accepted = self.n_displacements = 0  # the device's own GPS / RFID fixes
+        self._gps_diff = GpsDifferencer()
         self.n_asked = 0  # batches sent with a WiFi scan (each gets one answer)
         self._answers_flowing = True
         self._steps: list = []
@@ -165,6 +170,23 @@ class Agent:
             self.n_accepted += 1
             self.pose.write(e)
 
+    def local_fix(self, fix, sigma_random: float | None = None) -> bool:
+        """A fix from the device's own sensors (GPS receiver, an RFID reader's detection): fused at once;
+        pairs of accepted GPS fixes a few seconds apart also give a displacement (Kourogi's GPS
+        differential mode, :class:`hybridloc.fusion.GpsDifferencer`)."""
+        self.n_local += 1
+        ok, e = self.fusion.correct(fix)
+        if ok:
+            self.n_local_accepted += 1
+            self.pose.write(e)
+        disp = self._gps_diff.push(fix, sigma_random, ok)
+        if disp is not None:
+            ok_d, e = self.fusion.correct(disp)
+            if ok_d:
+                self.n_displacements += 1
+                self.pose.write(e)
+        return ok
+
     def maybe_flush(self, t: float, force: bool = False) -> None:
         if not force and t - self._last_flush < self.batch_period:
             return
@@ -209,7 +231,8 @@ class Agent:
         self.uplink.close()
         self.pose.close()
         return AgentResult(self.device, len(self.all_steps), self.n_fixes, self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
-                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes), list(self.fix_lags), list(self.fix_log))
+                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes), list(self.fix_lags), list(self.fix_log),
+                           self.n_local, self.n_local_accepted, self.n_displacements)
 
 
 def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: float = 10.0):
@@ -226,9 +249,13 @@ def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: floa
     return None
 
 
-def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False) -> None:
+def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False,
+                 local_fixes: list | None = None) -> None:
     """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x
-    (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`)."""
+    (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`;
+    ``local_fixes``: [(AbsoluteFix, sigma_random or None)] from the device's own GPS / RFID, fused at their times)."""
+    local = sorted(local_fixes or [], key=lambda a: a[0].t)
+    i_local = 0
     imu = trace.imu
     if imu is None:
         raise ValueError(f"{trace.path}: no IMU data to replay")
@@ -254,6 +281,9 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
             s = scans[i_scan]
             agent._scans.append(P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm), age=dict(s.age_s)))
             i_scan += 1
+        while i_local < len(local) and local[i_local][0].t <= t_now:
+            agent.local_fix(*local[i_local])
+            i_local += 1
         while i_mark < len(marks) and marks[i_mark][0] <= t_now:
             tm, xy = marks[i_mark]
             agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))

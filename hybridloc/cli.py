@@ -446,7 +446,14 @@ def _cmd_client(args: argparse.Namespace) -> int:
 
             tr = read_ilc_trace(args.replay)
             agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor)
-            replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep)
+            local = None
+            if args.fixes:
+                from .io.fixes import read_fixes_csv
+
+                local, rep = read_fixes_csv(args.fixes)
+                if not rep.ok:
+                    print(f"{args.fixes}: {rep.summary()}", file=sys.stderr)
+            replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local)
         r = agent.close(wait=args.ack_timeout)
     print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
           f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
@@ -570,6 +577,8 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--live", metavar="SOURCE", help="phone: read live IMU samples and WiFi scans as lines from SOURCE (a pipe or FIFO; - for "
                        "stdin): 't,ax,ay,az,gx,gy,gz[,mx,my,mz]' and 'wifi,t,BSSID=RSSI;...' (needs --rate)")
         c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
+        c.add_argument("--fixes", metavar="CSV", help="the device's own GPS / RFID fixes for the replay (t,x,y,floor,sigma,source[,sigma_random]; "
+                       "the simulator writes them beside each walk): fused at their times, GPS pairs also in differential mode")
         c.add_argument("--filter", choices=("kalman", "particle"), default="kalman",
                        help="local fusion: Kourogi's Kalman filter, or a particle filter with the site's walls and walk prior (default kalman)")
         c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout), for --filter particle")

@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
-from .metrics import interpolate_positions, summarize_errors
+from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
 from .samples import ILC_SITE1_F1
-from .units import wrap_angle
 
 
 
@@ -38,20 +37,14 @@ def _pdr_track_at(steps, wp_t) -> np.ndarray:
 
 def _first_leg_rotation(steps, wp_t, wp_xy) -> float:
     """Rotation (rad) turning the PDR's first waypoint leg onto the true one: the "oracle start heading"."""
-    est = _pdr_track_at(steps, wp_t[:2])
-    de, dt_ = est[1] - est[0], wp_xy[1] - wp_xy[0]
-    return wrap_angle(math.atan2(dt_[1], dt_[0]) - math.atan2(de[1], de[0])) if np.linalg.norm(de) > 0.1 else 0.0
+    return first_leg_rotation(_pdr_track_at(steps, wp_t[:2]), wp_xy[:2])
 
 
 def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
     """PDR alone from the first waypoint, heading aligned on the first waypoint segment."""
     if len(steps) < 2 or len(wp_t) < 2:
         return np.zeros(0)
-    est = _pdr_track_at(steps, wp_t)
-    rot = _first_leg_rotation(steps, wp_t, wp_xy)
-    c, s = math.cos(rot), math.sin(rot)
-    al = (est - est[0]) @ np.array([[c, s], [-s, c]]) + wp_xy[0]
-    return np.linalg.norm(al[1:] - wp_xy[1:], axis=1)
+    return oracle_start_errors(_pdr_track_at(steps, wp_t), wp_xy)
 
 
 def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
@@ -103,7 +96,15 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                 ag.uplink.wait_connected(10)
                 # phone clients in lock-step: at K x real time every wall-clock delay of the answers
                 # would grow K-fold on the recording's clock (16 s median at 20x with 4 clients)
-                replay_phone(ag, tr, spd, survey=kind == "survey", lockstep=kind == "phone")
+                # the device's own GPS / RFID fixes where the recording has them (the simulator writes
+                # <walk>_fixes.csv beside each trace)
+                local = None
+                fx_csv = Path(path).with_name(Path(path).name.split(".")[0] + "_fixes.csv")
+                if kind == "phone" and fx_csv.is_file():
+                    from .io.fixes import read_fixes_csv
+
+                    local = read_fixes_csv(fx_csv)[0]
+                replay_phone(ag, tr, spd, survey=kind == "survey", lockstep=kind == "phone", local_fixes=local)
                 return tr, ag.close(wait=30)
 
         with cf.ThreadPoolExecutor(workers) as ex:
@@ -149,13 +150,15 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
     survey, others = traces[::2] + traces[1::4], traces[3::4]
     results = run_pipeline(survey, others, out, speed, workers)
     all_pdr, all_fused = [], []
-    print(f"{'client':<28} {'waypoints':>9} {'PDR alone mean':>15} {'fused mean':>11} {'fixes used':>11}")
+    print(f"{'client':<28} {'waypoints':>9} {'PDR alone mean':>15} {'fused mean':>11} {'fixes used':>11} {'own GPS/RFID used':>18}")
     for tr, r in results:
         e_p = _pdr_only_errors(r.step_events, tr.waypoints.t, tr.waypoints.pos_enu)
         e_f = _fused_errors(r.poses, tr.waypoints.t, tr.waypoints.pos_enu)
         all_pdr += e_p.tolist()
         all_fused += e_f.tolist()
-        print(f"{r.device:<28} {len(tr.waypoints) - 1:9d} {np.nanmean(e_p) if e_p.size else float('nan'):14.2f}m {np.nanmean(e_f):10.2f}m {r.fixes_accepted:5d}/{r.fixes_received:<5d}")
+        own = f"{r.local_accepted}/{r.local_fixes} (+{r.displacements} diff.)" if r.local_fixes else "-"
+        print(f"{r.device:<28} {len(tr.waypoints) - 1:9d} {np.nanmean(e_p) if e_p.size else float('nan'):14.2f}m {np.nanmean(e_f):10.2f}m "
+              f"{r.fixes_accepted:5d}/{r.fixes_received:<5d} {own:>18}")
     sp, sf = summarize_errors(all_pdr), summarize_errors(all_fused)
     print(f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}), fused mean {sf.mean:.2f} m (p75 {sf.p75:.2f})")
     _write_outputs(out, plan, results)

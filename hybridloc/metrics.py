@@ -14,6 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Sequence
 
+import math
+
 import numpy as np
 
 
@@ -201,3 +203,23 @@ def pyshoe_armse(est: np.ndarray, gt: np.ndarray, dims: int = 2) -> float:
     """PyShoe's ARMSE: mean over samples of sqrt(mean over the ``dims`` axes of the squared error)."""
     diff = np.asarray(est, dtype=float)[:, :dims] - np.asarray(gt, dtype=float)[:, :dims]
     return float(np.mean(np.sqrt(np.mean(diff**2, axis=1))))
+
+
+def first_leg_rotation(est_xy: np.ndarray, true_xy: np.ndarray) -> float:
+    """Rotation (rad) turning an estimated track's first leg (points 0 -> 1) onto the true one; 0 when
+    the estimate barely moved. With the first point, the "oracle start pose" of a dead-reckoned track."""
+    de, dt_ = np.asarray(est_xy[1]) - np.asarray(est_xy[0]), np.asarray(true_xy[1]) - np.asarray(true_xy[0])
+    if float(np.hypot(*de)) <= 0.1:
+        return 0.0
+    d = math.atan2(dt_[1], dt_[0]) - math.atan2(de[1], de[0])
+    return math.atan2(math.sin(d), math.cos(d))
+
+
+def oracle_start_errors(est_xy: np.ndarray, true_xy: np.ndarray) -> np.ndarray:
+    """Errors at points 1.. of a dead-reckoned track started at the true first point and rotated so its
+    first leg points the true way (how PDR alone is scored against waypoints)."""
+    est_xy, true_xy = np.asarray(est_xy, float), np.asarray(true_xy, float)
+    rot = first_leg_rotation(est_xy, true_xy)
+    c, s = math.cos(rot), math.sin(rot)
+    aligned = (est_xy - est_xy[0]) @ np.array([[c, s], [-s, c]]) + true_xy[0]
+    return np.linalg.norm(aligned[1:] - true_xy[1:], axis=1)

@@ -163,3 +163,28 @@ def test_gps_differential_mode_teaches_heading_bias_and_scale_without_moving_the
     assert f.correct(bad)[0] is False
     with pytest.raises(ValueError):
         DisplacementFix(2.0, 1.0, [1.0, 0.0], np.eye(2))
+
+
+def test_fixes_csv_and_the_gps_differencer(tmp_path):
+    from hybridloc.fusion import GpsDifferencer
+    from hybridloc.io.fixes import read_fixes_csv
+    from hybridloc.types import FixSource
+
+    p = tmp_path / "f.csv"
+    p.write_text("t,x,y,floor,sigma,source,sigma_random\n"
+                 "2.0,11.0,0.0,F1,3.0,gps,1.5\n"
+                 "1.0,10.0,0.0,F1,3.0,gps,1.5\n"  # out of order: sorted
+                 "3.0,nan,0.0,F1,3.0,gps,1.5\n"  # bad: skipped and reported
+                 "4.0,5.0,5.0,F1,0.4,rfid,\n"
+                 "20.0,30.0,0.0,,3.0,gps,1.0\n")
+    rows, rep = read_fixes_csv(p)
+    assert [f.t for f, _ in rows] == [1.0, 2.0, 4.0, 20.0] and not rep.ok
+    assert rows[2][0].source is FixSource.RFID and rows[2][1] is None and rows[3][0].floor is None
+    d = GpsDifferencer(min_dt=0.5, max_dt=10.0)
+    assert d.push(*rows[0], accepted=True) is None  # the first of a pair
+    disp = d.push(*rows[1], accepted=True)
+    # the difference of the two positions, with only the random parts' variance (1.5^2 + 1.5^2)
+    assert np.allclose(disp.delta_enu, [1.0, 0.0]) and np.allclose(disp.cov, np.eye(2) * 4.5) and (disp.t0, disp.t1) == (1.0, 2.0)
+    assert d.push(*rows[2], accepted=True) is None  # RFID: not a GPS pair
+    assert d.push(*rows[3], accepted=True) is None  # 18 s after the last GPS fix: too far apart
+    assert d.push(rows[3][0], 1.0, accepted=False) is None  # a rejected (multipath) fix never pairs

@@ -11,9 +11,10 @@ Both have ``predict(step)`` / ``correct(fix)`` step APIs, a chi-square gate on e
 recorded steps and fixes.
 """
 
+from .gps import GpsDifferencer
 from .kalman import Estimate, FusionConfig, LocalFusion
 from .particle import ParticleConfig, ParticleFusion
 from .runner import run_fusion
 from .walkprior import WalkPrior
 
-__all__ = ["Estimate", "FusionConfig", "LocalFusion", "ParticleConfig", "ParticleFusion", "WalkPrior", "run_fusion"]
+__all__ = ["GpsDifferencer", "Estimate", "FusionConfig", "LocalFusion", "ParticleConfig", "ParticleFusion", "WalkPrior", "run_fusion"]

@@ -24,7 +24,7 @@ position in the site frame (m), b_psi a heading bias (rad) and s a step-length s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
@@ -42,6 +42,14 @@ class FusionConfig:
     scale_rw: float = 0.002  # scale random walk per step
     floor_switch: float = 0.8
     reinit_after: int = 5  # consecutive rejected fixes that re-initialise the position (lost track)
+    #: correlation of the errors of successive fixes per source. WiFi fixes a scan apart err alike
+    #: (the same look-alike place; lag-1 autocorrelation 0.5 on ILC site1), so each carries less than
+    #: its covariance says: R is inflated by (1 + rho) / (1 - rho), the variance factor of an AR(1)
+    #: mean (ILC site1, eval fusion replays: live Kalman 5.08 -> 4.99 m at waypoints).
+    fix_correlation: dict = field(default_factory=lambda: {"wifi": 0.5, "ble": 0.5})
+    #: gate probability per source where Kourogi's 95 % does not fit: an RFID detection is a proximity
+    #: event (no multipath), so it is rejected only when wildly off
+    gate_by_source: dict = field(default_factory=lambda: {"rfid": 0.9999})
 
 
 @dataclass
@@ -159,9 +167,11 @@ class LocalFusion:
         # A fix arrives after the scan it comes from (network, server batching): compare it with where
         # we were at the scan's time, and shift the present by the same correction (the steps since
         # then are kept as they are).
-        model = PositionFix(R)
+        rho = self.cfg.fix_correlation.get(fix.source.value, 0.0)
+        model = PositionFix(R * (1.0 + rho) / (1.0 - rho))
         y = z - self._position_at(fix.t)
-        if not self._update(y, model.jacobian(self.x), model.covariance()):
+        gp = self.cfg.gate_by_source.get(fix.source.value)
+        if not self._update(y, model.jacobian(self.x), model.covariance(), None if gp is None else float(chi2.ppf(gp, 2))):
             self.n_rejected += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
@@ -188,12 +198,12 @@ class LocalFusion:
             return False, self.estimate("displacement-rejected")
         return True, self.estimate("displacement")
 
-    def _update(self, y: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
+    def _update(self, y: np.ndarray, H: np.ndarray, R: np.ndarray, gate: float | None = None) -> bool:
         """The one gated Kalman update: reject if the innovation's NIS exceeds the chi-square gate
         (Kourogi sec. 3.3: outside the 95 % region), else a Joseph-form update."""
         S = H @ self.P @ H.T + R
         nis = float(y @ np.linalg.solve(S, y))
-        if nis > self._gate:
+        if nis > (self._gate if gate is None else gate):
             return False
         K = self.P @ H.T @ np.linalg.inv(S)
         self.x = self.x + K @ y

@@ -28,7 +28,7 @@ so a replay is reproducible.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
@@ -55,6 +55,7 @@ class ParticleConfig:
     floor_switch: float = 0.8
     history: int = 64  # steps of per-particle history for late fixes
     seed: int = 0
+    fix_correlation: dict = field(default_factory=lambda: {"wifi": 0.5, "ble": 0.5})  # as FusionConfig.fix_correlation
 
 
 class ParticleFusion:
@@ -200,7 +201,8 @@ class ParticleFusion:
         if isinstance(fix, DisplacementFix):
             return self._correct_displacement(fix)
         z = np.asarray(fix.pos_enu, float)[:2]
-        R = np.asarray(fix.cov, float)[:2, :2]
+        rho = self.cfg.fix_correlation.get(fix.source.value, 0.0)
+        R = np.asarray(fix.cov, float)[:2, :2] * (1.0 + rho) / (1.0 - rho)
         if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
             raise ValueError("a fix needs a finite position and a positive-definite covariance")
         if not self.initialised:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.msft import read_ilc_trace
+from ..metrics import oracle_start_errors
 from ..types import StepEvent
 from ..units import wrap_angle
 from .phone import PhonePdr, PhonePdrConfig
@@ -127,12 +128,7 @@ def score(runs: list[TraceRun], model) -> tuple[list[float], list[float], list[f
                 turn_e = wrap_angle(est_dirs[k] - est_dirs[k - 1])
                 turn_err.append(abs(wrap_angle(turn_e - turn_t)) * 180 / math.pi)
         # PDR-only track from the first waypoint, rotated so its first segment points the true way.
-        d_true = r.wp_xy[1] - r.wp_xy[0]
-        d_est = wp_est[1] - wp_est[0]
-        rot = math.atan2(d_true[1], d_true[0]) - math.atan2(d_est[1], d_est[0]) if np.linalg.norm(d_est) > 0.1 else 0.0
-        c, s = math.cos(rot), math.sin(rot)
-        aligned = (wp_est - wp_est[0]) @ np.array([[c, s], [-s, c]]) + r.wp_xy[0]
-        wp_err.extend(np.linalg.norm(aligned[1:] - r.wp_xy[1:], axis=1).tolist())
+        wp_err.extend(oracle_start_errors(wp_est, r.wp_xy).tolist())
     return len_err, turn_err, wp_err
 
 

@@ -14,7 +14,9 @@ Walk folder (``hybridloc sim walk``), per walker ``w<NNNN>``:
 * ``w<NNNN>_foot.csv``: the foot IMU in the plain IMU CSV (when the carrier includes a foot unit);
 * ``w<NNNN>_truth_steps.csv``: ``t,x,y,z,floor,heading,length`` of every true step;
 * ``w<NNNN>_truth_foot.csv``: ``t,x,y,z,stance`` of the foot at every IMU sample;
-* ``w<NNNN>_fixes.csv``: ``t,x,y,floor,sigma,source`` of simulated GPS and RFID fixes;
+* ``w<NNNN>_fixes.csv``: ``t,x,y,floor,sigma,source,sigma_random`` of simulated GPS and RFID fixes
+  (:func:`hybridloc.io.fixes.read_fixes_csv`; ``sigma_random``: the GPS fix's random part, for the
+  differential mode);
 * ``w<NNNN>.json``: walker parameters and route facts (loop, outdoor start).
 """
 
@@ -149,9 +151,11 @@ def write_truth(prefix: Path, walk: Walk, radio: WalkRadio | None, foot: FootTru
     if radio is not None:
         with open(f"{prefix}_fixes.csv", "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(["t", "x", "y", "floor", "sigma", "source"])
-            for fx in sorted(radio.gps + radio.rfid, key=lambda a: a.t):
-                w.writerow([f"{fx.t:.3f}", f"{fx.pos_enu[0]:.3f}", f"{fx.pos_enu[1]:.3f}", fx.floor or "", f"{math.sqrt(fx.cov[0, 0]):.3f}", fx.source.value])
+            w.writerow(["t", "x", "y", "floor", "sigma", "source", "sigma_random"])
+            rows = [(fx, sr) for fx, sr in zip(radio.gps, radio.gps_sigma_random or [None] * len(radio.gps))] + [(fx, None) for fx in radio.rfid]
+            for fx, sr in sorted(rows, key=lambda a: a[0].t):
+                w.writerow([f"{fx.t:.3f}", f"{fx.pos_enu[0]:.3f}", f"{fx.pos_enu[1]:.3f}", fx.floor or "", f"{math.sqrt(fx.cov[0, 0]):.3f}", fx.source.value,
+                            "" if sr is None else f"{sr:.3f}"])
     meta = {"walker": walk.walker, "speed": walk.speed, "step_length": walk.step_length, "weinberg_k": walk.weinberg_k, "t0": walk.t0, "t1": walk.t1,
             "loop": walk.loop, "outdoor_start": walk.outdoor_start, "n_steps": len(walk.steps), "start": list(walk.start),
             "pauses": [list(p) for p in walk.pauses]}

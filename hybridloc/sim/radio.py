@@ -21,7 +21,7 @@ outliers of 10-30 m (Kourogi et al. sec. 3.1).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
@@ -36,6 +36,12 @@ PATH_LOSS_N = 2.2
 SHADOW_SD = 4.0
 SHADOW_LENGTH = 3.0
 TEMPORAL_SD = 2.0
+
+
+RFID_RANGE = 1.5  # m, tag-to-reader detection range (Kourogi sec. 4)
+RFID_TAG_H = 0.6  # m, tag at hip height
+RFID_READER_H = 2.0  # m, reader in the door frame
+RFID_SIGMA = 0.4  # m, per-axis sigma Kourogi measured
 
 
 @dataclass
@@ -121,6 +127,7 @@ class WalkRadio:
     ble: list[RfScan]
     rfid: list[AbsoluteFix]
     gps: list[AbsoluteFix]
+    gps_sigma_random: list[float] = field(default_factory=list)  # per GPS fix: sigma of its random part e_r, m
 
 
 def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, device_model: str = "SIM PHONE", device_offset: float = 0.0,
@@ -153,7 +160,12 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
             heard = {ids[j]: v for j, v in enumerate(row) if v > -95.0}
             if heard:
                 ble.append(RfScan(t, Technology.BLE, heard, device_model=device_model))
-    # RFID at doors (Kourogi: range ~1.5 m, sigma 0.4 m), at the walker's step events
+    # RFID at doors (Kourogi sec. 4: an active tag at hip height, ~0.6 m, detected within 1.5 m; the
+    # fix is the reader's position with sigma 0.4 m). The range is in 3-D: with the reader in the door
+    # frame at 2.0 m the horizontal reach is sqrt(1.5^2 - 1.4^2) = 0.54 m, so the fix's true error
+    # (<= 0.54 m, ~0.27 m per axis) sits inside the 0.4 m it claims; walkers passing a door at a
+    # corridor's width are not detected, those going through it are. At the walker's step events.
+    reach = math.sqrt(max(RFID_RANGE**2 - (RFID_READER_H - RFID_TAG_H) ** 2, 0.0))
     if len(world.rfid) and walk.steps:
         st = np.array([[s.t, s.x, s.y, s.floor] for s in walk.steps])
         last = -np.inf
@@ -163,8 +175,8 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
                 continue
             d = np.linalg.norm(same[:, :2] - row[1:3], axis=1)
             k = int(np.argmin(d))
-            if d[k] <= 1.5 and row[0] - last > 5.0:
-                rfid.append(AbsoluteFix(float(row[0]), same[k, :2].copy(), np.eye(2) * 0.4**2, FixSource.RFID, world.floor_name(int(row[3]))))
+            if d[k] <= reach and row[0] - last > 5.0:
+                rfid.append(AbsoluteFix(float(row[0]), same[k, :2].copy(), np.eye(2) * RFID_SIGMA**2, FixSource.RFID, world.floor_name(int(row[3]))))
                 last = row[0]
     # GPS: outdoors and just inside the entrance (within gps_indoor_reach of the facade, 6 m of the
     # door), 1 Hz
@@ -174,12 +186,24 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
     ent = np.asarray(world.entrance)
     facade = shapely.distance(world.plan.floors[0].outline.boundary, shapely.points(pos))
     ok = (fl == 0) & (~inside | ((facade <= gps_indoor_reach) & (np.linalg.norm(pos - ent, axis=1) <= 6.0 + gps_indoor_reach)))
+    # Kourogi eq 8: p_gps = p + e_b + e_r. The biased error e_b (propagation delays) is locally constant
+    # for one satellite set: a Gauss-Markov process, 2.5 m per axis, 60 s correlation time; the random
+    # error e_r is white with sigma_r = 1.5 m x HDOP; plus 5 % multipath outliers (10-30 m).
+    sig_b, tau = 2.5, 60.0
+    e_b = sig_b * rng.standard_normal(2)
+    t_prev = None
+    gps_sr = []
     for t, p, ins in zip(tg[ok], pos[ok], inside[ok]):
+        if t_prev is not None:
+            a = math.exp(-(t - t_prev) / tau)
+            e_b = a * e_b + sig_b * math.sqrt(1.0 - a * a) * rng.standard_normal(2)
+        t_prev = t
         hdop = float(rng.uniform(0.8, 1.6)) if not ins else float(rng.uniform(3.0, 6.0))
-        sigma = 3.0 * hdop
-        err = sigma * rng.standard_normal(2)
+        sig_r = 1.5 * hdop
+        err = e_b + sig_r * rng.standard_normal(2)
         if rng.random() < 0.05:  # multipath outlier
             ang = rng.uniform(0, 2 * math.pi)
             err += rng.uniform(10.0, 30.0) * np.array([math.cos(ang), math.sin(ang)])
-        gps.append(AbsoluteFix(float(t), p + err, np.eye(2) * sigma**2, FixSource.GPS, world.floor_name(0)))
-    return WalkRadio(wifi, ble, rfid, gps)
+        gps.append(AbsoluteFix(float(t), p + err, np.eye(2) * (sig_b**2 + sig_r**2), FixSource.GPS, world.floor_name(0)))
+        gps_sr.append(sig_r)
+    return WalkRadio(wifi, ble, rfid, gps, gps_sr)
