@@ -2,7 +2,6 @@
 
 import json
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -20,7 +19,7 @@ from hybridloc.server.migrate import upgrade
 from hybridloc.server.service import Server
 from hybridloc.types import StepEvent
 from hybridloc.wire import protocol as P
-from hybridloc.wire.zconfig import Security, client_config
+from hybridloc.wire.zconfig import Security, client_config, free_port
 
 SITE = "site1"
 
@@ -146,14 +145,6 @@ def test_locate_queryable_and_pushed_fix(server):
             sub.undeclare()
 
 
-def _free_port():
-    s = socket.socket()
-    s.bind(("127.0.0.1", 0))
-    p = s.getsockname()[1]
-    s.close()
-    return p
-
-
 def _start_server(ep, db, *extra):
     proc = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(db), *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -163,7 +154,7 @@ def _start_server(ep, db, *extra):
 
 
 def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_path):
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     db = tmp_path / "k.db"
     proc = _start_server(ep, db)
     n_batches = 300
@@ -198,7 +189,7 @@ def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_
 def test_wrong_password_refused_and_devices_confined(tmp_path):
     users = tmp_path / "users.txt"
     users.write_text("server:srvpw\ndev01:pw1\ndev02:pw2\n")
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     sec = Security(users_file=str(users), acl_devices=["dev01", "dev02"])
     srv = Server(ep, str(tmp_path / "s.db"), sec)
     # the server's own session authenticates as "server" towards nobody: it is the router
@@ -238,7 +229,7 @@ def test_tls_with_the_test_ca_script(tmp_path):
     script = Path(__file__).resolve().parents[1] / "scripts" / "make-test-certs.sh"
     subprocess.run(["bash", str(script), str(tmp_path / "pki")], check=True, capture_output=True)
     subprocess.run(["bash", str(script), str(tmp_path / "other")], check=True, capture_output=True)
-    ep = f"tls/localhost:{_free_port()}"
+    ep = f"tls/localhost:{free_port()}"
     pki = tmp_path / "pki"
     srv = Server(ep, str(tmp_path / "t.db"), Security(tls_cert=str(pki / "server.pem"), tls_key=str(pki / "server.key"))).start()
     try:
