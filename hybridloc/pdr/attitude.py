@@ -35,6 +35,12 @@ class AttitudeConfig:
     ki_acc: float = 0.005  # gyro-bias integral gain (acc), rad/s^2 per unit error
     k_mag: float = 0.3  # yaw correction rate, 1/s (time constant ~3 s)
     acc_gate: float = 0.25  # relative | |a| - g | / g beyond which the tilt correction fades out
+    #: s; the tilt correction uses the accelerometer low-passed in the body frame over this time,
+    #: carried through rotations by the gyro (d g_b/dt = -w x g_b): over a step cycle the body's
+    #: bounce averages out and gravity remains, so walking - whose raw |a| swings beyond the gate
+    #: most of the time - keeps correcting the tilt (a phone re-gripped while walking re-levels in
+    #: seconds, not never). 0: the raw accelerometer.
+    gravity_tau: float = 1.0
     mag_norm_tol: float = 0.15  # relative deviation of |B| from the reference accepted as clean
     mag_dip_tol: float = 8.0 * DEG  # dip deviation accepted as clean, rad
     consistency_window: float = 0.5  # s
@@ -135,6 +141,7 @@ class AttitudeFilter:
         self._hist: deque = deque()
         self.n_mag_rejected = 0
         self.n_mag_used = 0
+        self._g_body: list[float] | None = None  # low-passed specific force in the body frame
 
     def initialise(self, t: float, acc, mag) -> None:
         self.q = triad(acc, mag)
@@ -154,6 +161,16 @@ class AttitudeFilter:
         q = self.q
         R = quat_to_rot(q)
         wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
+        if cfg.gravity_tau > 0:
+            g = self._g_body
+            if g is None:
+                g = [acc[0], acc[1], acc[2]]
+            else:
+                c = _cross((wx, wy, wz), g)  # the nav-fixed vector turns by -w x g in the body
+                a = min(dt / cfg.gravity_tau, 1.0)
+                g = [g[i] - c[i] * dt + a * (acc[i] - (g[i] - c[i] * dt)) for i in range(3)]
+            self._g_body = g
+            acc = g
         # --- tilt correction (Mahony): e = a_hat x v, v = predicted up in body = third row of R
         an = _norm(acc)
         if an > 1e-6:

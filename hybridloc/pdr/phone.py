@@ -37,6 +37,10 @@ from .attitude import AttitudeConfig, AttitudeFilter
 from .steplength import LengthModel, StepFeatures, WeinbergLength
 
 
+#: a one-step NASC peak at least this share of the best (stride) peak is taken as the period
+STEP_PEAK_SHARE = 0.85
+
+
 @dataclass
 class PhonePdrConfig:
     detector: str = "peak"  # "peak" | "autocorr"
@@ -49,7 +53,7 @@ class PhonePdrConfig:
     nasc_walking: float = 0.55  # Zee et al. use ~0.7 on raw data; ours is low-passed and per-step
     nasc_window: float = 2.4  # s of signal for the auto-correlation
     period_tolerance: float = 0.15  # relative change of the step period between candidates still "walking"
-    min_vertical_share: float = 0.3  # vertical share of dynamic acceleration variance while walking
+    min_vertical_share: float = 0.6  # vertical share of dynamic acceleration variance while walking
     confirm_candidates: int = 3  # consecutive periodic candidates with a consistent period to start walking
     step_lag_range: tuple[float, float] = (0.3, 1.0)  # s, one step
     walking_offset: float = 0.0  # rad, walking direction minus device forward heading
@@ -216,7 +220,17 @@ class PhonePdr:
         start = max(lo, int(neg[0]) + 1)
         if start > hi:
             return 0.0, self._period
-        k = start - 1 + int(np.argmax(r[start - 1 : hi]))
+        seg = r[start - 1 : hi]
+        kbest = int(np.argmax(seg))
+        # The step, not the stride: a phone in the hand sees left and right steps differ, so the
+        # two-step lag often correlates as well as (or better than) the one-step lag, and the "period"
+        # would jump between them from one window to the next. Take the earliest local maximum nearly
+        # as strong as the best one (Zee's NASC keeps step and stride apart the same way).
+        for i in range(1, kbest):
+            if seg[i] >= seg[i - 1] and seg[i] >= seg[i + 1] and seg[i] >= STEP_PEAK_SHARE * seg[kbest]:
+                kbest = i
+                break
+        k = start - 1 + kbest
         return float(r[k]), (k + 1) / self.rate
 
     def _vertical_share(self) -> float:
