@@ -96,12 +96,16 @@ class AgentResult:
     acked: int
     poses: list = field(default_factory=list)
     step_events: list = field(default_factory=list)
-    raw_fixes: list = field(default_factory=list)
     fix_lags: list = field(default_factory=list)  # recording-clock seconds from scan to fix use
     fix_log: list = field(default_factory=list)  # (steps processed when it arrived, AbsoluteFix), for fusion.run_fusion
     local_fixes: int = 0  # the device's own GPS / RFID fixes offered, accepted, and GPS displacements used
     local_accepted: int = 0
     displacements: int = 0
+
+    @property
+    def raw_fixes(self) -> list[tuple]:
+        """(t, x, y, floor) of every server fix received, before fusion."""
+        return [(f.t, float(f.pos_enu[0]), float(f.pos_enu[1]), f.floor) for _, f in self.fix_log]
 
 
 class Agent:
@@ -120,7 +124,7 @@ class Agent:
         self.fixes: "queue.Queue" = queue.Queue()
         self._fix_sub = session.declare_subscriber(P.key_fix(site, device), lambda s: self.fixes.put(s.payload.to_bytes()))
         self._token = session.liveliness().declare_token(P.key_alive(site, device))
-        self.n_fixes = self.n_accepted = 0
+        self.n_accepted = 0
         self.n_answers = 0  # server answers (fix or "no fix") received
         self.n_local = self.n_local_accepted = self.n_displacements = 0  # the device's own GPS / RFID fixes
         self._gps_diff = GpsDifferencer()
@@ -131,7 +135,6 @@ class Agent:
         self._marks: list = []
         self._last_flush = -math.inf
         self.all_steps: list = []
-        self.raw_fixes: list = []  # (t, x, y, floor) of every fix received, before fusion
         self.fix_lags: list = []  # how late each fix was used: newest step time - scan time, s
         self.fix_log: list = []  # (steps processed when the fix arrived, fix)
 
@@ -161,8 +164,6 @@ class Agent:
         self._answers_flowing = True
         if fix is None:
             return
-        self.n_fixes += 1
-        self.raw_fixes.append((fix.t, float(fix.pos_enu[0]), float(fix.pos_enu[1]), fix.floor))
         self.fix_lags.append(max(self.fusion.t - fix.t, 0.0) if math.isfinite(self.fusion.t) else 0.0)
         self.fix_log.append((len(self.all_steps), fix))
         ok, e = self.fusion.correct(fix)
@@ -199,6 +200,13 @@ class Agent:
             self.n_asked += any(sc.technology == "wifi" for sc in scans)
         self._last_flush = t
 
+    def tick(self, t: float, lockstep: bool = False) -> None:
+        """Recording time has reached t: send what is due, hear the server (in lock-step: wait for it)."""
+        self.maybe_flush(t)
+        if lockstep:
+            self.wait_answers()
+        self.drain_fixes()
+
     def wait_answers(self, timeout: float = 2.0) -> bool:
         """Lock-step replay: block until the server has answered every scan sent, fusing the fixes.
 
@@ -230,8 +238,8 @@ class Agent:
                 pass
         self.uplink.close()
         self.pose.close()
-        return AgentResult(self.device, len(self.all_steps), self.n_fixes, self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
-                           list(self.pose.rows), list(self.all_steps), list(self.raw_fixes), list(self.fix_lags), list(self.fix_log),
+        return AgentResult(self.device, len(self.all_steps), len(self.fix_log), self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
+                           list(self.pose.rows), list(self.all_steps), list(self.fix_lags), list(self.fix_log),
                            self.n_local, self.n_local_accepted, self.n_displacements)
 
 
@@ -288,10 +296,7 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
             tm, xy = marks[i_mark]
             agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
             i_mark += 1
-        agent.maybe_flush(t_now)
-        if lockstep:
-            agent.wait_answers()
-        agent.drain_fixes()
+        agent.tick(t_now, lockstep)
         if speed > 0:
             lag = (t_now - t0) / speed - (time.monotonic() - wall0)
             if lag > 0:
@@ -361,10 +366,7 @@ def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False) -> L
             continue
         if math.isfinite(t) and t > t_now:
             t_now = t
-            agent.maybe_flush(t_now)
-            if lockstep:
-                agent.wait_answers()
-            agent.drain_fixes()
+            agent.tick(t_now, lockstep)
     if units_error:
         raise ValueError(units_error)
     if math.isfinite(t_now):

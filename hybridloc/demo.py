@@ -23,16 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
+from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
+from .pdr.phone import dead_reckon
 from .samples import ILC_SITE1_F1
 
 
 
 def _pdr_track_at(steps, wp_t) -> np.ndarray:
-    t = np.array([steps[0].t - 1.0] + [s.t for s in steps])
-    d = np.array([s.displacement_enu for s in steps])
-    p = np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
-    return np.column_stack([np.interp(wp_t, t, p[:, 0]), np.interp(wp_t, t, p[:, 1])])
+    tr = dead_reckon(steps)  # from (0, 0) one second before the first step
+    return np.column_stack([np.interp(wp_t, tr.t, tr.pos_enu[:, 0]), np.interp(wp_t, tr.t, tr.pos_enu[:, 1])])
 
 
 def _first_leg_rotation(steps, wp_t, wp_xy) -> float:
@@ -47,18 +47,24 @@ def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
     return oracle_start_errors(_pdr_track_at(steps, wp_t), wp_xy)
 
 
+def _held(poses, wp_t) -> np.ndarray:
+    """For each waypoint after the first, the index of the newest pose row with t <= its time (as a
+    live client would show it; at equal t the later row), -1 before the first row."""
+    if not poses:
+        return np.full(max(len(wp_t) - 1, 0), -1)
+    order = np.array(sorted(range(len(poses)), key=lambda i: (poses[i][0], i)))
+    k = np.searchsorted(np.array([poses[i][0] for i in order]), np.asarray(wp_t[1:], float), side="right") - 1
+    return np.where(k >= 0, order[np.maximum(k, 0)], -1)
+
+
 def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
-    """Causal scoring: at each waypoint (after the first) the newest estimate available then - the last
-    pose row with t <= the waypoint's time, as a live client would show it; NaN before the first."""
+    """Causal scoring: at each waypoint (after the first) the newest estimate available then; NaN before the first."""
     out = np.full(max(len(wp_t) - 1, 0), np.nan)
-    if not poses or out.size == 0:
-        return out
-    order = sorted(range(len(poses)), key=lambda i: (poses[i][0], i))  # stable: the later row wins at equal t
-    t = np.array([poses[i][0] for i in order])
-    xy = np.array([[poses[i][1], poses[i][2]] for i in order])
-    k = np.searchsorted(t, np.asarray(wp_t[1:], float), side="right") - 1
-    ok = k >= 0
-    out[ok] = np.linalg.norm(xy[k[ok]] - np.asarray(wp_xy[1:])[ok], axis=1)
+    idx = _held(poses, wp_t)
+    ok = idx >= 0
+    if ok.any():
+        xy = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]])
+        out[ok] = np.linalg.norm(xy - np.asarray(wp_xy[1:])[ok], axis=1)
     return out
 
 
@@ -128,10 +134,6 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
     return sorted(results, key=lambda x: x[1].device)
 
 
-def _wifi_errors(raw_fixes, wp_t, wp_xy) -> np.ndarray:
-    return _fused_errors([(f[0], f[1], f[2]) for f in raw_fixes], wp_t, wp_xy)
-
-
 def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4) -> int:
     t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
@@ -149,7 +151,7 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         plan = read_ilc_site(ILC_SITE1_F1)
     survey, others = traces[::2] + traces[1::4], traces[3::4]
     results = run_pipeline(survey, others, out, speed, workers)
-    from .fusion import LocalFusion, run_fusion
+    from .fusion import LocalFusion
 
     all_pdr, all_fused, all_known = [], [], []
     print(f"{'client':<22} {'waypoints':>9} {'PDR alone':>10} {'fused':>7} {'fused, start known':>18} {'fixes used':>11} {'own GPS/RFID used':>18}")
@@ -158,11 +160,8 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         e_p = _pdr_only_errors(r.step_events, wt, wxy)
         e_f = _fused_errors(r.poses, wt, wxy)
         # the same steps and server fixes, the filter started at the pose PDR alone is given
-        e_k = np.full(len(e_f), np.nan)
-        if len(r.step_events) >= 2 and len(wt) >= 2:
-            kf = LocalFusion(init=(float(wxy[0][0]), float(wxy[0][1]), 1.0), floor=tr.floor,
-                             heading_bias=(_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0)))
-            e_k = _fused_errors(_poses(run_fusion(kf, r.step_events, [f for _, f in r.fix_log], [a for a, _ in r.fix_log])), wt, wxy)
+        start = _known_start(r, tr)
+        e_k = _fused_errors(_replay(LocalFusion(**start), r), wt, wxy) if start else np.full(len(e_f), np.nan)
         all_pdr += e_p.tolist()
         all_fused += e_f.tolist()
         all_known += e_k.tolist()
@@ -178,20 +177,24 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
     return 0
 
 
-def _poses(estimates) -> list[tuple]:
-    return [(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in estimates]
-
-
 def _floor_hits(poses, wt, floor) -> list[bool]:
-    if not poses:
-        return []
-    pt = np.array([p[0] for p in poses])
-    out = []
-    for t in wt[1:]:
-        k = int(np.searchsorted(pt, t, side="right")) - 1
-        if k >= 0:
-            out.append(poses[k][3] == floor)
-    return out
+    return [poses[i][3] == floor for i in _held(poses, wt) if i >= 0]
+
+
+def _known_start(r, tr) -> dict | None:
+    """Filter arguments for the start pose PDR alone is given: the first waypoint (1 m) and the first
+    leg's heading (5 deg); None when the walk is too short to have one."""
+    wt, wxy = tr.waypoints.t, tr.waypoints.pos_enu
+    if len(r.step_events) < 2 or len(wt) < 2:
+        return None
+    return {"init": (float(wxy[0][0]), float(wxy[0][1]), 1.0), "floor": tr.floor,
+            "heading_bias": (_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0))}
+
+
+def _replay(filt, r) -> list[tuple]:
+    """A client's steps and server fixes, in the order they reached it, through another filter."""
+    est = run_fusion(filt, r.step_events, [f for _, f in r.fix_log], [a for a, _ in r.fix_log])
+    return [(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in est]
 
 
 def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> int:
@@ -202,7 +205,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     (:func:`hybridloc.fusion.run_fusion`) through the particle filter with the site's map, and through
     both filters started at the first waypoint (a known start, e.g. an entrance, as PDR only has).
     """
-    from .fusion import LocalFusion, ParticleFusion, WalkPrior, run_fusion
+    from .fusion import LocalFusion, ParticleFusion, WalkPrior
     from .io.msft import read_ilc_site
     from .radio.radiomap import RadioMap
     from .server.store import Store
@@ -232,16 +235,13 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         nw = max(len(wt) - 1, 0)
         e_pdr = _pdr_only_errors(r.step_events, wt, wxy)
         errs[names[0]] += (e_pdr if e_pdr.size == nw else np.full(nw, np.nan)).tolist()
-        errs[names[1]] += _wifi_errors(r.raw_fixes, wt, wxy).tolist()
+        errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
-        arr, fx = [a for a, _ in r.fix_log], [f for _, f in r.fix_log]
-        variants = {names[2]: r.poses, names[3]: _poses(run_fusion(ParticleFusion(prior), r.step_events, fx, arr))}
-        if len(r.step_events) >= 2 and len(wt) >= 2:
-            # the start pose PDR only is given: the first waypoint (1 m) and the first leg's heading (5 deg)
-            start = (float(wxy[0][0]), float(wxy[0][1]), 1.0)
-            bias = (_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0))
-            variants[names[4]] = _poses(run_fusion(LocalFusion(init=start, floor=tr.floor, heading_bias=bias), r.step_events, fx, arr))
-            variants[names[5]] = _poses(run_fusion(ParticleFusion(prior, init=start, floor=tr.floor, heading_bias=bias), r.step_events, fx, arr))
+        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r)}
+        start = _known_start(r, tr)
+        if start:
+            variants[names[4]] = _replay(LocalFusion(**start), r)
+            variants[names[5]] = _replay(ParticleFusion(prior, **start), r)
         for k in names[2:]:
             poses = variants.get(k, [])
             errs[k] += _fused_errors(poses, wt, wxy).tolist()

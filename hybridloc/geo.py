@@ -88,3 +88,19 @@ class GeodeticOrigin:
             p = np.concatenate([p, np.zeros(p.shape[:-1] + (1,))], axis=-1)
         ecef = p @ self.R_ecef_to_enu + geodetic_to_ecef(self.lat, self.lon, self.height)
         return ecef_to_geodetic(ecef)
+
+
+def wall_crossings(walls: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Number of wall segments crossed by each segment p0[i] -> p1[i]; walls (M, 2, 2), p0/p1 (N, 2)."""
+    if len(walls) == 0 or len(p0) == 0:
+        return np.zeros(len(p0), int)
+    a, b = walls[:, 0][None, :, :], walls[:, 1][None, :, :]
+    c, d = p0[:, None, :], p1[:, None, :]
+
+    def orient(p, q, r):
+        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+
+    o1, o2 = orient(a, b, c), orient(a, b, d)
+    o3, o4 = orient(c, d, a), orient(c, d, b)
+    hit = (o1 * o2 < 0) & (o3 * o4 < 0)
+    return hit.sum(axis=1)

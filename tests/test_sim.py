@@ -11,7 +11,8 @@ import pytest
 from hybridloc.ins.foot import run_foot_ins
 from hybridloc.io.msft import read_ilc_site, read_ilc_trace
 from hybridloc.pdr.phone import run_phone_pdr
-from hybridloc.sim.building import generate_world, wall_crossings
+from hybridloc.geo import wall_crossings
+from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import GRADES, foot_imu, phone_imu
 from hybridloc.sim.radio import make_radio_model, rssi, simulate_radio
 from hybridloc.sim.walker import simulate_walk

@@ -110,12 +110,11 @@ class LocalFusion:
         self.P = F @ self.P @ F.T + Q
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
-        self._hist.append((step.t, float(self.x[0]), float(self.x[1])))
         self._raw_xy = (self._raw_xy[0] + L * math.cos(step.heading), self._raw_xy[1] + L * math.sin(step.heading))
-        self._raw.append((step.t, *self._raw_xy))
-        if len(self._hist) > 200:
-            del self._hist[:100]
-            del self._raw[:100]
+        for track, row in ((self._hist, (step.t, float(self.x[0]), float(self.x[1]))), (self._raw, (step.t, *self._raw_xy))):
+            track.append(row)
+            if len(track) > 200:  # each kept on its own: a re-initialisation clears only _hist
+                del track[:100]
         if step.floor_change and self.floor is not None:
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
@@ -123,29 +122,17 @@ class LocalFusion:
     def _position_at(self, t: float) -> np.ndarray:
         if not self._hist or t >= self._hist[-1][0]:
             return self.x[:2].copy()
-        h = self._hist
-        if t <= h[0][0]:
-            return np.array(h[0][1:])
-        k = next(i for i in range(len(h) - 1, -1, -1) if h[i][0] <= t)
-        (t0, x0, y0), (t1, x1, y1) = h[k], h[k + 1]
-        a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+        if t <= self._hist[0][0]:
+            return np.array(self._hist[0][1:])
         # where we were then = our track then, shifted by every correction made since (the history
         # stores the track as it was; corrections move the present only)
-        shift = self.x[:2] - np.array(h[-1][1:])
-        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)]) + shift
+        return _track_at(self._hist, t) + (self.x[:2] - np.array(self._hist[-1][1:]))
 
     def _raw_at(self, t: float) -> np.ndarray | None:
-        """The PDR's own track at time t (linear between steps); None outside the kept history."""
-        r = self._raw
-        if not r or t < r[0][0] or t > r[-1][0]:
+        """The PDR's own track at time t; None outside the kept history."""
+        if not self._raw or t < self._raw[0][0] or t > self._raw[-1][0]:
             return None
-        ts = [q[0] for q in r]
-        k = int(np.searchsorted(ts, t, side="right")) - 1
-        if k >= len(r) - 1:
-            return np.array(r[-1][1:])
-        (t0, x0, y0), (t1, x1, y1) = r[k], r[k + 1]
-        a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
-        return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)])
+        return _track_at(self._raw, t)
 
     def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
         """One gated update with a position fix or a displacement (GPS differential mode); returns
@@ -212,6 +199,16 @@ class LocalFusion:
         self.P = 0.5 * (self.P + self.P.T)
         self.x[3] = min(max(self.x[3], 0.5), 1.5)
         return True
+
+
+def _track_at(track: list[tuple[float, float, float]], t: float) -> np.ndarray:
+    """Position of a (t, x, y) track at time t within its span, linear between rows."""
+    k = min(int(np.searchsorted([r[0] for r in track], t, side="right")) - 1, len(track) - 1)
+    if k == len(track) - 1:
+        return np.array(track[-1][1:])
+    (t0, x0, y0), (t1, x1, y1) = track[k], track[k + 1]
+    a = (t - t0) / (t1 - t0) if t1 > t0 else 0.0
+    return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)])
 
 
 def _shift_floor(name: str, delta: int) -> str:

@@ -26,6 +26,7 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
+from ..geo import wall_crossings
 from ..types import FloorPlan
 
 
@@ -120,20 +121,6 @@ class WalkPrior:
     def crosses_wall(self, floor: str | None, p: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Which moves p -> q ((N, 2) each) cross a wall segment of the floor."""
         fp = self.floors.get(floor or "")
-        if fp is None or len(fp.walls) == 0:
+        if fp is None:
             return np.zeros(len(p), bool)
-        a, b = fp.walls[:, 0], fp.walls[:, 1]  # (M, 2)
-        # proper segment intersection by orientation signs (collinear touching is not a crossing)
-        d = q - p  # (N, 2)
-        e = b - a  # (M, 2)
-
-        def cross(u, v):
-            return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-        ap = a[None, :, :] - p[:, None, :]  # (N, M, 2)
-        denom = cross(d[:, None, :], e[None, :, :])  # (N, M)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tt = cross(ap, e[None, :, :]) / denom
-            uu = cross(ap, d[:, None, :]) / denom
-        hit = (denom != 0) & (tt > 0) & (tt <= 1) & (uu >= 0) & (uu <= 1)
-        return hit.any(axis=1)
+        return wall_crossings(fp.walls, p, q) > 0

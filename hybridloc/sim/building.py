@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import dijkstra
 from shapely.geometry import MultiPolygon, Polygon, box
 
 from ..geo import GeodeticOrigin
-from ..types import Floor, FloorPlan, FloorTransition, TransitionKind  # noqa: F401
+from ..types import Floor, FloorPlan, FloorTransition, TransitionKind
 
 STOREY = 3.5  # m
 
@@ -219,22 +219,6 @@ def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, wid
     beacon_ids = [f"sim{seed}_{i // 1000}_{i % 1000}" for i in range(len(beacons))]
     return World(seed, plan, W, D, (cy0, cy1), rooms, np.array(nodes, float), kinds, edges, np.array(aps, float), ap_ids, np.array(freqs),
                  np.array(beacons, float), beacon_ids, np.array(rfid, float), entrance, outdoor, origin)
-
-
-def wall_crossings(walls: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
-    """Number of wall segments crossed by each segment p0[i] -> p1[i]; walls (M, 2, 2), p0/p1 (N, 2)."""
-    if len(walls) == 0 or len(p0) == 0:
-        return np.zeros(len(p0), int)
-    a, b = walls[:, 0][None, :, :], walls[:, 1][None, :, :]
-    c, d = p0[:, None, :], p1[:, None, :]
-
-    def orient(p, q, r):
-        return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-
-    o1, o2 = orient(a, b, c), orient(a, b, d)
-    o3, o4 = orient(c, d, a), orient(c, d, b)
-    hit = (o1 * o2 < 0) & (o3 * o4 < 0)
-    return hit.sum(axis=1)
 
 
 def walkable_points(world: World, floor: int, pts: np.ndarray) -> np.ndarray:

@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 
+from ..geo import wall_crossings
 from ..types import AbsoluteFix, FixSource, RfScan, Technology
-from .building import STOREY, World, wall_crossings
+from .building import STOREY, World
 from .walker import Walk
 
 WALL_DB = 4.0
