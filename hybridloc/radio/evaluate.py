@@ -84,8 +84,22 @@ def evaluate_ilc(traces: list[TraceData], folds: int = 4, method: str = "prob", 
     return score
 
 
+#: A UJIIndoorLoc test scan is "inside the map" when another user's reference on its floor lies this close, m.
+UJI_COVERED_M = 5.0
+
+
 def evaluate_uji(path: str, k: int = 5) -> dict:
-    """Grouped-by-user cross-validation of weighted kNN (powed) against a plain 3-NN on raw dBm."""
+    """Grouped-by-user cross-validation of weighted kNN (Sorensen on powed-rel) against a plain 3-NN
+    on raw dBm (Euclidean).
+
+    Leaving a user out also leaves out the places only that user walked (user 3 alone covered one
+    floor of building 2): 9 % of the scans lie more than ``UJI_COVERED_M`` from any other user's
+    reference on their floor, where no fingerprint method can answer well. The standard validation
+    split (not shipped here) was taken inside the training set's coverage, so the scores are also
+    reported on the covered scans, the nearer proxy for it.
+    """
+    from scipy.spatial import cKDTree
+
     from ..io.uji import read_uji
     from .sources import uji_floor_name
 
@@ -94,17 +108,30 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
     labelled = [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in np.flatnonzero(keep)]
     users = d.user[keep]
     res = {"ours": ([], [], []), "plain": ([], [], [])}
+    covered = []
     for u in np.unique(users):
         refs = [ls for ls, uu in zip(labelled, users) if uu != u]
         test = [ls for ls, uu in zip(labelled, users) if uu == u]
-        for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw"))):
+        by_floor: dict[str, list] = {}
+        for r in refs:
+            by_floor.setdefault(r.floor, []).append(r.pos_enu[:2])
+        trees = {f: cKDTree(np.array(v)) for f, v in by_floor.items()}
+        covered += [t.floor in trees and trees[t.floor].query(t.pos_enu[:2])[0] <= UJI_COVERED_M for t in test]
+        for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw", metric="euclidean"))):
             out = loc.locate_many([t.scan for t in test])
             e, fh, bh = res[name]
             for t, r in zip(test, out):
                 bh.append(r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0])
                 fh.append(r.fix is not None and r.fix.floor == t.floor)
                 e.append(float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if r.fix is not None and r.fix.floor == t.floor else float("nan"))
-    return {n: {"errors": np.array(v[0]), "floor": float(np.mean(v[1])), "building": float(np.mean(v[2]))} for n, v in res.items()}
+    cov = np.array(covered, bool)
+    out = {}
+    for n, v in res.items():
+        e, fh, bh = np.array(v[0]), np.array(v[1], bool), np.array(v[2], bool)
+        out[n] = {"errors": e, "floor": float(fh.mean()), "building": float(bh.mean()),
+                  "covered": {"errors": e[cov], "floor": float(fh[cov].mean()), "building": float(bh[cov].mean())}}
+    out["covered_share"] = float(cov.mean())
+    return out
 
 
 def _fmt(e: np.ndarray) -> str:
@@ -118,11 +145,15 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1) -> 
             raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
         r = evaluate_uji(uji)
         print(f"UJIIndoorLoc {uji}: cross-validation grouped by user (validationData.csv is not available here)")
-        for name, label in (("ours", "weighted 5-NN, powed-rel"), ("plain", "plain 3-NN, raw dBm")):
-            v = r[name]
-            print(f"  {label:<22} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
-        eo, ep = r["ours"]["errors"], r["plain"]["errors"]
-        print(f"  ratio of mean error ours/plain: {np.nanmean(eo) / np.nanmean(ep):.2f}  (goal: floor >= 95 %, building 100 %, mean <= 6 m on the standard split)")
+        for subset, title in ((None, "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
+            print(f"  {title}:")
+            for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
+                v = r[name] if subset is None else r[name][subset]
+                print(f"    {label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
+            eo = (r["ours"] if subset is None else r["ours"][subset])["errors"]
+            ep = (r["plain"] if subset is None else r["plain"][subset])["errors"]
+            print(f"    ratio of mean error ours/plain: {np.nanmean(eo) / np.nanmean(ep):.2f}")
+        print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
     if ilc:
         if not Path(ilc).is_dir():
             raise ValueError(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")
