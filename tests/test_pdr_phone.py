@@ -197,3 +197,18 @@ def test_real_traces_give_human_step_lengths(ilc_site1, tmp_path):
     assert float(first[1]) == 3.0 and float(first[2]) == 4.0
     second = (d / "steps.csv").read_text().splitlines()[1].split(",")
     assert float(second[2]) == pytest.approx(math.pi / 2, abs=1e-4)
+
+
+def test_segment_error_decomposition_recovers_both_parts():
+    """e = n_end + s D with known sigmas: the robust fit gives both back. Tolerance: the median of
+    e^2 over ~1,000 segments per bin has a relative standard error near 7 %, so 20 % on sigma^2
+    (10 % on sigma) is 3 standard errors."""
+    from hybridloc.pdr.evaluate import decompose_segment_errors
+
+    rng = np.random.default_rng(7)
+    D = rng.uniform(3.0, 20.0, 5000)
+    e = rng.normal(0.0, 0.8, D.size) + rng.normal(0.0, 0.06, D.size) * D
+    e[:50] += 40.0  # gross outliers (a lost trace) must not dominate
+    s_end, s_rel = decompose_segment_errors(D, e)
+    assert s_end == pytest.approx(0.8, rel=0.1)
+    assert s_rel == pytest.approx(0.06, rel=0.1)

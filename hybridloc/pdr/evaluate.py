@@ -55,6 +55,33 @@ class PhoneEvalResult:
     n_steps: int
     walked_m: float
     skipped: list[str] = field(default_factory=list)
+    seg_true_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # true length of each scored segment, m
+    seg_err_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # PDR length minus true length, m
+
+
+def decompose_segment_errors(true_m: np.ndarray, err_m: np.ndarray, bins: int = 5) -> tuple[float, float]:
+    """Split segment length errors into a part fixed per segment and a part proportional to length.
+
+    Model: e = n_end + s D, with n_end ~ (0, sigma_end^2) (where and when the walker marked each
+    waypoint, and where the step track is cut at the mark times: neither grows with the segment)
+    and s ~ (0, sigma_rel^2) (the PDR's step-length scale), so E[e^2] = sigma_end^2 + sigma_rel^2 D^2.
+    Fitted robustly (a few segments are off by tens of metres): segments in ``bins`` groups of equal
+    count by D; in each, the median of e^2 / 0.455 (median of a chi-square with one degree of freedom)
+    estimates E[e^2]; a non-negative least-squares line through (mean D^2, that) gives both sigmas.
+    Returns (sigma_end in m, sigma_rel as a fraction).
+    """
+    from scipy.optimize import nnls
+
+    D = np.asarray(true_m, float)
+    e = np.asarray(err_m, float)
+    if len(D) < 3 * bins:
+        return float("nan"), float("nan")
+    order = np.argsort(D)
+    groups = np.array_split(order, bins)
+    A = np.array([[1.0, float(np.mean(D[g] ** 2))] for g in groups])
+    y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
+    coef, _ = nnls(A, y)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
 
 
 def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceRun], list[str]]:
@@ -107,7 +134,8 @@ def fit_model(runs: list[TraceRun], model_name: str):
     return cal.model
 
 
-def score(runs: list[TraceRun], model) -> tuple[list[float], list[float], list[float]]:
+def score(runs: list[TraceRun], model, seg: list | None = None) -> tuple[list[float], list[float], list[float]]:
+    """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m)."""
     len_err, turn_err, wp_err = [], [], []
     for r in runs:
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
@@ -120,6 +148,8 @@ def score(runs: list[TraceRun], model) -> tuple[list[float], list[float], list[f
             ok = D >= MIN_SEGMENT_M
             if ok:
                 len_err.append(abs(float(np.linalg.norm(d_est)) - D) / D)
+                if seg is not None:
+                    seg.append((D, float(np.linalg.norm(d_est)) - D))
             true_dirs.append(math.atan2(d_true[1], d_true[0]) if ok else None)
             est_dirs.append(math.atan2(d_est[1], d_est[0]) if ok and np.linalg.norm(d_est) > 0.5 else None)
         for k in range(1, len(true_dirs)):
@@ -138,13 +168,15 @@ def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: 
     if runs is None:
         runs, skipped = collect_runs(paths, config)
     folds = [runs[0::2], runs[1::2]]
-    L, T, W, coefs = [], [], [], []
+    L, T, W, coefs, seg = [], [], [], [], []
     for i in (0, 1):
         model = fit_model(folds[1 - i], model_name)  # learned on the other half
         coefs.append([float(c) for c in model.coef])
-        le, te, we = score(folds[i], model)
+        le, te, we = score(folds[i], model, seg)
         L += le
         T += te
         W += we
     walked = sum(float(np.linalg.norm(np.diff(r.wp_xy, axis=0), axis=1).sum()) for r in runs)
-    return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped)
+    sg = np.array(seg).reshape(-1, 2)
+    return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped,
+                           sg[:, 0], sg[:, 1])
