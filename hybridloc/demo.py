@@ -197,6 +197,12 @@ def _replay(filt, r) -> list[tuple]:
     return [(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in est]
 
 
+def _rel(x: float, ref: float) -> str:
+    """'12% below' / '5% above': x against ref, in words (a signed percentage reads both ways)."""
+    r = 100.0 * (x / ref - 1.0)
+    return f"{abs(r):.0f}% {'below' if r < 0 else 'above'}"
+
+
 def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> int:
     """``hybridloc eval fusion``: surveys build the map; every ``replay_every``-th trace is a phone client.
 
@@ -259,8 +265,8 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         m = np.isfinite(E[names[0]]) & np.isfinite(E[names[1]]) & np.isfinite(E[k])
         if m.any():
             mp, mw, mf = E[names[0]][m].mean(), E[names[1]][m].mean(), E[k][m].mean()
-            print(f"  on the {int(m.sum())} waypoints all three answer: {k} {mf:.2f} m, {100 * (1 - mf / mw):+.0f}% vs WiFi only ({mw:.2f}), "
-                  f"{100 * (1 - mf / mp):+.0f}% vs PDR only ({mp:.2f})")
+            print(f"  on the {int(m.sum())} waypoints all three answer: {k} {mf:.2f} m, {_rel(mf, mw)} WiFi only ({mw:.2f}), "
+                  f"{_rel(mf, mp)} PDR only ({mp:.2f})")
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
     return 0
 
