@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"locate (cell likelihood{', with 95% region polygons' if region else ''}): median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms "
               f"(goal median <= 2 ms); median error {np.median(errs):.2f} m")
     per_q = {}
-    for metric, label in (("sorensen", "our weighted kNN (Sorensen, heard columns only)"), ("euclidean", "plain weighted kNN (scikit-learn, Euclidean)")):
+    for metric, label in (("sorensen", "our weighted kNN (Sorensen, sparse references)"), ("euclidean", "plain weighted kNN (scikit-learn, Euclidean)")):
         t0 = time.perf_counter()
         knn = KnnLocator(labelled[:20000], k=5, metric=metric)
         fit = time.perf_counter() - t0

@@ -176,3 +176,21 @@ def test_uji_knn_building_and_floor(shared_data):
     out = KnnLocator(refs).locate_many([t.scan for t in test])
     building = np.mean([o.fix.floor.split("_")[0] == t.floor.split("_")[0] for o, t in zip(out, test)])
     assert building >= 0.99  # buildings are 100s of metres apart with their own access points
+
+
+def test_sorensen_neighbours_match_scipy_bray_curtis():
+    """The sparse sum-of-minima form is the Bray-Curtis distance exactly (scipy's cdist as reference)."""
+    from scipy import sparse
+    from scipy.spatial.distance import cdist
+
+    from hybridloc.radio.locate import sorensen_neighbours
+
+    rng = np.random.default_rng(3)
+    R = rng.random((400, 60)) * (rng.random((400, 60)) < 0.2)
+    Q = rng.random((25, 60)) * (rng.random((25, 60)) < 0.3)
+    Q[0] = 0.0  # a query that heard nothing known: distance 1 to everything
+    D, I = sorensen_neighbours(sparse.csc_array(R), R.sum(axis=1), Q, 6)
+    ref = cdist(Q[1:], R, "braycurtis")
+    assert np.allclose(D[1:], np.sort(ref, axis=1)[:, :6], atol=1e-12)
+    assert np.allclose(np.take_along_axis(ref, I[1:], axis=1), D[1:], atol=1e-12)
+    assert np.allclose(D[0], 1.0)
