@@ -221,7 +221,7 @@ def _cmd_locate(args: argparse.Namespace) -> int:
     if args.method == "knn":
         if not rmap.references:
             raise ValueError(f"{args.map} holds no reference scans for kNN; use --method prob")
-        knn = KnnLocator(rmap.references, k=args.k, max_age_s=args.max_age)
+        knn = KnnLocator(rmap.references, k=args.k, max_age_s=args.max_age, metric=args.metric)
     else:
         prob = ProbabilisticLocator(rmap, max_age_s=args.max_age)
     out = Path(args.out)
@@ -635,6 +635,8 @@ def build_parser() -> argparse.ArgumentParser:
     lo.add_argument("--out", required=True, metavar="DIR")
     lo.add_argument("--method", choices=("knn", "prob"), default="knn", help="weighted kNN (default) or the probabilistic cell likelihood")
     lo.add_argument("--k", type=int, default=5)
+    lo.add_argument("--metric", choices=("sorensen", "euclidean"), default="sorensen",
+                    help="kNN distance on powed fingerprints: Sorensen / Bray-Curtis (default) or Euclidean")
     lo.add_argument("--max-age", type=float, default=8.0, help="ignore readings older than this at scan time, s (default 8)")
     lo.set_defaults(func=_cmd_locate)
 
