@@ -88,12 +88,14 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
+    import math
+
     import numpy as np
 
     from .io.msft import find_ilc_traces
     from .metrics import summarize_errors
     from .pdr import PhonePdrConfig
-    from .pdr.evaluate import collect_runs, decompose_segment_errors, evaluate_phone_pdr
+    from .pdr.evaluate import collect_runs, decompose_segment_errors, decompose_turn_errors, evaluate_phone_pdr
 
     paths = find_ilc_traces(args.dir)[:: args.every]
     if not paths:
@@ -123,6 +125,11 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     print(f"segment errors decompose (robust fit, sigmas) as +-{s_end:.2f} m fixed per segment (waypoint marks, where and "
           f"when; the track cut at the mark times) and +-{100 * s_rel:.1f}% of length (the PDR's scale); the fixed part alone "
           f"gives a median relative error of about {100 * 0.6745 * s_end / d_med:.1f}% on the median segment ({d_med:.1f} m)")
+    s_turn, s_mark = decompose_turn_errors(main_m.turn_lengths_m, main_m.turn_err_rad)
+    own = (f"+-{math.degrees(s_turn):.1f} deg the PDR's own heading-change error (median {0.6745 * math.degrees(s_turn):.1f} deg)"
+           if s_turn > 1e-3 else "a part independent of segment length not resolvable from 0")
+    print(f"turn errors decompose (robust fit, sigmas) as {own} and +-{s_mark:.2f} m across the segment at each end "
+          f"(the waypoint marks, and the PDR track's sideways position at the mark times): the turn error shrinks as 1/length")
     return 0
 
 

@@ -212,3 +212,19 @@ def test_segment_error_decomposition_recovers_both_parts():
     s_end, s_rel = decompose_segment_errors(D, e)
     assert s_end == pytest.approx(0.8, rel=0.1)
     assert s_rel == pytest.approx(0.06, rel=0.1)
+
+
+def test_turn_error_decomposition_recovers_both_parts():
+    """Turn error = the PDR's own (sigma_turn) + the marks' (sqrt(2) sigma_mark / D per segment, two
+    segments a turn): the robust fit returns both. 15 %: the two parts share the same five bins, whose
+    spread in 1/D^2 is narrower than the length split's in D^2, so each is looser than there."""
+    from hybridloc.pdr.evaluate import decompose_turn_errors
+
+    rng = np.random.default_rng(11)
+    L = rng.uniform(3.0, 15.0, (5000, 2))
+    s_turn, s_mark = math.radians(6.0), 0.5
+    mark = lambda D: rng.normal(0.0, math.sqrt(2.0) * s_mark / D)  # noqa: E731
+    e = rng.normal(0.0, s_turn, 5000) + mark(L[:, 0]) - mark(L[:, 1])
+    got_turn, got_mark = decompose_turn_errors(L, e)
+    assert got_turn == pytest.approx(s_turn, rel=0.15)
+    assert got_mark == pytest.approx(s_mark, rel=0.15)

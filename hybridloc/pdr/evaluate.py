@@ -57,6 +57,8 @@ class PhoneEvalResult:
     skipped: list[str] = field(default_factory=list)
     seg_true_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # true length of each scored segment, m
     seg_err_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # PDR length minus true length, m
+    turn_lengths_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (before, after) segment lengths of each turn
+    turn_err_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))  # signed turn error, rad
 
 
 def decompose_segment_errors(true_m: np.ndarray, err_m: np.ndarray, bins: int = 5) -> tuple[float, float]:
@@ -79,6 +81,28 @@ def decompose_segment_errors(true_m: np.ndarray, err_m: np.ndarray, bins: int = 
     order = np.argsort(D)
     groups = np.array_split(order, bins)
     A = np.array([[1.0, float(np.mean(D[g] ** 2))] for g in groups])
+    y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
+    coef, _ = nnls(A, y)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+
+
+def decompose_turn_errors(lengths_m: np.ndarray, err_rad: np.ndarray, bins: int = 5) -> tuple[float, float]:
+    """Split turn errors into the PDR's own and what the waypoint marks put into the truth.
+
+    A segment's true direction comes from two marks each off by ~sigma_mark across the segment, so it
+    errs by ~sqrt(2) sigma_mark / D; a turn takes two segments: E[e^2] = sigma_turn^2 + 2 sigma_mark^2 u
+    with u = 1/D1^2 + 1/D2^2. Fitted as :func:`decompose_segment_errors` (binned medians of e^2 / 0.455,
+    non-negative least squares). Returns (sigma_turn in rad, sigma_mark in m).
+    """
+    from scipy.optimize import nnls
+
+    Ls = np.asarray(lengths_m, float).reshape(-1, 2)
+    e = np.asarray(err_rad, float)
+    if len(e) < 3 * bins:
+        return float("nan"), float("nan")
+    u = 1.0 / Ls[:, 0] ** 2 + 1.0 / Ls[:, 1] ** 2
+    groups = np.array_split(np.argsort(u), bins)
+    A = np.array([[1.0, 2.0 * float(np.mean(u[g]))] for g in groups])
     y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
     coef, _ = nnls(A, y)
     return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
@@ -134,14 +158,15 @@ def fit_model(runs: list[TraceRun], model_name: str):
     return cal.model
 
 
-def score(runs: list[TraceRun], model, seg: list | None = None) -> tuple[list[float], list[float], list[float]]:
-    """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m)."""
+def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None) -> tuple[list[float], list[float], list[float]]:
+    """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m),
+    ``turns`` (D before, D after, error in rad) of each scored turn."""
     len_err, turn_err, wp_err = [], [], []
     for r in runs:
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
         t, p = _track(r, L)
         wp_est = _interp(t, p, r.wp_t)
-        true_dirs, est_dirs = [], []
+        true_dirs, est_dirs, lens = [], [], []
         for k, t0, t1, D, idx in _segments(r):
             d_est = wp_est[k + 1] - wp_est[k]
             d_true = r.wp_xy[k + 1] - r.wp_xy[k]
@@ -150,6 +175,7 @@ def score(runs: list[TraceRun], model, seg: list | None = None) -> tuple[list[fl
                 len_err.append(abs(float(np.linalg.norm(d_est)) - D) / D)
                 if seg is not None:
                     seg.append((D, float(np.linalg.norm(d_est)) - D))
+            lens.append(D)
             true_dirs.append(math.atan2(d_true[1], d_true[0]) if ok else None)
             est_dirs.append(math.atan2(d_est[1], d_est[0]) if ok and np.linalg.norm(d_est) > 0.5 else None)
         for k in range(1, len(true_dirs)):
@@ -157,6 +183,8 @@ def score(runs: list[TraceRun], model, seg: list | None = None) -> tuple[list[fl
                 turn_t = wrap_angle(true_dirs[k] - true_dirs[k - 1])
                 turn_e = wrap_angle(est_dirs[k] - est_dirs[k - 1])
                 turn_err.append(abs(wrap_angle(turn_e - turn_t)) * 180 / math.pi)
+                if turns is not None:
+                    turns.append((lens[k - 1], lens[k], wrap_angle(turn_e - turn_t)))
         # PDR-only track from the first waypoint, rotated so its first segment points the true way.
         wp_err.extend(oracle_start_errors(wp_est, r.wp_xy).tolist())
     return len_err, turn_err, wp_err
@@ -168,15 +196,16 @@ def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: 
     if runs is None:
         runs, skipped = collect_runs(paths, config)
     folds = [runs[0::2], runs[1::2]]
-    L, T, W, coefs, seg = [], [], [], [], []
+    L, T, W, coefs, seg, turns = [], [], [], [], [], []
     for i in (0, 1):
         model = fit_model(folds[1 - i], model_name)  # learned on the other half
         coefs.append([float(c) for c in model.coef])
-        le, te, we = score(folds[i], model, seg)
+        le, te, we = score(folds[i], model, seg, turns)
         L += le
         T += te
         W += we
     walked = sum(float(np.linalg.norm(np.diff(r.wp_xy, axis=0), axis=1).sum()) for r in runs)
     sg = np.array(seg).reshape(-1, 2)
+    tn = np.array(turns).reshape(-1, 3)
     return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped,
-                           sg[:, 0], sg[:, 1])
+                           sg[:, 0], sg[:, 1], tn[:, :2], tn[:, 2])
