@@ -437,6 +437,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
             fusion = ParticleFusion(prior, init=init, floor=args.floor)
+        elif args.filter == "kourogi":
+            from .fusion import KourogiFusion
+
+            fusion = KourogiFusion(init=init, floor=args.floor)
         if args.live:
             from .clients.agent import live_phone
 
@@ -591,8 +595,9 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
         c.add_argument("--fixes", metavar="CSV", help="the device's own GPS / RFID fixes for the replay (t,x,y,floor,sigma,source[,sigma_random]; "
                        "the simulator writes them beside each walk): fused at their times, GPS pairs also in differential mode")
-        c.add_argument("--filter", choices=("kalman", "particle"), default="kalman",
-                       help="local fusion: Kourogi's Kalman filter, or a particle filter with the site's walls and walk prior (default kalman)")
+        c.add_argument("--filter", choices=("kalman", "particle", "kourogi"), default="kalman",
+                       help="local fusion: our Kalman filter (position, heading bias, step scale), a particle filter with the site's walls "
+                            "and walk prior, or Kourogi et al.'s own (position and velocity; the reference) (default kalman)")
         c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout), for --filter particle")
         c.add_argument("--start", metavar="X,Y,SIGMA", help="known start position in the site frame (m) and its standard deviation")
         c.add_argument("--floor", help="floor at the start (with --start)")

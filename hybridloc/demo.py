@@ -206,12 +206,13 @@ def _rel(x: float, ref: float) -> str:
 def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> int:
     """``hybridloc eval fusion``: surveys build the map; every ``replay_every``-th trace is a phone client.
 
-    The phone clients run Kourogi's Kalman filter live, in lock-step with the server's answers. The
-    same steps and fixes, in the order they reached each client, are then replayed
-    (:func:`hybridloc.fusion.run_fusion`) through the particle filter with the site's map, and through
-    both filters started at the first waypoint (a known start, e.g. an entrance, as PDR only has).
+    The phone clients run our Kalman filter (:class:`~hybridloc.fusion.LocalFusion`) live, in lock-step
+    with the server's answers. The same steps and fixes, in the order they reached each client, are
+    then replayed (:func:`hybridloc.fusion.run_fusion`) through the particle filter with the site's map
+    and through Kourogi et al.'s own filter (:class:`~hybridloc.fusion.KourogiFusion`, the reference),
+    cold and started at the first waypoint (a known start, e.g. an entrance, as PDR only has).
     """
-    from .fusion import LocalFusion, ParticleFusion, WalkPrior
+    from .fusion import KourogiFusion, LocalFusion, ParticleFusion, WalkPrior
     from .io.msft import read_ilc_site
     from .radio.radiomap import RadioMap
     from .server.store import Store
@@ -232,7 +233,8 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     rmap = RadioMap.load(io.BytesIO(got[1]))
     prior = WalkPrior.from_radio_map(rmap, read_ilc_site(site_dir))
     names = ["PDR only (oracle start pose)", "WiFi only (server fixes)", "fused, Kalman, live", "fused, particle + map",
-             "fused, Kalman, start pose known", "fused, particle, start pose known"]
+             "fused, Kalman, start pose known", "fused, particle, start pose known",
+             "Kourogi x/y/vx/vy (paper), cold", "Kourogi x/y/vx/vy, start known"]
     errs: dict[str, list] = {k: [] for k in names}  # per waypoint after the first, NaN where a method has no answer
     floors: dict[str, list] = {k: [] for k in names[2:]}
     lags = []
@@ -243,11 +245,12 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         errs[names[0]] += (e_pdr if e_pdr.size == nw else np.full(nw, np.nan)).tolist()
         errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
-        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r)}
+        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r), names[6]: _replay(KourogiFusion(), r)}
         start = _known_start(r, tr)
         if start:
             variants[names[4]] = _replay(LocalFusion(**start), r)
             variants[names[5]] = _replay(ParticleFusion(prior, **start), r)
+            variants[names[7]] = _replay(KourogiFusion(**start), r)
         for k in names[2:]:
             poses = variants.get(k, [])
             errs[k] += _fused_errors(poses, wt, wxy).tolist()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import shapely
 
-from hybridloc.fusion import LocalFusion, ParticleConfig, ParticleFusion, WalkPrior, run_fusion
+from hybridloc.fusion import KourogiFusion, LocalFusion, ParticleConfig, ParticleFusion, WalkPrior, run_fusion
 from hybridloc.types import AbsoluteFix, Floor, FloorPlan, StepEvent
 
 
@@ -88,7 +88,7 @@ def test_particle_filter_fixes_gate_reinit_and_reproducibility():
 
 def test_late_fix_is_compared_with_the_position_at_its_scan_time():
     """A fix for a scan 10 steps ago that agrees with where we were then must barely move us."""
-    for make in (lambda: LocalFusion(init=(0.0, 0.0, 2.0)), lambda: ParticleFusion(None, init=(0.0, 0.0, 2.0))):
+    for make in (lambda: LocalFusion(init=(0.0, 0.0, 2.0)), lambda: ParticleFusion(None, init=(0.0, 0.0, 2.0)), lambda: KourogiFusion(init=(0.0, 0.0, 2.0))):
         f = make()
         for st in _walk(20, 0.0):
             f.predict(st)
@@ -188,3 +188,55 @@ def test_fixes_csv_and_the_gps_differencer(tmp_path):
     assert d.push(*rows[2], accepted=True) is None  # RFID: not a GPS pair
     assert d.push(*rows[3], accepted=True) is None  # 18 s after the last GPS fix: too far apart
     assert d.push(rows[3][0], 1.0, accepted=False) is None  # a rejected (multipath) fix never pairs
+
+
+def test_kourogi_filter_tracks_steps_and_its_uncertainty_grows_as_dead_reckoning():
+    """Eq 9 on a straight walk: the velocity becomes l / T, the position the sum of the steps, and the
+    position covariance grows like dead reckoning's (eqs 11-14): the clone keeps the previous
+    position's covariance from being counted twice, which would halve it at every step. The
+    constant-velocity projection is a second, weaker estimate of each displacement, so the growth is
+    at least half of dead reckoning's (two independent estimates at best halve a variance) and at
+    most all of it."""
+    steps = _walk(60, math.radians(30.0))  # 0.7 m every 0.5 s
+    f = KourogiFusion(init=(0.0, 0.0, 0.5))
+    dr = np.eye(2) * 0.25
+    traces = []
+    for st in steps:
+        e = f.predict(st)
+        dr = st.propagate_position_covariance(dr)
+        traces.append(np.trace(e.cov))
+    d = np.array([math.cos(math.radians(30)), math.sin(math.radians(30))])
+    assert np.allclose(e.pos, 60 * 0.7 * d, atol=0.05)
+    assert np.allclose(f.x[2:], 1.4 * d, atol=0.05)  # l / T
+    assert np.all(np.diff(traces) > 0)
+    grown, dr_grown = traces[-1] - 0.5, np.trace(dr) - 0.5
+    assert 0.5 * dr_grown <= grown <= 1.0001 * dr_grown
+    assert np.linalg.eigvalsh(f.P).min() > 0
+
+
+def test_kourogi_filter_fix_pause_and_gps_velocity():
+    f = KourogiFusion(init=(0.0, 0.0, 3.0))
+    for st in _walk(10, 0.0):
+        f.predict(st)
+    # eq 16: a fix moves the position (through the shared gated correct), infinite variance on velocity
+    ok, e = f.correct(AbsoluteFix(5.0, [8.0, 1.0], np.eye(2) * 0.25, "wifi"))
+    assert ok and e.pos[0] > 7.0 and e.pos[1] > 0.5
+    ok, _ = f.correct(AbsoluteFix(5.0, [60.0, 40.0], np.eye(2) * 0.25, "wifi"))
+    assert not ok  # outside the 95 % region of the dead-reckoned estimate (sec. 3.3)
+    # eq 10: a pause longer than still_after is an observation of no movement
+    later = _walk(1, 0.0, t0=5.0 + 10.0)[0]
+    f.predict(later)
+    assert np.linalg.norm(f.x[2:]) < 1.4  # the 1.4 m/s walk before the pause is no longer believed
+    # eqs 17-18: two GPS positions 1 s apart give the present velocity
+    from hybridloc.types import DisplacementFix
+
+    t1 = later.t
+    v_before = f.x[2:].copy()
+    ok, _ = f.correct(DisplacementFix(t1 - 1.0, t1, [1.0, 0.3], np.eye(2) * 0.04, "gps"))
+    # along the walk (x) the step velocity is uncertain (sigma_v): the GPS pulls it most of the way;
+    # across it eq 15 gives (sigma_v sin theta)^2 ~ 0 (plus the floor): it moves a little
+    assert ok and f.x[2] - v_before[0] > 0.3 * (1.0 - v_before[0]) and 0.0 < f.x[3] - v_before[1] < 0.3
+    ok, _ = f.correct(DisplacementFix(t1 - 1.0, t1, [0.0, -3.0], np.eye(2) * 0.04, "gps"))
+    assert not ok  # a velocity the steps deny: outside the gate
+    ok, _ = f.correct(DisplacementFix(t1 - 20.0, t1 - 10.0, [0.0, 5.0], np.eye(2) * 0.01, "gps"))
+    assert not ok  # not the present velocity any more

@@ -192,13 +192,23 @@ class LocalFusion:
         nis = float(y @ np.linalg.solve(S, y))
         if nis > (self._gate if gate is None else gate):
             return False
-        K = self.P @ H.T @ np.linalg.inv(S)
-        self.x = self.x + K @ y
-        IKH = np.eye(len(self.x)) - K @ H
-        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T  # Joseph form
-        self.P = 0.5 * (self.P + self.P.T)
-        self.x[3] = min(max(self.x[3], 0.5), 1.5)
+        self.x, self.P = joseph_update(self.x, self.P, y, H, R)
+        self._constrain()
         return True
+
+    def _constrain(self) -> None:
+        """Keep the step scale physical after an update."""
+        self.x[3] = min(max(self.x[3], 0.5), 1.5)
+
+
+def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Kalman update with innovation ``y``: x + K y and the Joseph form (I - K H) P (I - K H)^T + K R K^T,
+    which stays symmetric positive semi-definite whatever the rounding."""
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T  # P H^T S^-1 (S and P symmetric)
+    IKH = np.eye(len(x)) - K @ H
+    P = IKH @ P @ IKH.T + K @ R @ K.T
+    return x + K @ y, 0.5 * (P + P.T)
 
 
 def _track_at(track: list[tuple[float, float, float]], t: float) -> np.ndarray:
