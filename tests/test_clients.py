@@ -144,7 +144,7 @@ def test_lockstep_agent_gets_an_answer_per_scan_and_run_fusion_replays_it_exactl
 def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_path):
     """``hybridloc serve --map`` + ``hybridloc client phone --filter particle --lockstep`` on the bundled
     sample: fixes arrive for the scans, and every live position of the particle filter lies on the
-    floor plan (particles outside it or across its walls die)."""
+    floor plan (particles outside it or across its walls die). ``--filter kourogi`` runs alike."""
     import csv
     import subprocess
     import sys
@@ -170,6 +170,13 @@ def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_p
         r = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep",
                 "--filter", "particle", "--floorplan", str(ILC_SITE1_F1), "--spool", str(tmp_path / "spool"), "--pose-out", str(pose))
         assert r.returncode == 0, r.stderr
+        # the paper's own filter through the same client path (another device, same walk)
+        pose_k = tmp_path / "pose-kourogi.csv"
+        rk = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep",
+                 "--filter", "kourogi", "--device", "phone-kourogi", "--spool", str(tmp_path / "spool-k"), "--pose-out", str(pose_k))
+        assert rk.returncode == 0, rk.stderr
+        rows_k = list(csv.DictReader(open(pose_k)))
+        assert rows_k and all(np.isfinite([float(w["x"]), float(w["y"]), float(w["sigma_x"])]).all() for w in rows_k)
     finally:
         srv.terminate()
         srv.wait(30)
