@@ -4,8 +4,11 @@ Ojeda & Borenstein (2007) eqs 1-4 in quaternion form, Earth rotation and Corioli
 for walks of minutes, as they note; a consumer MEMS gyro's noise dwarfs the 7.3e-5 rad/s Earth rate):
 
 * attitude:  q_{k+1} = q_k (x) exp(0.5 (omega_k - b_g) dt)            (body-to-nav, Hamilton)
-* velocity:  v_{k+1} = v_k + (R_k (f_k - b_a) + g_nav) dt,  g_nav = (0, 0, -g)
-* position:  p_{k+1} = p_k + v_k dt + 0.5 (R_k (f_k - b_a) + g_nav) dt^2
+* velocity:  v_{k+1} = v_k + (R_{k+1} (f_k - b_a) + g_nav) dt,  g_nav = (0, 0, -g)
+* position:  p_{k+1} = p_k + v_k dt + 0.5 (R_{k+1} (f_k - b_a) + g_nav) dt^2
+
+Sample k (f_k, omega_k) is taken at the end of the step, so f_k is resolved with the attitude at that
+time, R_{k+1} = R(q_{k+1}) (the same sample's rotation already applied).
 
 The nominal state never carries uncertainty; the error-state filter (:mod:`.eskf`) does.
 """
@@ -148,8 +151,7 @@ def _conj(q):
 
 def mechanise(x: NominalState, f_body: np.ndarray, w_body: np.ndarray, dt: float, g: float) -> NominalState:
     """One strapdown step (module docstring equations); returns the new nominal state."""
-    R = quat_to_dcm(x.q)
-    a_nav = R @ (f_body - x.b_a)
-    a_nav[2] -= g
     q = _normalize(quat_mult(x.q, quat_from_rotvec((w_body - x.b_g) * dt)))
+    a_nav = quat_to_dcm(q) @ (f_body - x.b_a)
+    a_nav[2] -= g
     return NominalState(x.p + x.v * dt + 0.5 * a_nav * dt * dt, x.v + a_nav * dt, q, x.b_a, x.b_g)

@@ -215,8 +215,8 @@ def foot_imu(walk: Walk, rng: np.random.Generator, rate: float = 200.0, grade: s
         p = p + vel * dt + 0.5 * a * dt * dt
         vel = vel + a * dt
         pos[i] = p
-        R_prev = quat_to_dcm(quat[i - 1])
-        acc[i] = R_prev.T @ (a + np.array([0.0, 0.0, G0]))
+        # the specific force at t_i, in the body frame at t_i (what the INS resolves with q_i)
+        acc[i] = quat_to_dcm(quat[i]).T @ (a + np.array([0.0, 0.0, G0]))
         dq = quat_mult(np.array([quat[i - 1][0], -quat[i - 1][1], -quat[i - 1][2], -quat[i - 1][3]]), quat[i])
         if dq[0] < 0:
             dq = -dq
