@@ -105,8 +105,10 @@ class KourogiFusion(LocalFusion):
         if self._last_step_t is not None and step.t - self._last_step_t > cfg.still_after:
             self._project(self._last_step_t + cfg.still_after)  # eq 10: no movement observed
             self._observe_velocity(np.zeros(2), np.eye(2) * cfg.sigma_still**2)
-        T = step.t - self._last_step_t if self._last_step_t is not None else cfg.step_period
-        T = min(max(T, 0.2), cfg.still_after)
+        # the step's duration: since the previous step, or - for a first step and the first after a
+        # pause, whose start is unknown - a typical step period
+        gap = step.t - self._last_step_t if self._last_step_t is not None else math.inf
+        T = max(gap, 0.2) if gap <= cfg.still_after else cfg.step_period
         self._last_step_t = step.t
         if not math.isfinite(self._tp) or self._tp >= step.t:
             self._tp = step.t - T  # first step (or a clock that went back): it took T
