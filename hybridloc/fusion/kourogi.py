@@ -123,7 +123,7 @@ class KourogiFusion(LocalFusion):
         Pa[:n, n:] = F @ self.P[:, :2]
         Pa[n:, :n] = Pa[:n, n:].T
         self._project(step.t)
-        self.t = max(self.t, step.t)
+        self.t = step.t  # the estimate is the one at this step (as LocalFusion.predict)
         xa[:n] = self.x
         Pa[:n, :n] = self.P
         # Eq 9 as a displacement and a velocity: z = (l d, l d / T), h = (p - p_prev, v).
