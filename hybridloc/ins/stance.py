@@ -81,7 +81,8 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
     minimum decades above the real stances around it).
 
     The defaults were chosen on the 28 PyShoe VICON trials in ../shared/data (mean 2-D ARMSE 0.081 m
-    without the context test, 0.074 m with it); they are one setting for all trials, not per trial.
+    without the context test, 0.074 m with it; re-gridded after the strapdown alignment fix, still
+    the best: 0.070 m); they are one setting for all trials, not per trial.
     """
     T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
     logT = np.log10(np.maximum(T, 1e-30))
