@@ -38,7 +38,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..types import DisplacementFix, StepEvent
-from .kalman import Estimate, FusionConfig, LocalFusion, joseph_update
+from .kalman import Estimate, FusionConfig, LocalFusion, _shift_floor, joseph_update
 
 
 @dataclass
@@ -145,8 +145,6 @@ class KourogiFusion(LocalFusion):
         if len(self._hist) > 200:
             del self._hist[:100]
         if step.floor_change and self.floor is not None:
-            from .kalman import _shift_floor
-
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
 
