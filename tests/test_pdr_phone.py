@@ -172,6 +172,22 @@ def test_calibrator_recovers_weinberg_k(tmp_path):
     assert back.model.coef[0] == cal.model.coef[0] and back.n_segments == 40
 
 
+def test_kim_model_uses_the_mean_vertical_acceleration_and_calibrates():
+    """Kim et al.: L = K (mean |a_v|)^(1/3). Same RLS as every model; 40 segments of 20 steps with 5 cm
+    of distance noise pin K to well under 1 % (the regressor sums are ~25, so sigma_K ~ 0.05 / 25 / sqrt(40))."""
+    from hybridloc.pdr.steplength import KimLength
+
+    assert KimLength(0.5).length(StepFeatures(0.55, 6.0, 2.0)) == pytest.approx(0.5 * 2.0 ** (1 / 3))
+    rng = np.random.default_rng(9)
+    K = 0.5
+    cal = LengthCalibrator(KimLength(0.3), forgetting=1.0)
+    for _ in range(40):
+        feats = [StepFeatures(0.55, 5.0, float(m)) for m in rng.uniform(0.8, 3.0, 20)]
+        D = sum(K * f.mean_abs ** (1 / 3) for f in feats) + 0.05 * rng.standard_normal()
+        cal.update(feats, D, sigma_distance=0.05)
+    assert cal.model.coef[0] == pytest.approx(K, rel=0.01)
+
+
 @pytest.mark.shared_data
 def test_real_traces_give_human_step_lengths(ilc_site1, tmp_path):
     import subprocess

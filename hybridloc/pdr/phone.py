@@ -307,7 +307,7 @@ class PhonePdr:
         if cfg.estimate_offset and len(seg) >= 5:
             self._update_offset(seg, fwd)
         psi = wrap_angle(fwd + self._offset)
-        feats = StepFeatures(dur, max(av) - min(av))
+        feats = StepFeatures(dur, max(av) - min(av), sum(abs(v) for v in av) / len(av))
         L = self.model.length(feats)
         if self._heading0 is not None:
             if self._yaw_ref is None:

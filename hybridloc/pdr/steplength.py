@@ -4,6 +4,9 @@
 * :class:`WeinbergLength`: L = K (a_max - a_min)^(1/4), with a the vertical acceleration over the step
   (Weinberg 2002: within ~8 %).
 * :class:`FrequencyLength`: L = a + b f, f the step frequency (a linear fit reaches ~5.6 % RMS).
+* :class:`KimLength`: L = K (mean |a_v|)^(1/3), the mean absolute vertical acceleration over the step
+  (Kim, Jang, Hwang and Park 2004, cited in Harle's survey as Kim et al.): an average over the whole
+  step rather than its two extremes, so one jolt moves it less than Weinberg's bounce.
 
 Calibration (:class:`LengthCalibrator`): every model is linear in its coefficients,
 L_i = theta . phi_i, so a walked segment of known length D (between two absolute fixes or marks)
@@ -28,6 +31,7 @@ class StepFeatures:
 
     duration: float  # s since the previous step
     bounce: float  # max - min of vertical acceleration over the step, m/s^2
+    mean_abs: float = 0.0  # mean |vertical acceleration - g| over the step, m/s^2
 
     @property
     def frequency(self) -> float:
@@ -86,7 +90,19 @@ class FrequencyLength(LengthModel):
         return np.array([1.0, min(f.frequency, 4.0)])
 
 
-MODELS = {"constant": ConstantLength, "weinberg": WeinbergLength, "frequency": FrequencyLength}
+class KimLength(LengthModel):
+    name = "kim"
+    relative_sigma = 0.08  # of Weinberg's order (Kim et al. report errors of a few %, on their walks)
+
+    # Default K fitted like Weinberg's (ILC site1, 2-fold cross-fit); calibrate per device.
+    def __init__(self, K: float = 0.46):
+        self.coef = np.array([K])
+
+    def regressors(self, f: StepFeatures) -> np.ndarray:
+        return np.array([max(f.mean_abs, 0.0) ** (1.0 / 3.0)])
+
+
+MODELS = {"constant": ConstantLength, "weinberg": WeinbergLength, "frequency": FrequencyLength, "kim": KimLength}
 
 
 def make_model(name: str, coef: list[float] | None = None) -> LengthModel:
