@@ -696,7 +696,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     esr = esub.add_parser("sim-realism", help="simulated statistics beside real ones; phone PDR step counts on simulated walks")
     esr.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="real Indoor Location Competition site folder ('' to skip)")
-    esr.add_argument("--walkers", type=int, default=20)
+    esr.add_argument("--walkers", type=int, default=60, help="simulated walkers (default 60: ~11 min of phone handling, for a steady false-step rate)")
     esr.add_argument("--minutes", type=float, default=5.0)
     esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
     esr.set_defaults(func=_cmd_eval_sim_realism)
