@@ -117,7 +117,7 @@ class Agent:
         self.session = session
         self.site, self.device = site, device
         self.uplink = Uplink(session, site, device, spool, device_model)
-        # any filter with the predict/correct step API (hybridloc.fusion); Kourogi's Kalman filter by default
+        # any filter with the predict/correct step API (hybridloc.fusion); by default LocalFusion, our Kalman filter
         self.fusion = fusion if fusion is not None else LocalFusion(init=init, floor=floor)
         self.pose = pose
         self.batch_period = batch_period

@@ -100,8 +100,6 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
             with open_client(ep) as s:
                 ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model)
                 ag.uplink.wait_connected(10)
-                # phone clients in lock-step: at K x real time every wall-clock delay of the answers
-                # would grow K-fold on the recording's clock (16 s median at 20x with 4 clients)
                 # the device's own GPS / RFID fixes where the recording has them (the simulator writes
                 # <walk>_fixes.csv beside each trace)
                 local = None
@@ -110,6 +108,8 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                     from .io.fixes import read_fixes_csv
 
                     local = read_fixes_csv(fx_csv)[0]
+                # phone clients in lock-step: at K x real time every wall-clock delay of the answers
+                # would grow K-fold on the recording's clock (16 s median at 20x with 4 clients)
                 replay_phone(ag, tr, spd, survey=kind == "survey", lockstep=kind == "phone", local_fixes=local)
                 return tr, ag.close(wait=30)
 

@@ -78,6 +78,7 @@ class LocalFusion:
         self.n_rejected = 0
         self._rejected_run = 0
         self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
+        self._gate_by_source = {src: float(chi2.ppf(p, 2)) for src, p in self.cfg.gate_by_source.items()}
         self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
         self._raw: list[tuple[float, float, float]] = []  # (t, X, Y): the PDR's own track (sum of L (cos psi, sin psi))
         self._raw_xy = (0.0, 0.0)
@@ -111,10 +112,12 @@ class LocalFusion:
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
         self._raw_xy = (self._raw_xy[0] + L * math.cos(step.heading), self._raw_xy[1] + L * math.sin(step.heading))
-        for track, row in ((self._hist, (step.t, float(self.x[0]), float(self.x[1]))), (self._raw, (step.t, *self._raw_xy))):
-            track.append(row)
-            if len(track) > 200:  # each kept on its own: a re-initialisation clears only _hist
-                del track[:100]
+        _keep(self._raw, (step.t, *self._raw_xy))
+        return self._stepped(step)
+
+    def _stepped(self, step: StepEvent) -> Estimate:
+        """After a step's prediction: record where it left us (for late fixes) and any floor change."""
+        _keep(self._hist, (step.t, float(self.x[0]), float(self.x[1])))
         if step.floor_change and self.floor is not None:
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
@@ -154,11 +157,9 @@ class LocalFusion:
         # A fix arrives after the scan it comes from (network, server batching): compare it with where
         # we were at the scan's time, and shift the present by the same correction (the steps since
         # then are kept as they are).
-        rho = self.cfg.fix_correlation.get(fix.source.value, 0.0)
-        model = PositionFix(R * (1.0 + rho) / (1.0 - rho))
+        model = PositionFix(correlated_fix_cov(R, fix, self.cfg.fix_correlation))
         y = z - self._position_at(fix.t)
-        gp = self.cfg.gate_by_source.get(fix.source.value)
-        if not self._update(y, model.jacobian(self.x), model.covariance(), None if gp is None else float(chi2.ppf(gp, 2))):
+        if not self._update(y, model.jacobian(self.x), model.covariance(), self._gate_by_source.get(fix.source.value)):
             self.n_rejected += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
@@ -168,8 +169,7 @@ class LocalFusion:
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
         self.t = max(self.t, fix.t)
-        if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
-            self.floor = fix.floor
+        self.floor = floor_after_fix(self.floor, fix, self.cfg.floor_switch)
         return True, self.estimate("fix")
 
     def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
@@ -209,6 +209,28 @@ def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R:
     IKH = np.eye(len(x)) - K @ H
     P = IKH @ P @ IKH.T + K @ R @ K.T
     return x + K @ y, 0.5 * (P + P.T)
+
+
+def correlated_fix_cov(R: np.ndarray, fix: AbsoluteFix, correlation: dict) -> np.ndarray:
+    """A fix's covariance inflated by (1 + rho) / (1 - rho), rho the lag-1 correlation of its source's
+    errors (the variance factor of an AR(1) mean: successive fixes carry less than each says)."""
+    rho = correlation.get(fix.source.value, 0.0)
+    return R * (1.0 + rho) / (1.0 - rho)
+
+
+def floor_after_fix(floor: str | None, fix: AbsoluteFix, switch: float) -> str | None:
+    """The floor after an accepted fix: the fix's when none is known yet, or when it names another
+    floor with probability at least ``switch``."""
+    if fix.floor is not None and (floor is None or (fix.floor != floor and fix.floor_prob >= switch)):
+        return fix.floor
+    return floor
+
+
+def _keep(track: list, row: tuple, limit: int = 200) -> None:
+    """Append to a bounded history (halved when it passes ``limit``)."""
+    track.append(row)
+    if len(track) > limit:
+        del track[: limit // 2]
 
 
 def _track_at(track: list[tuple[float, float, float]], t: float) -> np.ndarray:

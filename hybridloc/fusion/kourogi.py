@@ -35,10 +35,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
-
 from ..types import DisplacementFix, StepEvent
-from .kalman import Estimate, FusionConfig, LocalFusion, _shift_floor, joseph_update
+from .kalman import Estimate, FusionConfig, LocalFusion, joseph_update
 
 
 @dataclass
@@ -141,12 +139,7 @@ class KourogiFusion(LocalFusion):
         y = z - H @ xa
         xa, Pa = joseph_update(xa, Pa, y, H, R)
         self.x, self.P = xa[:n].copy(), Pa[:n, :n].copy()
-        self._hist.append((step.t, float(self.x[0]), float(self.x[1])))
-        if len(self._hist) > 200:
-            del self._hist[:100]
-        if step.floor_change and self.floor is not None:
-            self.floor = _shift_floor(self.floor, step.floor_change)
-        return self.estimate("step")
+        return self._stepped(step)
 
     def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
         """Eqs 17-18: the velocity of two GPS positions, while it is still the present one."""
@@ -156,7 +149,7 @@ class KourogiFusion(LocalFusion):
             return False, self.estimate("displacement-rejected")
         v = np.asarray(fix.delta_enu, float)[:2] / dt
         R = self.cfg.time_c * np.asarray(fix.cov, float)[:2, :2] / dt**2
-        if not self._observe_velocity(v, R, float(chi2.ppf(self.cfg.gate_probability, 2))):
+        if not self._observe_velocity(v, R, None):  # None: the filter's own 95 % gate
             self.n_rejected += 1
             return False, self.estimate("displacement-rejected")
         return True, self.estimate("displacement")

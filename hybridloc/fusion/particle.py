@@ -34,7 +34,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
-from .kalman import Estimate, _shift_floor
+from .kalman import Estimate, _shift_floor, correlated_fix_cov, floor_after_fix
 from .walkprior import WalkPrior
 
 
@@ -208,8 +208,7 @@ class ParticleFusion:
         if isinstance(fix, DisplacementFix):
             return self._correct_displacement(fix)
         z = np.asarray(fix.pos_enu, float)[:2]
-        rho = self.cfg.fix_correlation.get(fix.source.value, 0.0)
-        R = np.asarray(fix.cov, float)[:2, :2] * (1.0 + rho) / (1.0 - rho)
+        R = correlated_fix_cov(np.asarray(fix.cov, float)[:2, :2], fix, self.cfg.fix_correlation)
         if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
             raise ValueError("a fix needs a finite position and a positive-definite covariance")
         if not self.initialised:
@@ -229,8 +228,7 @@ class ParticleFusion:
         self._rejected_run = 0
         self._weigh(self._likelihood(z, p_then, R))
         self.t = max(self.t, fix.t)
-        if fix.floor is not None and (self.floor is None or (fix.floor != self.floor and fix.floor_prob >= self.cfg.floor_switch)):
-            self.floor = fix.floor
+        self.floor = floor_after_fix(self.floor, fix, self.cfg.floor_switch)
         return True, self.estimate("fix")
 
     def _gated(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:

@@ -61,51 +61,45 @@ class PhoneEvalResult:
     turn_err_rad: np.ndarray = field(default_factory=lambda: np.zeros(0))  # signed turn error, rad
 
 
+def _binned_variance_fit(u: np.ndarray, e: np.ndarray, bins: int) -> tuple[float, float]:
+    """Robust fit of E[e^2] = a + b u (a, b >= 0): the samples in ``bins`` groups of equal count by u;
+    in each, the median of e^2 / 0.455 (the median of a chi-square with one degree of freedom)
+    estimates E[e^2] despite gross outliers; a non-negative least-squares line through (mean u, that).
+    Returns (sqrt a, sqrt b); NaNs with fewer than 3 samples a bin."""
+    from scipy.optimize import nnls
+
+    if len(e) < 3 * bins:
+        return float("nan"), float("nan")
+    groups = np.array_split(np.argsort(u), bins)
+    A = np.array([[1.0, float(np.mean(u[g]))] for g in groups])
+    y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
+    coef, _ = nnls(A, y)
+    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+
+
 def decompose_segment_errors(true_m: np.ndarray, err_m: np.ndarray, bins: int = 5) -> tuple[float, float]:
     """Split segment length errors into a part fixed per segment and a part proportional to length.
 
     Model: e = n_end + s D, with n_end ~ (0, sigma_end^2) (where and when the walker marked each
     waypoint, and where the step track is cut at the mark times: neither grows with the segment)
-    and s ~ (0, sigma_rel^2) (the PDR's step-length scale), so E[e^2] = sigma_end^2 + sigma_rel^2 D^2.
-    Fitted robustly (a few segments are off by tens of metres): segments in ``bins`` groups of equal
-    count by D; in each, the median of e^2 / 0.455 (median of a chi-square with one degree of freedom)
-    estimates E[e^2]; a non-negative least-squares line through (mean D^2, that) gives both sigmas.
-    Returns (sigma_end in m, sigma_rel as a fraction).
+    and s ~ (0, sigma_rel^2) (the PDR's step-length scale), so E[e^2] = sigma_end^2 + sigma_rel^2 D^2,
+    fitted robustly (a few segments are off by tens of metres) by :func:`_binned_variance_fit` with
+    u = D^2. Returns (sigma_end in m, sigma_rel as a fraction).
     """
-    from scipy.optimize import nnls
-
     D = np.asarray(true_m, float)
-    e = np.asarray(err_m, float)
-    if len(D) < 3 * bins:
-        return float("nan"), float("nan")
-    order = np.argsort(D)
-    groups = np.array_split(order, bins)
-    A = np.array([[1.0, float(np.mean(D[g] ** 2))] for g in groups])
-    y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
-    coef, _ = nnls(A, y)
-    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+    return _binned_variance_fit(D**2, np.asarray(err_m, float), bins)
 
 
 def decompose_turn_errors(lengths_m: np.ndarray, err_rad: np.ndarray, bins: int = 5) -> tuple[float, float]:
     """Split turn errors into the PDR's own and what the waypoint marks put into the truth.
 
     A segment's true direction comes from two marks each off by ~sigma_mark across the segment, so it
-    errs by ~sqrt(2) sigma_mark / D; a turn takes two segments: E[e^2] = sigma_turn^2 + 2 sigma_mark^2 u
-    with u = 1/D1^2 + 1/D2^2. Fitted as :func:`decompose_segment_errors` (binned medians of e^2 / 0.455,
-    non-negative least squares). Returns (sigma_turn in rad, sigma_mark in m).
+    errs by ~sqrt(2) sigma_mark / D; a turn takes two segments: E[e^2] = sigma_turn^2 + sigma_mark^2 u
+    with u = 2 (1/D1^2 + 1/D2^2), fitted by :func:`_binned_variance_fit`. Returns (sigma_turn in rad,
+    sigma_mark in m).
     """
-    from scipy.optimize import nnls
-
     Ls = np.asarray(lengths_m, float).reshape(-1, 2)
-    e = np.asarray(err_rad, float)
-    if len(e) < 3 * bins:
-        return float("nan"), float("nan")
-    u = 1.0 / Ls[:, 0] ** 2 + 1.0 / Ls[:, 1] ** 2
-    groups = np.array_split(np.argsort(u), bins)
-    A = np.array([[1.0, 2.0 * float(np.mean(u[g]))] for g in groups])
-    y = np.array([float(np.median(e[g] ** 2)) / 0.455 for g in groups])
-    coef, _ = nnls(A, y)
-    return float(np.sqrt(coef[0])), float(np.sqrt(coef[1]))
+    return _binned_variance_fit(2.0 * (1.0 / Ls[:, 0] ** 2 + 1.0 / Ls[:, 1] ** 2), np.asarray(err_rad, float), bins)
 
 
 def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceRun], list[str]]:
@@ -172,9 +166,10 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
             d_true = r.wp_xy[k + 1] - r.wp_xy[k]
             ok = D >= MIN_SEGMENT_M
             if ok:
-                len_err.append(abs(float(np.linalg.norm(d_est)) - D) / D)
+                est_len = float(np.linalg.norm(d_est))
+                len_err.append(abs(est_len - D) / D)
                 if seg is not None:
-                    seg.append((D, float(np.linalg.norm(d_est)) - D))
+                    seg.append((D, est_len - D))
             lens.append(D)
             true_dirs.append(math.atan2(d_true[1], d_true[0]) if ok else None)
             est_dirs.append(math.atan2(d_est[1], d_est[0]) if ok and np.linalg.norm(d_est) > 0.5 else None)

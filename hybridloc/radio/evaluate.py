@@ -125,12 +125,11 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
                 fh.append(r.fix is not None and r.fix.floor == t.floor)
                 e.append(float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if r.fix is not None and r.fix.floor == t.floor else float("nan"))
     cov = np.array(covered, bool)
-    out = {}
+    out: dict = {"covered_share": float(cov.mean())}
     for n, v in res.items():
         e, fh, bh = np.array(v[0]), np.array(v[1], bool), np.array(v[2], bool)
-        out[n] = {"errors": e, "floor": float(fh.mean()), "building": float(bh.mean()),
-                  "covered": {"errors": e[cov], "floor": float(fh[cov].mean()), "building": float(bh[cov].mean())}}
-    out["covered_share"] = float(cov.mean())
+        out[n] = {sub: {"errors": e[m], "floor": float(fh[m].mean()), "building": float(bh[m].mean())}
+                  for sub, m in (("all", np.ones(len(e), bool)), ("covered", cov))}
     return out
 
 
@@ -145,14 +144,12 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1) -> 
             raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
         r = evaluate_uji(uji)
         print(f"UJIIndoorLoc {uji}: cross-validation grouped by user (validationData.csv is not available here)")
-        for subset, title in ((None, "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
+        for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
             print(f"  {title}:")
             for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
-                v = r[name] if subset is None else r[name][subset]
+                v = r[name][subset]
                 print(f"    {label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
-            eo = (r["ours"] if subset is None else r["ours"][subset])["errors"]
-            ep = (r["plain"] if subset is None else r["plain"][subset])["errors"]
-            print(f"    ratio of mean error ours/plain: {np.nanmean(eo) / np.nanmean(ep):.2f}")
+            print(f"    ratio of mean error ours/plain: {np.nanmean(r['ours'][subset]['errors']) / np.nanmean(r['plain'][subset]['errors']):.2f}")
         print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
     if ilc:
         if not Path(ilc).is_dir():

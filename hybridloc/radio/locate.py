@@ -331,10 +331,9 @@ class KnnLocator:
                 continue
             b = int(np.argmax(fprob[i]))
             fl = self.classes_[b]
-            nb = idx[i][self.floors[idx[i]] == fl]
-            dd = dist[i][self.floors[idx[i]] == fl]
-            w = 1.0 / np.maximum(dd, 1e-9)
-            w /= w.sum()
+            on = self._floor_code[idx[i]] == b  # the neighbours on the chosen floor
+            nb = idx[i][on]
+            w = w_all[i][on] / w_all[i][on].sum()
             mean = w @ self.pos[nb]
             dxy = self.pos[nb] - mean
             # neighbours' spread + their labels' uncertainty + a floor for what the neighbours cannot

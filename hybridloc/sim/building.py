@@ -80,12 +80,7 @@ class World:
     def component(self) -> np.ndarray:
         """Connected component of every graph node (a real plan without stairs data has one per floor)."""
         if self._comp is None:
-            from scipy.sparse.csgraph import connected_components
-
-            n = len(self.nodes)
-            rows = [i for i, _ in self.edges]
-            cols = [j for _, j in self.edges]
-            _, self._comp = connected_components(csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)
+            self._comp = graph_components(len(self.nodes), self.edges)
         return self._comp
 
     def inside(self, pos: np.ndarray) -> np.ndarray:
@@ -225,6 +220,13 @@ def walkable_points(world: World, floor: int, pts: np.ndarray) -> np.ndarray:
     return shapely.contains_xy(world.plan.floors[floor].walkable, pts[:, 0], pts[:, 1])
 
 
+def graph_components(n: int, edges: list[tuple[int, int]]) -> np.ndarray:
+    """Connected-component label of each of ``n`` nodes of an undirected graph."""
+    from scipy.sparse.csgraph import connected_components
+
+    rows = [a for a, _ in edges]
+    cols = [b for _, b in edges]
+    return connected_components(csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)[1]
 
 
 def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, spacing: float = 2.0, origin: GeodeticOrigin | None = None,
@@ -309,7 +311,7 @@ def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, sp
         pts = np.array(nodes, float)[fn, :2]
         # shop fronts: the free-space node nearest each room is where walkers go
         if fl.rooms and len(pts):
-            for k, (name, poly) in enumerate(fl.rooms):
+            for name, poly in fl.rooms:
                 d = shapely.distance(poly, shapely.points(pts))
                 j = int(np.argmin(d))
                 if d[j] > 3.0 * spacing:
@@ -347,10 +349,7 @@ def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, sp
     # entrance on the ground floor: the outline point nearest to a free-space node, 12 m out of doors
     g = min(floor_nodes) if 0 not in floor_nodes else 0
     outline = plan.floors[g].outline
-    from scipy.sparse.csgraph import connected_components
-
-    n = len(nodes)
-    _, comp = connected_components(csr_matrix((np.ones(len(edges)), ([a for a, _ in edges], [b for _, b in edges])), shape=(n, n)), directed=False)
+    comp = graph_components(len(nodes), edges)
     main = np.bincount(comp[floor_nodes[g]]).argmax()  # the entrance opens onto the ground floor's main concourse
     floor_nodes[g] = floor_nodes[g][comp[floor_nodes[g]] == main]
     gp = P[floor_nodes[g], :2]
