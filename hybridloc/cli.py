@@ -114,9 +114,19 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
         print(f"{m:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
               f"{np.median(r.turn_err_deg):8.1f}d {np.percentile(r.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {r.n_segments:5d}")
     main_m = res[args.model]
+    andr = evaluate_phone_pdr(paths, args.model, cfg, runs=runs, heading="android")
+    if andr.n_segments:
+        coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in andr.coefs)
+        wp = summarize_errors(andr.wp_err)
+        print(f"{'+android':<10} {coef:<34} {100 * np.median(andr.length_rel_err):7.1f}% {100 * np.percentile(andr.length_rel_err, 90):7.1f}% "
+              f"{np.median(andr.turn_err_deg):8.1f}d {np.percentile(andr.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {andr.n_segments:5d}")
     print(f"\n{args.model}: segment length error median {100 * np.median(main_m.length_rel_err):.1f}% (goal <= 5%), "
           f"90th pct {100 * np.percentile(main_m.length_rel_err, 90):.1f}% (goal <= 15%); heading-change error median "
           f"{np.median(main_m.turn_err_deg):.1f} deg (goal <= 8); error at waypoints from the first one: {summarize_errors(main_m.wp_err)}")
+    if andr.n_segments:
+        print(f"heading against Android's own fused attitude (+android: {args.model} lengths, our steps, heading from TYPE_ROTATION_VECTOR "
+              f"on {andr.n_traces} traces): heading-change error median {np.median(andr.turn_err_deg):.1f} deg, ratio ours/Android "
+              f"{np.median(main_m.turn_err_deg) / np.median(andr.turn_err_deg):.2f}; mean error at waypoints ratio {np.mean(main_m.wp_err) / np.mean(andr.wp_err):.2f}")
     base = np.median(res["constant"].length_rel_err)
     print(f"ratio of median length error {args.model} / constant-length baseline: {np.median(main_m.length_rel_err) / base:.2f}")
     print(f"{main_m.n_steps} steps over {main_m.walked_m:.0f} m of waypoint-to-waypoint walking")

@@ -244,3 +244,30 @@ def test_turn_error_decomposition_recovers_both_parts():
     got_turn, got_mark = decompose_turn_errors(L, e)
     assert got_turn == pytest.approx(s_turn, rel=0.15)
     assert got_mark == pytest.approx(s_mark, rel=0.15)
+
+
+def test_android_step_headings_match_our_forward_heading():
+    """Android's rotation vector goes through the same "forward" as our filter: a phone held flat and
+    yawed by psi from facing North points at heading pi/2 + psi (CCW from East); per step the
+    circular mean over the step's interval (continuous across +-pi)."""
+    from hybridloc.pdr.attitude import forward_heading_of, forward_headings
+    from hybridloc.pdr.evaluate import android_step_headings
+    from hybridloc.types import StepEvent
+
+    t = np.arange(0.0, 10.0, 0.02)
+    yaw = np.where(t < 5.0, 0.3, 0.3 + math.pi / 2)  # a left turn of 90 deg at t = 5 s: heading crosses +pi
+    tilt = 20 * DEG  # pitched up, as a phone read while walking
+    # q = q_yaw(z) * q_pitch(x): body-to-nav, nav ENU with y toward North
+    cz, sz, cx, sx = np.cos(yaw / 2), np.sin(yaw / 2), math.cos(tilt / 2), math.sin(tilt / 2)
+    q = np.column_stack([cz * cx, cz * sx, sz * sx, sz * cx])
+    h = forward_headings(q)
+    for i in (0, 249, 250, 499):  # the vectorised form equals the filter's own, per sample
+        assert abs(h[i] - forward_heading_of(quat_to_rot(q[i]))) < 1e-12
+    assert abs(h[0] - (math.pi / 2 + 0.3)) < 1e-9
+    steps = [StepEvent(float(ts), 0.7, 0.0, 0.1, 0.1) for ts in np.arange(0.6, 9.9, 0.6)]
+    got = android_step_headings(steps, t, q)
+    want = np.array([math.pi / 2 + (0.3 if s.t < 5.0 else 0.3 + math.pi / 2) for s in steps])
+    err = np.abs((got - want + math.pi) % (2 * math.pi) - math.pi)
+    straddles = np.array([steps[i - 1].t < 5.0 <= steps[i].t if i else False for i in range(len(steps))])
+    assert err[~straddles].max() < 1e-9  # steps within one heading: exact
+    assert err[straddles].max() < math.pi / 2  # the step over the turn: between the two

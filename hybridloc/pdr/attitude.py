@@ -26,6 +26,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..units import DEG, G0
 
 
@@ -75,6 +77,21 @@ def quat_to_rot(q):
         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
         (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
     )
+
+
+def forward_heading_of(R) -> float:
+    """Heading (rad, CCW from nav East) of a phone's forward direction given R_body_to_nav: the
+    horizontal projection of body +y (top edge, phone flat) plus body -z (back, phone upright)."""
+    return math.atan2(R[1][1] - R[1][2], R[0][1] - R[0][2])
+
+
+def forward_headings(quat_wxyz):
+    """:func:`forward_heading_of` for an (N, 4) array of body-to-nav quaternions (e.g. Android's
+    rotation vector, whose nav frame is the same ENU with y toward magnetic North)."""
+    w, x, y, z = np.asarray(quat_wxyz, float).T
+    r01, r02 = 2 * (x * y - w * z), 2 * (x * z + w * y)
+    r11, r12 = 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    return np.arctan2(r11 - r12, r01 - r02)
 
 
 def rot_to_quat(R):
@@ -251,10 +268,7 @@ class AttitudeFilter:
         the phone when it is held upright (body -z); their horizontal projections are summed so the
         heading stays continuous as the phone tilts between the two.
         """
-        R = quat_to_rot(self.q)
-        fx = R[0][1] - R[0][2]
-        fy = R[1][1] - R[1][2]
-        return math.atan2(fy, fx)
+        return forward_heading_of(quat_to_rot(self.q))
 
     def vertical_accel(self, acc) -> float:
         """Vertical (nav up) component of specific force minus g, m/s^2."""

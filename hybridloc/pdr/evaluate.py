@@ -26,6 +26,7 @@ from ..io.msft import read_ilc_trace
 from ..metrics import oracle_start_errors
 from ..types import StepEvent
 from ..units import wrap_angle
+from .attitude import forward_headings
 from .phone import PhonePdr, PhonePdrConfig
 from .steplength import LengthCalibrator, StepFeatures, make_model
 
@@ -40,6 +41,28 @@ class TraceRun:
     features: list[StepFeatures]
     wp_t: np.ndarray
     wp_xy: np.ndarray
+    #: per step, the phone's forward heading from Android's own fused attitude (TYPE_ROTATION_VECTOR),
+    #: circular mean over the step; None when the recording has no rotation vector
+    android_heading: np.ndarray | None = None
+
+
+def android_step_headings(steps: list[StepEvent], rv_t: np.ndarray, rv_quat_wxyz: np.ndarray) -> np.ndarray:
+    """Android's forward heading per step: the circular mean over the step's interval (previous step
+    to this one) of :func:`~.attitude.forward_headings` of the rotation vector, the nearest sample
+    when none falls inside. The same "forward" as our own estimator's, so the two differ only in the
+    attitude filter."""
+    h = forward_headings(rv_quat_wxyz)
+    c, s = np.cumsum(np.concatenate([[0.0], np.cos(h)])), np.cumsum(np.concatenate([[0.0], np.sin(h)]))
+    ts = np.array([st.t for st in steps])
+    lo = np.searchsorted(rv_t, np.concatenate([[ts[0] - 0.5], ts[:-1]]) if len(ts) else ts, side="right")
+    hi = np.searchsorted(rv_t, ts, side="right")
+    out = np.empty(len(ts))
+    for i in range(len(ts)):
+        if hi[i] > lo[i]:
+            out[i] = math.atan2(s[hi[i]] - s[lo[i]], c[hi[i]] - c[lo[i]])
+        else:
+            out[i] = h[min(int(np.searchsorted(rv_t, ts[i])), len(h) - 1)]
+    return out
 
 
 @dataclass
@@ -112,7 +135,10 @@ def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceR
             continue
         pdr = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), config, heading0=0.0)
         pdr.process(tr.imu)
-        runs.append(TraceRun(Path(p).name, list(pdr.steps), list(pdr.features), tr.waypoints.t, tr.waypoints.pos_enu))
+        steps = list(pdr.steps)
+        rv = tr.rotation_vector
+        android = android_step_headings(steps, rv[0], rv[1]) if rv is not None and len(rv[0]) and steps else None
+        runs.append(TraceRun(Path(p).name, steps, list(pdr.features), tr.waypoints.t, tr.waypoints.pos_enu, android))
     return runs, skipped
 
 
@@ -128,11 +154,12 @@ def _segments(run: TraceRun):
     return out
 
 
-def _track(run: TraceRun, lengths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Step times (with a start 1 s before the first step) and positions from lengths and headings."""
+def _track(run: TraceRun, lengths: np.ndarray, heading: str = "ours") -> tuple[np.ndarray, np.ndarray]:
+    """Step times (with a start 1 s before the first step) and positions from lengths and headings
+    (``heading``: "ours", the steps' own, or "android", the rotation vector's)."""
     if not run.steps:
         return np.array([run.wp_t[0]]), np.zeros((1, 2))
-    h = np.array([s.heading for s in run.steps])
+    h = np.array([s.heading for s in run.steps]) if heading == "ours" else run.android_heading
     t = np.concatenate([[min(run.steps[0].t - 1.0, run.wp_t[0])], [s.t for s in run.steps]])
     d = np.column_stack([lengths * np.cos(h), lengths * np.sin(h)])
     return t, np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
@@ -152,13 +179,13 @@ def fit_model(runs: list[TraceRun], model_name: str):
     return cal.model
 
 
-def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None) -> tuple[list[float], list[float], list[float]]:
+def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None, heading: str = "ours") -> tuple[list[float], list[float], list[float]]:
     """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m),
-    ``turns`` (D before, D after, error in rad) of each scored turn."""
+    ``turns`` (D before, D after, error in rad) of each scored turn; ``heading`` as in :func:`_track`."""
     len_err, turn_err, wp_err = [], [], []
     for r in runs:
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
-        t, p = _track(r, L)
+        t, p = _track(r, L, heading)
         wp_est = _interp(t, p, r.wp_t)
         true_dirs, est_dirs, lens = [], [], []
         for k, t0, t1, D, idx in _segments(r):
@@ -185,17 +212,22 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
     return len_err, turn_err, wp_err
 
 
-def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: PhonePdrConfig | None = None, runs=None) -> PhoneEvalResult:
+def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: PhonePdrConfig | None = None, runs=None, heading: str = "ours") -> PhoneEvalResult:
+    """Scores of one length model, cross-fitted over two halves of the traces. ``heading="android"``
+    replaces our heading by Android's rotation vector (same steps and lengths) on the traces that
+    have one: the public estimator doing the same job, for the ratio."""
     config = config or PhonePdrConfig()
     skipped: list[str] = []
     if runs is None:
         runs, skipped = collect_runs(paths, config)
+    if heading == "android":
+        runs = [r for r in runs if r.android_heading is not None]
     folds = [runs[0::2], runs[1::2]]
     L, T, W, coefs, seg, turns = [], [], [], [], [], []
     for i in (0, 1):
         model = fit_model(folds[1 - i], model_name)  # learned on the other half
         coefs.append([float(c) for c in model.coef])
-        le, te, we = score(folds[i], model, seg, turns)
+        le, te, we = score(folds[i], model, seg, turns, heading)
         L += le
         T += te
         W += we
