@@ -320,7 +320,7 @@ def _cmd_sim_walk(args: argparse.Namespace) -> int:
 def _cmd_eval_sim_realism(args: argparse.Namespace) -> int:
     from .sim.evaluate import run_sim_realism
 
-    return run_sim_realism(args.ilc, args.walkers, args.minutes, args.every)
+    return run_sim_realism(args.ilc, args.walkers, args.minutes, args.every, args.seed)
 
 
 def _security(args: argparse.Namespace):
@@ -709,6 +709,7 @@ def build_parser() -> argparse.ArgumentParser:
     esr.add_argument("--walkers", type=int, default=60, help="simulated walkers (default 60: ~11 min of phone handling, for a steady false-step rate)")
     esr.add_argument("--minutes", type=float, default=5.0)
     esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
+    esr.add_argument("--seed", type=int, default=1, help="simulated building and walkers (1 is the default; others are fresh samples)")
     esr.set_defaults(func=_cmd_eval_sim_realism)
 
     efu = esub.add_parser("fusion", help="PDR only, WiFi only and fused at waypoints, through the real client and server path")

@@ -108,6 +108,24 @@ def test_handling_gives_at_most_one_false_step_per_minute():
     assert np.mean(counts) <= 1.0, counts
 
 
+def test_handling_right_before_walking_off_adds_no_steps():
+    """Steps are held back until walking is confirmed, then released; candidates left by a phone
+    handled just before the walk (irregular, every axis shaken) must not be released with them."""
+    false_before, count_err = [], []
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        walk, n_true = synth_walk(rng, seconds=30.0, still=12.0, mag=False)
+        hand = _handling(seed)
+        m = int(11.0 * RATE)  # handled until 1 s before the first step
+        acc, gyr = walk.accel_body.copy(), walk.gyro_body.copy()
+        acc[:m], gyr[:m] = hand.accel_body[:m], hand.gyro_body[:m]
+        steps, _ = run_phone_pdr(ImuBlock(walk.t, acc, gyr))
+        false_before.append(sum(s.t < 12.0 for s in steps))
+        count_err.append(len(steps) - n_true)
+    assert np.mean(false_before) <= 0.5, false_before  # at most one every other walk-off
+    assert max(abs(c) for c in count_err) <= 3, count_err  # the walk itself is still counted
+
+
 def test_streaming_equals_batch():
     rng = np.random.default_rng(3)
     imu, _ = synth_walk(rng, seconds=20.0)

@@ -71,15 +71,15 @@ def pdr_on_sim(walks, imus) -> dict:
             "standing_min": still_min, "handling_min": handling_min, "false_standing": false_steps, "false_handling": handling_steps}
 
 
-def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int) -> int:
+def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: int = 1) -> int:
     rng = np.random.default_rng(0)
-    world, sim_lab, walks, imus, ap_pos = simulated_sample(walkers, minutes)
+    world, sim_lab, walks, imus, ap_pos = simulated_sample(walkers, minutes, seed)
     sim_slopes_crowd = rssi_slopes(sim_lab)
     sim_slopes_true = rssi_slopes(sim_lab, ap_pos)
     sim_sim = similarity_by_distance(sim_lab, rng)
     sim_freq = np.array([1.0 / np.median(np.diff([s.t for s in w.steps])) for w in walks if len(w.steps) > 5])
     sim_peaks = np.concatenate([spectrum_peaks(imu, walking_mask(w, imu.t)) for w, imu in zip(walks, imus)])
-    print(f"simulated: {walkers} walkers x {minutes:g} min in a generated 3-floor building (seed 1)")
+    print(f"simulated: {walkers} walkers x {minutes:g} min in a generated 3-floor building (seed {seed})")
     have_real = bool(ilc) and Path(ilc).is_dir()
     if have_real:
         from ..radio.evaluate import load_site_surveys
