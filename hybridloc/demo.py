@@ -210,7 +210,8 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     with the server's answers. The same steps and fixes, in the order they reached each client, are
     then replayed (:func:`hybridloc.fusion.run_fusion`) through the particle filter with the site's map
     and through Kourogi et al.'s own filter (:class:`~hybridloc.fusion.KourogiFusion`, the reference),
-    cold and started at the first waypoint (a known start, e.g. an entrance, as PDR only has).
+    cold and started at the first waypoint (a known start, e.g. an entrance, as PDR only has), and
+    through the particle filter without any map (what the floor plan and the walk prior add).
     """
     from .fusion import KourogiFusion, LocalFusion, ParticleFusion, WalkPrior
     from .io.msft import read_ilc_site
@@ -234,7 +235,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     prior = WalkPrior.from_radio_map(rmap, read_ilc_site(site_dir))
     names = ["PDR only (oracle start pose)", "WiFi only (server fixes)", "fused, Kalman, live", "fused, particle + map",
              "fused, Kalman, start pose known", "fused, particle, start pose known",
-             "Kourogi x/y/vx/vy (paper), cold", "Kourogi x/y/vx/vy, start known"]
+             "Kourogi x/y/vx/vy (paper), cold", "Kourogi x/y/vx/vy, start known", "fused, particle, no map"]
     errs: dict[str, list] = {k: [] for k in names}  # per waypoint after the first, NaN where a method has no answer
     floors: dict[str, list] = {k: [] for k in names[2:]}
     lags = []
@@ -245,7 +246,8 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         errs[names[0]] += (e_pdr if e_pdr.size == nw else np.full(nw, np.nan)).tolist()
         errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
-        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r), names[6]: _replay(KourogiFusion(), r)}
+        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r), names[6]: _replay(KourogiFusion(), r),
+                    names[8]: _replay(ParticleFusion(), r)}  # what the floor plan and walk prior add
         start = _known_start(r, tr)
         if start:
             variants[names[4]] = _replay(LocalFusion(**start), r)
