@@ -134,7 +134,17 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
     return sorted(results, key=lambda x: x[1].device)
 
 
-def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4) -> int:
+def bundled_split(sample: Path = ILC_SITE1_F1):
+    """(surveys, clients, plan) of the bundled sample: the walks listed in its ``clients.txt`` (the
+    four longest, see scripts/make_demo_sample.py) are the phone clients, all others the surveys."""
+    traces = find_ilc_traces(sample)
+    listed = sample / "clients.txt"
+    names = set(listed.read_text().split()) if listed.is_file() else set()
+    others = [t for t in traces if t.name in names] or traces[3::4]
+    return [t for t in traces if t not in others], others, read_ilc_site(sample)
+
+
+def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4, sample: Path = ILC_SITE1_F1) -> int:
     t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     if sim:
@@ -146,10 +156,9 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         simulate_walks(load_world(str(site_dir)), 12, 3.0, "phone", str(walks_dir), seed=7)
         traces = sorted(walks_dir.glob("w*.txt.gz"))
         plan = read_ilc_site(site_dir)
+        survey, others = traces[::2] + traces[1::4], traces[3::4]
     else:
-        traces = find_ilc_traces(ILC_SITE1_F1)
-        plan = read_ilc_site(ILC_SITE1_F1)
-    survey, others = traces[::2] + traces[1::4], traces[3::4]
+        survey, others, plan = bundled_split(sample)
     results = run_pipeline(survey, others, out, speed, workers)
     from .fusion import LocalFusion
 
