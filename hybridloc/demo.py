@@ -248,6 +248,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     errs: dict[str, list] = {k: [] for k in names}  # per waypoint after the first, NaN where a method has no answer
     floors: dict[str, list] = {k: [] for k in names[2:]}
     lags = []
+    since: list[float] = []  # per waypoint (after the first): seconds since the walk's first waypoint
     for tr, r in results:
         wt, wxy = tr.waypoints.t, tr.waypoints.pos_enu
         nw = max(len(wt) - 1, 0)
@@ -255,6 +256,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         errs[names[0]] += (e_pdr if e_pdr.size == nw else np.full(nw, np.nan)).tolist()
         errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
+        since += (np.asarray(wt[1:]) - wt[0]).tolist()
         variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r), names[6]: _replay(KourogiFusion(), r),
                     names[8]: _replay(ParticleFusion(), r)}  # what the floor plan and walk prior add
         start = _known_start(r, tr)
@@ -281,6 +283,14 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
             mp, mw, mf = E[names[0]][m].mean(), E[names[1]][m].mean(), E[k][m].mean()
             print(f"  on the {int(m.sum())} waypoints all three answer: {k} {mf:.2f} m, {_rel(mf, mw)} WiFi only ({mw:.2f}), "
                   f"{_rel(mf, mp)} PDR only ({mp:.2f})")
+    # PDR drifts with time, WiFi does not: the same means by how long the walk had been going
+    T = np.asarray(since)
+    bins = ((0, 10), (10, 20), (20, 40), (40, math.inf))
+    print("  mean error by time since the walk's first waypoint (s): " + "  ".join(f"{a:g}-{b:g}" for a, b in bins) + "   (waypoints: "
+          + ", ".join(str(int(((T >= a) & (T < b)).sum())) for a, b in bins) + ")")
+    for k in (names[0], names[1], names[2], names[4]):
+        e = E[k]
+        print(f"    {k:<32}" + "  ".join(f"{np.nanmean(e[(T >= a) & (T < b)]):6.2f}" if np.isfinite(e[(T >= a) & (T < b)]).any() else "     -" for a, b in bins))
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
     return 0
 
