@@ -14,6 +14,9 @@ from pathlib import Path
 
 from . import __version__
 
+#: step length models of ``pdr phone --model`` and ``eval pdr-phone --model`` (hybridloc.pdr.steplength.MODELS)
+LENGTH_MODELS = ("constant", "weinberg", "frequency", "kim", "height")
+
 log = logging.getLogger("hybridloc")
 
 
@@ -106,7 +109,7 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
           "lengths calibrated by 2-fold cross-fitting over traces")
     print(f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}")
     res = {}
-    for m in ("constant", "weinberg", "frequency", "kim"):
+    for m in LENGTH_MODELS:
         r = evaluate_phone_pdr(paths, m, cfg, runs=runs)
         res[m] = r
         coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in r.coefs)
@@ -544,7 +547,7 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--start", default="0,0,0", help="initial pose x,y,heading (m, m, rad or e.g. 90deg); default 0,0,0")
     ph.add_argument("--format", choices=("msft", "csv"), help="input format (detected by default)")
     ph.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
-    ph.add_argument("--model", choices=("constant", "weinberg", "frequency", "kim"), default="weinberg", help="step length model (default weinberg)")
+    ph.add_argument("--model", choices=LENGTH_MODELS, default="height", help="step length model (default height: Kim's on the bounce height)")
     ph.add_argument("--calibration", help="a per-device calibration JSON (LengthCalibrator.save) to use instead of --model defaults")
     ph.add_argument("--detector", choices=("peak", "autocorr"), default="peak", help="step detector family (default peak)")
     ph.add_argument("--offset", type=float, default=0.0, help="walking direction minus device heading, rad (phone in pocket/bag)")
@@ -688,7 +691,7 @@ def build_parser() -> argparse.ArgumentParser:
     esub = ev.add_subparsers(dest="eval_command", required=True)
     ep = esub.add_parser("pdr-phone", help="phone PDR against waypoints of Indoor Location Competition traces")
     ep.add_argument("dir", help="a site or floor folder, e.g. ../shared/data/msft-ilc/site1")
-    ep.add_argument("--model", choices=("constant", "weinberg", "frequency", "kim"), default="weinberg")
+    ep.add_argument("--model", choices=LENGTH_MODELS, default="height")
     ep.add_argument("--detector", choices=("peak", "autocorr"), default="peak")
     ep.add_argument("--every", type=int, default=1, help="use every N-th trace (default all)")
     ep.set_defaults(func=_cmd_eval_pdr_phone)

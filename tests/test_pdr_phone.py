@@ -206,6 +206,29 @@ def test_kim_model_uses_the_mean_vertical_acceleration_and_calibrates():
     assert cal.model.coef[0] == pytest.approx(K, rel=0.01)
 
 
+def test_bounce_height_model_is_kim_on_the_bounce_height():
+    """L = K (mean |a_v| T^2)^(1/3): a sinusoidal bounce z = h sin(2 pi t / T) has mean |a_v| =
+    (2 / pi) h (2 pi / T)^2 = 8 pi h / T^2, so the regressor is (8 pi h)^(1/3) whatever the cadence:
+    the same bounce height gives the same step at 1.5 and at 2.2 steps/s (Kim's model would not)."""
+    from hybridloc.pdr.steplength import BounceHeightLength, KimLength, make_model
+
+    h = 0.04  # m, a typical walking bounce
+    feats = [StepFeatures(T, 0.0, 8 * math.pi * h / T**2) for T in (1 / 1.5, 1 / 2.2)]
+    m = make_model("height", [0.7])
+    assert isinstance(m, BounceHeightLength)
+    L = [m.length(f) for f in feats]
+    assert L[0] == pytest.approx(L[1], rel=1e-12) and L[0] == pytest.approx(0.7 * (8 * math.pi * h) ** (1 / 3), rel=1e-12)
+    kim = [KimLength(0.46).length(f) for f in feats]
+    assert kim[1] / kim[0] == pytest.approx((2.2 / 1.5) ** (2 / 3), rel=1e-9)  # Kim grows with cadence alone
+    rng = np.random.default_rng(11)
+    cal = LengthCalibrator(BounceHeightLength(0.5), forgetting=1.0)
+    for _ in range(40):  # same RLS as every model: recovers K from segments of known length
+        fs = [StepFeatures(float(T), 5.0, float(a)) for T, a in zip(rng.uniform(0.45, 0.65, 20), rng.uniform(0.8, 3.0, 20))]
+        D = sum(0.7 * (f.mean_abs * f.duration**2) ** (1 / 3) for f in fs) + 0.05 * rng.standard_normal()
+        cal.update(fs, D, sigma_distance=0.05)
+    assert cal.model.coef[0] == pytest.approx(0.7, rel=0.01)
+
+
 @pytest.mark.shared_data
 def test_real_traces_give_human_step_lengths(ilc_site1, tmp_path):
     import subprocess

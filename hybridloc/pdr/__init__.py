@@ -1,6 +1,6 @@
 """Pedestrian dead reckoning: smartphone step-and-heading (:mod:`.phone`)."""
 
 from .phone import PhonePdr, PhonePdrConfig, dead_reckon, run_phone_pdr
-from .steplength import ConstantLength, FrequencyLength, KimLength, LengthCalibrator, WeinbergLength, make_model
+from .steplength import BounceHeightLength, ConstantLength, FrequencyLength, KimLength, LengthCalibrator, WeinbergLength, make_model
 
-__all__ = ["PhonePdr", "PhonePdrConfig", "dead_reckon", "run_phone_pdr", "ConstantLength", "FrequencyLength", "KimLength", "WeinbergLength", "LengthCalibrator", "make_model"]
+__all__ = ["PhonePdr", "PhonePdrConfig", "dead_reckon", "run_phone_pdr", "ConstantLength", "FrequencyLength", "KimLength", "BounceHeightLength", "WeinbergLength", "LengthCalibrator", "make_model"]

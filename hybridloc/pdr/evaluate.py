@@ -133,7 +133,7 @@ def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceR
         if tr.imu is None or len(tr.waypoints) < 2:
             skipped.append(f"{Path(p).name}: no IMU or fewer than 2 waypoints")
             continue
-        pdr = PhonePdr(tr.imu.rate_hz, make_model("weinberg"), config, heading0=0.0)
+        pdr = PhonePdr(tr.imu.rate_hz, make_model("height"), config, heading0=0.0)
         pdr.process(tr.imu)
         steps = list(pdr.steps)
         rv = tr.rotation_vector
@@ -212,7 +212,7 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
     return len_err, turn_err, wp_err
 
 
-def evaluate_phone_pdr(paths: list[Path], model_name: str = "weinberg", config: PhonePdrConfig | None = None, runs=None, heading: str = "ours") -> PhoneEvalResult:
+def evaluate_phone_pdr(paths: list[Path], model_name: str = "height", config: PhonePdrConfig | None = None, runs=None, heading: str = "ours") -> PhoneEvalResult:
     """Scores of one length model, cross-fitted over two halves of the traces. ``heading="android"``
     replaces our heading by Android's rotation vector (same steps and lengths) on the traces that
     have one: the public estimator doing the same job, for the ratio."""

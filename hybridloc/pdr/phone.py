@@ -34,7 +34,7 @@ from scipy import signal
 from ..types import ImuBlock, StepEvent, Trajectory
 from ..units import DEG, wrap_angle
 from .attitude import AttitudeConfig, AttitudeFilter
-from .steplength import LengthModel, StepFeatures, WeinbergLength
+from .steplength import BounceHeightLength, LengthModel, StepFeatures
 
 
 #: a one-step NASC peak at least this share of the best (stride) peak is taken as the period
@@ -90,7 +90,7 @@ class PhonePdr:
             raise ValueError(f"unknown step detector {config.detector!r}")
         self.cfg = config or PhonePdrConfig()
         self.rate = rate_hz
-        self.model = length_model or WeinbergLength()
+        self.model = length_model or BounceHeightLength()
         self.att = AttitudeFilter(self.cfg.attitude)
         b, a = signal.butter(2, self.cfg.lowpass_hz / (rate_hz / 2.0))
         self._b, self._a = b.tolist(), a.tolist()

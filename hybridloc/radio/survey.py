@@ -87,5 +87,5 @@ def label_trace(trace, source: str = "") -> list[LabelledScan]:
 
     if trace.imu is None or len(trace.waypoints) < 2:
         return []
-    steps = PhonePdr(trace.imu.rate_hz, make_model("weinberg"), heading0=0.0).process(trace.imu)
+    steps = PhonePdr(trace.imu.rate_hz, make_model("height"), heading0=0.0).process(trace.imu)
     return label_scans(list(trace.wifi_scans), steps, trace.waypoints, float(trace.imu.t[0]), source=source)

@@ -3,9 +3,9 @@ with sensor error models by grade.
 
 Phone (held flat, screen up, top edge forward): specific force R^T (0, 0, g + a_v), with the vertical
 bounce a_v peaking at each heel strike, a_v = (A/2) cos(2 pi (t - t_k) / T_k) around step k, and the
-peak-to-peak bounce A chosen so that Weinberg's model with the walker's own K gives the true step
-length, A = (L / K)^4, kept within a factor 2 of the walker's natural bounce (short turning steps
-still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the heading psi), so the gyro
+peak-to-peak bounce A chosen so that the bounce-height model with the walker's own K gives the true
+step length: mean |a_v| = A / pi = (L / K)^3 / T^2, kept within a factor 2 of the walker's natural
+bounce (short turning steps still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the heading psi), so the gyro
 reads (0, 0, dpsi/dt) when walking; handling adds smooth random rotations and accelerations. The
 magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor disturbance field.
 
@@ -110,11 +110,13 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
         T = np.diff(np.concatenate([[ts[0] - 0.55], ts]))[near]
         # On stairs the horizontal step is short but the body still bounces like a full step:
         # use the walker's natural step length there.
-        # Weinberg's relation holds for steady walking; a short step (turning, stopping) still bounces
-        # at least half as hard as a full one, and a stair step like a full one.
+        # The bounce-height relation (mean |a_v| = A / pi = (L / K)^3 / T^2) holds for steady walking; a
+        # short step (turning, stopping) still bounces at least half as hard as a full one, and a stair
+        # step like a full one.
         L = np.array([s.length if s.dz == 0 else walk.step_length for s in walk.steps])[near]
-        A_nat = (walk.step_length / walk.weinberg_k) ** 4
-        A = A_nat * np.clip((L / walk.step_length) ** 4, 0.5, 2.0)
+        T_nat = walk.step_length / walk.speed
+        A_nat = math.pi * (walk.step_length / walk.length_k) ** 3 / T_nat**2
+        A = A_nat * np.clip((L / walk.step_length) ** 3 * (T_nat / T) ** 2, 0.5, 2.0)
         phase = (t - ts[near]) / T
         walking = np.abs(phase) <= 0.5
         av = np.where(walking, 0.5 * A * np.cos(2 * math.pi * phase), 0.0)

@@ -156,7 +156,7 @@ def write_truth(prefix: Path, walk: Walk, radio: WalkRadio | None, foot: FootTru
             for fx, sr in sorted(rows, key=lambda a: a[0].t):
                 w.writerow([f"{fx.t:.3f}", f"{fx.pos_enu[0]:.3f}", f"{fx.pos_enu[1]:.3f}", fx.floor or "", f"{math.sqrt(fx.cov[0, 0]):.3f}", fx.source.value,
                             "" if sr is None else f"{sr:.3f}"])
-    meta = {"walker": walk.walker, "speed": walk.speed, "step_length": walk.step_length, "weinberg_k": walk.weinberg_k, "t0": walk.t0, "t1": walk.t1,
+    meta = {"walker": walk.walker, "speed": walk.speed, "step_length": walk.step_length, "length_k": walk.length_k, "t0": walk.t0, "t1": walk.t1,
             "loop": walk.loop, "outdoor_start": walk.outdoor_start, "n_steps": len(walk.steps), "start": list(walk.start),
             "pauses": [list(p) for p in walk.pauses]}
     Path(f"{prefix}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")

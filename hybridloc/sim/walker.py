@@ -1,10 +1,11 @@
 """Walkers: routes through a generated building and the truth of every step.
 
-A walker has a speed (N(1.3, 0.15) m/s), a natural step length (N(0.70, 0.06) m) and a Weinberg
-constant (N(0.37, 0.02)); the cadence is speed / step length. A route visits a few random rooms along
-shortest paths of the walkable graph (stairs take ~16 steps per storey, a lift ride 10 s of standing),
-pauses 3-15 s at each destination (sometimes handling the phone), some routes return to their start
-(loops) and some start outdoors in front of the entrance.
+A walker has a speed (N(1.3, 0.15) m/s), a natural step length (N(0.70, 0.06) m) and a step-length
+constant K of the bounce-height model L = K (mean |a_v| T^2)^(1/3) (N(0.70, 0.04): the real-walk fit,
+with the 5 % spread between people of Weinberg's constant); the cadence is speed / step length. A
+route visits a few random rooms along shortest paths of the walkable graph (stairs take ~16 steps per
+storey, a lift ride 10 s of standing), pauses 3-15 s at each destination (sometimes handling the
+phone), some routes return to their start (loops) and some start outdoors in front of the entrance.
 
 The truth is a list of :class:`TrueStep` (time, position after the step, floor, heading, length) and
 the walking/standing/handling intervals; the IMU synthesis (:mod:`.imu`) and the radio (:mod:`.radio`)
@@ -37,7 +38,7 @@ class Walk:
     walker: int
     speed: float
     step_length: float
-    weinberg_k: float
+    length_k: float  # K of the bounce-height step model (hybridloc.pdr.steplength.BounceHeightLength)
     t0: float
     t1: float
     steps: list[TrueStep]
@@ -74,7 +75,7 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     time is up (a closed loop for return-to-start tests), otherwise 30 % of routes loop by chance."""
     speed = float(np.clip(rng.normal(1.3, 0.15), 0.8, 1.8))
     L = float(np.clip(rng.normal(0.70, 0.06), 0.5, 0.9))
-    K = float(np.clip(rng.normal(0.37, 0.02), 0.3, 0.45))
+    K = float(np.clip(rng.normal(0.70, 0.04), 0.57, 0.85))
     cadence = speed / L
     comp = world.component
     size = np.bincount(comp)
