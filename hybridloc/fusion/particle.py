@@ -16,7 +16,8 @@ filters answer alike; what the particles add is the map, which no Gaussian can c
   WiFi fixes now and then land on a look-alike place. A fix that arrives after later steps (network and
   server latency) is compared with each particle's position at the scan's time, kept in a short
   per-particle history.
-* **Resampling**: systematic, when the effective sample size falls below ``resample_ess`` N.
+* **Resampling**: systematic, when the effective sample size falls below ``resample_ess`` N. Every
+  per-particle array (position, bias, scale, prior at the particle, history) is reordered together.
 * **Start**: from the first fix (or ``init``): positions drawn from the fix's Gaussian where the map
   allows, bias and scale from their priors. After ``reinit_after`` consecutive rejected fixes the
   track is considered lost and restarts from the fix (as LocalFusion does).
@@ -175,11 +176,14 @@ class ParticleFusion:
         # the prior enters once, at the particle's present place: weight by pi(new) / pi(old), so a
         # particle that stays in a sparsely walked spot is not penalised again at every step
         like = pi_new / np.maximum(self._pi, 1e-12)
-        self.p = q
-        if self._weigh(like):
-            self._pi = pi_new
-        else:
+        # the new places and their prior go in before weighing: a resampling inside _weigh reorders
+        # both together (assigning pi_new after it once paired resampled particles with other
+        # particles' prior, and a dead one's 0 then weighed its new owner by 1e12 at the next step)
+        prev_pi = self._pi
+        self.p, self._pi = q, pi_new
+        if not self._weigh(like):
             # nobody is where the map allows: the map or the track is wrong here - keep dead reckoning
+            self._pi = prev_pi
             self.n_map_conflicts += 1
         k = self._hist_k % cfg.history
         self._hist_p[k] = self.p
