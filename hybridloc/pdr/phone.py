@@ -52,6 +52,7 @@ class PhonePdrConfig:
     idle_std: float = 0.35  # m/s^2; below this the phone is still
     nasc_walking: float = 0.55  # Zee et al. use ~0.7 on raw data; ours is low-passed and per-step
     nasc_window: float = 2.4  # s of signal for the auto-correlation
+    nasc_min_window: float = 1.2  # s of signal needed before the first auto-correlation (after a start or gap)
     period_tolerance: float = 0.15  # relative change of the step period between candidates still "walking"
     min_vertical_share: float = 0.6  # vertical share of dynamic acceleration variance while walking
     confirm_candidates: int = 3  # consecutive periodic candidates with a consistent period to start walking
@@ -204,8 +205,11 @@ class PhonePdr:
         counts only after the auto-correlation has first swung negative: that is, the signal really
         oscillates, and the peak is one cycle later.
         """
-        n = int(self.cfg.nasc_window * self.rate)
-        if len(self._hist) < n:
+        # The window fills in nasc_window seconds after a start or a gap; until then the signal so far
+        # is used once it spans nasc_min_window (at least two steps at the slowest walking lag that
+        # fits, lag <= n / 2), so a walk that starts with the recording is recognised within ~2 s.
+        n = min(int(self.cfg.nasc_window * self.rate), len(self._hist))
+        if n < int(self.cfg.nasc_min_window * self.rate):
             return 0.0, self._period
         x = np.fromiter((h[1] for h in list(self._hist)[-n:]), float, n)
         x = x - x.mean()
