@@ -108,21 +108,21 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     print(f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
           "lengths calibrated by 2-fold cross-fitting over traces")
     print(f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}")
-    res = {}
-    for m in LENGTH_MODELS:
-        r = evaluate_phone_pdr(paths, m, cfg, runs=runs)
-        res[m] = r
+
+    def row(name: str, r) -> None:
         coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in r.coefs)
         wp = summarize_errors(r.wp_err)
-        print(f"{m:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
+        print(f"{name:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
               f"{np.median(r.turn_err_deg):8.1f}d {np.percentile(r.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {r.n_segments:5d}")
+
+    res = {}
+    for m in LENGTH_MODELS:
+        res[m] = evaluate_phone_pdr(paths, m, cfg, runs=runs)
+        row(m, res[m])
     main_m = res[args.model]
     andr = evaluate_phone_pdr(paths, args.model, cfg, runs=runs, heading="android")
     if andr.n_segments:
-        coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in andr.coefs)
-        wp = summarize_errors(andr.wp_err)
-        print(f"{'+android':<10} {coef:<34} {100 * np.median(andr.length_rel_err):7.1f}% {100 * np.percentile(andr.length_rel_err, 90):7.1f}% "
-              f"{np.median(andr.turn_err_deg):8.1f}d {np.percentile(andr.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {andr.n_segments:5d}")
+        row("+android", andr)
     print(f"\n{args.model}: segment length error median {100 * np.median(main_m.length_rel_err):.1f}% (goal <= 5%), "
           f"90th pct {100 * np.percentile(main_m.length_rel_err, 90):.1f}% (goal <= 15%); heading-change error median "
           f"{np.median(main_m.turn_err_deg):.1f} deg (goal <= 8); error at waypoints from the first one: {summarize_errors(main_m.wp_err)}")

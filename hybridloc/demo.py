@@ -286,11 +286,11 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     # PDR drifts with time, WiFi does not: the same means by how long the walk had been going
     T = np.asarray(since)
     bins = ((0, 10), (10, 20), (20, 40), (40, math.inf))
+    in_bin = [(T >= a) & (T < b) for a, b in bins]
     print("  mean error by time since the walk's first waypoint (s): " + "  ".join(f"{a:g}-{b:g}" for a, b in bins) + "   (waypoints: "
-          + ", ".join(str(int(((T >= a) & (T < b)).sum())) for a, b in bins) + ")")
+          + ", ".join(str(int(m.sum())) for m in in_bin) + ")")
     for k in (names[0], names[1], names[2], names[4]):
-        e = E[k]
-        print(f"    {k:<32}" + "  ".join(f"{np.nanmean(e[(T >= a) & (T < b)]):6.2f}" if np.isfinite(e[(T >= a) & (T < b)]).any() else "     -" for a, b in bins))
+        print(f"    {k:<32}" + "  ".join(f"{np.nanmean(E[k][m]):6.2f}" if np.isfinite(E[k][m]).any() else "     -" for m in in_bin))
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
     return 0
 

@@ -14,6 +14,15 @@ def test_help_and_version():
     assert _run().returncode == 2  # a command is required
 
 
+def test_cli_length_models_are_the_librarys():
+    """The CLI lists the step length models without importing numpy at start-up; the list must be
+    the library's own."""
+    from hybridloc.cli import LENGTH_MODELS
+    from hybridloc.pdr.steplength import MODELS
+
+    assert set(LENGTH_MODELS) == set(MODELS)
+
+
 def test_inspect_reports_bad_file_with_exit_1(tmp_path):
     p = tmp_path / "junk.bin"
     p.write_bytes(b"\x00junk")

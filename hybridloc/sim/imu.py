@@ -5,9 +5,10 @@ Phone (held flat, screen up, top edge forward): specific force R^T (0, 0, g + a_
 bounce a_v peaking at each heel strike, a_v = (A/2) cos(2 pi (t - t_k) / T_k) around step k, and the
 peak-to-peak bounce A chosen so that the bounce-height model with the walker's own K gives the true
 step length: mean |a_v| = A / pi = (L / K)^3 / T^2, kept within a factor 2 of the walker's natural
-bounce (short turning steps still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the heading psi), so the gyro
-reads (0, 0, dpsi/dt) when walking; handling adds smooth random rotations and accelerations. The
-magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor disturbance field.
+bounce (short turning steps still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the
+heading psi), so the gyro reads (0, 0, dpsi/dt) when walking; handling adds smooth random rotations
+and accelerations. The magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor
+disturbance field.
 
 Foot (body x forward, y left, z up): per stride (two steps) the foot stands still for 60 % of the
 stride and swings 40 %. The swing's nav-frame acceleration is chosen sample by sample,
