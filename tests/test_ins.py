@@ -191,3 +191,30 @@ def test_filter_prediction_equals_reference_mechanisation():
     np.testing.assert_allclose(kf.x.p, ref.p, atol=1e-9)
     np.testing.assert_allclose(kf.x.v, ref.v, atol=1e-9)
     np.testing.assert_allclose(kf.x.q, ref.q, atol=1e-12)
+
+
+def test_swing_level_separates_hard_and_gentle_swings():
+    rate = 200.0
+    k = np.arange(int(10 * rate))
+    phase = (k % int(1.0 * rate)) / rate  # one stride per second: stance 0.4 s, then swing
+    hard = np.where(phase < 0.4, 1e5, 1e10)
+    gentle = np.where(phase < 0.4, 1e5, 1e8)
+    assert np.allclose(stance.swing_level(hard, rate), 10.0)
+    assert np.allclose(stance.swing_level(gentle, rate), 8.0)
+    assert (stance.swing_level(gentle, rate) < stance.GENTLE_SWING_LOG10).all()
+    assert (stance.swing_level(hard, rate) > stance.GENTLE_SWING_LOG10).all()
+
+
+@pytest.mark.shared_data
+def test_gentle_gait_zupts_vetted_to_the_authors_level(pyshoe_dir):
+    """Crawling and slow short steps: the adaptive detector calls stance while the foot still creeps.
+    With the gentle-gait vetting our one setting comes within 1.5x of the authors' SHOE tuned on the
+    truth for that very trial (without it: 0.119 and 0.160 m against the authors' 0.033 and 0.058)."""
+    from hybridloc.ins.evaluate import evaluate_trial
+
+    for name in ("2018-02-09-11-19-39", "2018-02-22-10-10-29"):
+        f = pyshoe_dir / f"{name}.mat"
+        if not f.is_file():
+            pytest.skip(f"{f} is absent")
+        r = evaluate_trial(f)
+        assert r.armse_2d < 1.5 * r.authors_2d, (name, r.armse_2d, r.authors_2d)

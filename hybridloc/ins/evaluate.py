@@ -11,7 +11,7 @@ end within ``LOOP_CLOSE_M`` of the start), the return-to-start error in % of dis
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,8 +56,10 @@ def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> Tri
     labels = rec.extras.get("zv_shoe_opt")
     if labels is not None and len(labels) == len(rec.imu.t):
         # the same filter on the stance the authors' SHOE gives at its per-trial best threshold: splits
-        # the gap to their figure into what the detector costs and what the filter does
-        e_opt, g_opt = pyshoe_align(run_foot_ins(rec.imu, config, stance=labels).pos_enu, rec.truth.pos_enu)
+        # the gap to their figure into what the detector costs and what the filter does. Their labels
+        # are taken as they are (no vetting of gentle-gait ZUPTs: the vetting is part of our detection)
+        cfg_opt = replace(config or FootInsConfig(), vet_gentle=False)
+        e_opt, g_opt = pyshoe_align(run_foot_ins(rec.imu, cfg_opt, stance=labels).pos_enu, rec.truth.pos_enu)
         opt = pyshoe_armse(e_opt, g_opt, 2)
     return TrialResult(Path(path).stem, pyshoe_armse(est, gt, 2), pyshoe_armse(est, gt, 3), float(te[0]) if te is not None else float("nan"),
                        pyshoe_armse(dd_a, gt_a, 2), dist, loop, rec.imu.duration, float(res.stance.mean()), opt)

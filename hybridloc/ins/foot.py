@@ -5,8 +5,14 @@ the first still samples (roll, pitch from gravity; heading 0 unless given), then
 strapdown prediction and, during stance, a zero-velocity update (and optionally a zero-angular-rate
 update) through the one gated correction path.
 
+Where the gait is gentle (crawling, shuffling, slow short steps: :func:`.stance.swing_level` below
+:data:`.stance.GENTLE_SWING_LOG10`) the ZUPTs go through the chi-square gate, so a stance called
+while the foot still creeps is vetoed by the filter's own velocity (``vet_gentle``). PyShoe VICON,
+28 trials, one setting: mean 2-D ARMSE 0.070 -> 0.063 m; the crawl and slow-step trials
+2018-02-09-11-19-39 0.119 -> 0.043 m and 2018-02-22-10-10-29 0.160 -> 0.063 m, the others unchanged.
+
 Bad input: NaN samples are skipped and counted; a time gap longer than ``max_gap`` s or a filter
-that keeps rejecting ZUPTs (``reinit_after`` stances in a row: it has diverged) re-initialises
+that keeps rejecting ZUPTs (for ``reinit_after_s`` of stance in a row: it has diverged) re-initialises
 velocity and tilt at the next stance, and the event is counted. The covariance is kept symmetric
 positive definite by the Joseph form (tested).
 """
@@ -31,12 +37,13 @@ class FootInsConfig:
     detector: str = "adaptive"  # one of stance.DETECTORS
     detector_threshold: float | None = None  # the chosen detector's threshold (units per stance.py)
     zupt_sigma: float = 0.01  # m/s
-    gate_zupt: bool = False  # chi-square gate on ZUPTs (see the module docstring)
+    gate_zupt: bool = False  # chi-square gate on every ZUPT (see the module docstring)
+    vet_gentle: bool = True  # chi-square gate on the ZUPTs of a gentle gait (see the module docstring)
     zaru: bool = True  # zero angular rate at stance: observes the gyro biases (heading drift over minutes)
     gravity: float | None = None  # m/s^2; None: measured from the initial still period
     init_seconds: float = 0.5  # still period used for alignment (at most)
     max_gap: float = 0.1  # s
-    reinit_after: int = 20  # rejected ZUPT samples in a row before re-initialising
+    reinit_after_s: float = 1.0  # s of stance with every ZUPT rejected before re-initialising
     noise: ImuNoise = field(default_factory=ImuNoise)
 
 
@@ -98,6 +105,13 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     if stance is None:
         stance = detect_stance(imu, cfg.detector, cfg.detector_threshold, g)
     stance = np.asarray(stance, bool) & finite
+    gate = np.full(n, cfg.gate_zupt)
+    if cfg.vet_gentle and not cfg.gate_zupt:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            T = stance_mod.shoe(acc, gyr, np.inf, g=g)[0]
+        # a NaN sample counts as a hard swing: never vetted on its account
+        gate = stance_mod.swing_level(np.nan_to_num(T, nan=np.inf), rate) < stance_mod.GENTLE_SWING_LOG10
+    reinit_after = max(1, int(round(cfg.reinit_after_s * rate)))
     nz = cfg.noise
     P0 = np.diag([1e-8] * 3 + [1e-6] * 3 + [(0.5 * math.pi / 180) ** 2] * 2 + [(0.1 * math.pi / 180) ** 2] + [nz.accel_bias_sigma0**2] * 3 + [nz.gyro_bias_sigma0**2] * 3)
     P0[8, 8] = 1e-10  # heading is defined as heading0: no uncertainty at the start
@@ -109,7 +123,8 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     Ppos = np.zeros((n, 3, 3))
     quat[0] = x0.q
     Ppos[0] = kf.P[:3, :3]
-    stats = {"nan_samples": int((~finite).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum())}
+    stats = {"nan_samples": int((~finite).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum()),
+             "vetted_samples": int((gate & stance).sum())}
     rejected_run = 0
     reinit_pending = False
     last_i = 0
@@ -139,11 +154,11 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
                 stats["reinit"] += 1
                 reinit_pending = False
                 rejected_run = 0
-            c = kf.correct(zupt, zero3, gate=cfg.gate_zupt)
+            c = kf.correct(zupt, zero3, gate=bool(gate[i]))
             if not c.accepted:
                 stats["zupt_rejected"] += 1
                 rejected_run += 1
-                if rejected_run >= cfg.reinit_after:
+                if rejected_run >= reinit_after:
                     reinit_pending = True
             else:
                 rejected_run = 0
