@@ -218,3 +218,17 @@ def test_gentle_gait_zupts_vetted_to_the_authors_level(pyshoe_dir):
             pytest.skip(f"{f} is absent")
         r = evaluate_trial(f)
         assert r.armse_2d < 1.5 * r.authors_2d, (name, r.armse_2d, r.authors_2d)
+
+
+def test_weak_stance_is_the_shallow_dip_the_context_test_drops():
+    rate = 200.0
+    k = np.arange(int(10 * rate))
+    phase = (k % int(1.0 * rate)) / rate
+    T = np.where(phase < 0.3, 1e5, 1e10)
+    shallow = (k >= 5 * 200) & (k < 5 * 200 + 60)  # the sixth stance only dips to 1e7
+    T[shallow] = 1e7
+    strong = stance.adaptive_mask(T, rate)
+    weak = stance.weak_stance(T, rate, strong)
+    assert not strong[shallow].any()  # two decades above the gait's stance level: the context test drops it
+    assert weak[shallow].all() and not (weak & ~shallow).any()
+    assert strong[(phase < 0.3) & ~shallow].all()

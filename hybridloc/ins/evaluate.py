@@ -57,8 +57,8 @@ def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> Tri
     if labels is not None and len(labels) == len(rec.imu.t):
         # the same filter on the stance the authors' SHOE gives at its per-trial best threshold: splits
         # the gap to their figure into what the detector costs and what the filter does. Their labels
-        # are taken as they are (no vetting of gentle-gait ZUPTs: the vetting is part of our detection)
-        cfg_opt = replace(config or FootInsConfig(), vet_gentle=False)
+        # are taken as they are (no vetting: deciding which stances to doubt is part of our detection)
+        cfg_opt = replace(config or FootInsConfig(), vet=False)
         e_opt, g_opt = pyshoe_align(run_foot_ins(rec.imu, cfg_opt, stance=labels).pos_enu, rec.truth.pos_enu)
         opt = pyshoe_armse(e_opt, g_opt, 2)
     return TrialResult(Path(path).stem, pyshoe_armse(est, gt, 2), pyshoe_armse(est, gt, 3), float(te[0]) if te is not None else float("nan"),

@@ -13,7 +13,9 @@ mask (True = foot on the ground). Thresholds are in stated units. Windows are ce
   T = 1/W sum ( |a - g a_bar/|a_bar||^2 / sigma_a^2 + |omega|^2 / sigma_w^2 ) below ``gamma``
   (dimensionless). ``sigma_a`` (m/s^2) and ``sigma_w`` (rad/s) are the detector's noise scales.
 * :func:`adaptive_shoe`: the project default. SHOE with a threshold relative to the statistic's
-  local minimum over each gait cycle, so one setting serves walking, running and stairs.
+  local minimum over each gait cycle, so one setting serves walking, running and stairs;
+  :func:`weak_stance` the shallower dips it leaves out and :func:`swing_level` how hard the foot
+  swings, which the foot INS uses to decide which ZUPTs its chi-square gate must vet.
 """
 
 from __future__ import annotations
@@ -85,6 +87,12 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
     the best: 0.070 m); they are one setting for all trials, not per trial.
     """
     T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
+    return T, adaptive_mask(T, rate_hz, window, decades, gamma_still, gamma_max, context, context_decades)
+
+
+def adaptive_mask(T: np.ndarray, rate_hz: float, window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9,
+                  context: float = 4.0, context_decades: float | None = 1.0) -> np.ndarray:
+    """The stance mask of :func:`adaptive_shoe` from a SHOE statistic ``T`` already computed."""
     logT = np.log10(np.maximum(T, 1e-30))
     n = max(3, int(round(window * rate_hz)) | 1)
     local_min = minimum_filter1d(logT, size=n, mode="nearest")
@@ -98,7 +106,27 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
         k = max(1, int(round(context * rate_hz / step)) | 1)
         base = np.repeat(median_filter(sub, size=k, mode="nearest"), step)[: len(T)]
         mask &= logT <= base + context_decades
-    return T, mask | (T < gamma_still)
+    return mask | (T < gamma_still)
+
+
+#: Window of the weak-stance test (:func:`weak_stance`), s: half a stride, so each dip of the SHOE
+#: statistic is compared with itself rather than with the deeper stance of the stride before.
+WEAK_WINDOW_S = 0.6
+
+
+def weak_stance(T: np.ndarray, rate_hz: float, strong: np.ndarray, window: float = WEAK_WINDOW_S, decades: float = 0.5,
+                gamma_max: float = 1e9) -> np.ndarray:
+    """Stance-like dips the adaptive test leaves out: within ``decades`` of the local minimum over a
+    shorter ``window``, with no context test, and not already in ``strong``.
+
+    These are the stances the context test drops as too shallow for the gait around them (a running
+    foot's brief, rolling contact; a stance in a turn) mixed with what it is meant to drop (a foot
+    lifted slowly onto a stair). They cannot be told apart by the statistic, so the foot INS applies
+    their ZUPTs through the chi-square gate: the filter's own velocity decides. On the PyShoe VICON
+    trials this takes the running trials' stance-starved strides (2017-11-27-11-18-11 0.210 -> 0.158 m).
+    """
+    loose = adaptive_mask(T, rate_hz, window, decades, 0.0, gamma_max, 0.0, None)
+    return loose & ~np.asarray(strong, bool)
 
 
 def swing_level(T: np.ndarray, rate_hz: float, window: float = 1.5, context: float = 4.0) -> np.ndarray:
