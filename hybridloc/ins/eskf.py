@@ -76,6 +76,7 @@ class Correction:
     innovation: np.ndarray
     S: np.ndarray
     nis: float  # normalised innovation squared
+    dx: np.ndarray | None = None  # the error state injected (accepted corrections only)
 
 
 class ErrorStateEkf:
@@ -92,6 +93,7 @@ class ErrorStateEkf:
         self._Phi = np.eye(15)
         self._dt = -1.0
         self._qd = np.zeros(15)
+        self._qd_rate: np.ndarray | None = None
         self.n_rejected = 0
 
     def predict(self, f_body: np.ndarray, w_body: np.ndarray, dt: float) -> None:
@@ -125,12 +127,20 @@ class ErrorStateEkf:
         x.v = x.v + a_nav * dt
         x.q = q_new
 
+    @property
+    def transition(self) -> np.ndarray:
+        """A copy of the error-state transition matrix Phi of the last :meth:`predict`."""
+        return self._Phi.copy()
+
     def _set_dt(self, dt: float) -> None:
-        n = self.noise
+        # Timestamps jitter, so this runs at almost every sample: no allocation here.
+        if self._qd_rate is None:
+            n = self.noise
+            self._qd_rate = np.concatenate([np.zeros(3), np.full(3, n.accel_density**2), np.full(3, n.gyro_density**2),
+                                            np.full(3, n.accel_bias_rw**2), np.full(3, n.gyro_bias_rw**2)])
         self._dt = dt
-        self._Phi[0:3, 3:6] = np.eye(3) * dt
-        self._qd = np.concatenate([np.zeros(3), np.full(3, n.accel_density**2 * dt), np.full(3, n.gyro_density**2 * dt),
-                                   np.full(3, n.accel_bias_rw**2 * dt), np.full(3, n.gyro_bias_rw**2 * dt)])
+        self._Phi[0, 3] = self._Phi[1, 4] = self._Phi[2, 5] = dt
+        np.multiply(self._qd_rate, dt, out=self._qd)
 
     def _gate(self, m: int) -> float:
         if m not in self._gates:
@@ -161,7 +171,7 @@ class ErrorStateEkf:
         P[DTH, :] = Gt @ P[DTH, :]
         P[:, DTH] = P[:, DTH] @ Gt.T
         self.P = 0.5 * (P + P.T)
-        return Correction(True, y, S, nis)
+        return Correction(True, y, S, nis, dx)
 
     def position_sigma(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.P)[DP], 0.0, None))

@@ -3,7 +3,12 @@
 :func:`run_foot_ins` wraps the step API of :class:`~.eskf.ErrorStateEkf`: initial alignment from
 the first still samples (roll, pitch from gravity; heading 0 unless given), then per sample a
 strapdown prediction and, during stance, a zero-velocity update (and optionally a zero-angular-rate
-update) through the one gated correction path.
+update) through the one gated correction path. Each stride is then smoothed back from its stance
+(:mod:`.smoother`, a Rauch-Tung-Striebel pass over the filter's own transitions): the ZUPT's
+correction is carried over the swing it ends, instead of leaving the swing where the forward filter
+drew it. Stance positions (and so strides) barely move; the per-sample track does (PyShoe VICON, 28
+trials: mean 2-D ARMSE 0.0594 m forward, 0.0529 m smoothed). ``pos_enu_forward`` keeps the forward
+track, which is what a live client has at each sample.
 
 Which ZUPTs are vetted. A ZUPT normally goes in unconditionally: after a hard swing (walking,
 running) the INS's velocity error exceeds what its covariance says, so a gate would veto true ZUPTs
@@ -41,6 +46,7 @@ from ..units import wrap_angle
 from . import stance as stance_mod
 from .eskf import ErrorStateEkf, ImuNoise
 from .measurements import ZeroAngularRate, ZeroVelocity
+from .smoother import IntervalRts
 from .strapdown import NominalState, level_from_accel, quat_to_dcm
 
 
@@ -56,6 +62,8 @@ class FootInsConfig:
     init_seconds: float = 0.5  # still period used for alignment (at most)
     max_gap: float = 0.1  # s
     reinit_after_s: float = 1.0  # s of stance with every ZUPT rejected before re-initialising
+    smooth: bool = True  # RTS-smooth each stride back from its stance (smoother.py); the forward track is kept too
+    smooth_max_s: float = 2.0  # longest smoothing interval, s (a long standing still is cut into pieces)
     noise: ImuNoise = field(default_factory=ImuNoise)
 
 
@@ -67,8 +75,9 @@ class FootInsResult:
     quat_wxyz: np.ndarray
     sigma_pos: np.ndarray  # (N, 3)
     stance: np.ndarray  # (N,) bool
-    P_pos: np.ndarray  # (N, 3, 3) position covariance
+    P_pos: np.ndarray  # (N, 3, 3) position covariance (the forward filter's: an upper bound when smoothed)
     stats: dict
+    pos_enu_forward: np.ndarray | None = None  # (N, 3) the forward filter's positions when ``pos_enu`` is smoothed
 
 
 def detect_stance(imu: ImuBlock, detector: str, threshold: float | None, g: float) -> np.ndarray:
@@ -147,19 +156,36 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     reinit_pending = False
     last_i = 0
     zero3 = np.zeros(3)
+    zero15 = np.zeros(15)
+    rts = IntervalRts(0) if cfg.smooth else None
+    smooth_max = max(2, int(cfg.smooth_max_s * rate))
+    e_smooth = np.zeros((n, 6)) if cfg.smooth else None  # smoothed (dp, dv) per sample
+
+    def smooth_back() -> None:
+        idx, e = rts.flush()
+        e_smooth[idx] = e[:, :6]
+
     for i in range(1, n):
         if not finite[i]:
             pos[i], vel[i], quat[i], Ppos[i] = pos[i - 1], vel[i - 1], quat[i - 1], Ppos[i - 1]
             continue
         dt = t[i] - t[last_i]
+        broken = False  # no smoothing across this transition (gap, re-initialisation, skipped NaN)
+        if i - last_i > 1:
+            broken = True
         last_i = i
         if dt > cfg.max_gap:
             stats["gaps"] += 1
             reinit_pending = True
+            broken = True
             dt = 1.0 / rate  # propagate one nominal step; the state is re-levelled at the next stance
+        P_prev = kf.P
         kf.predict(acc[i], gyr[i], dt)
+        P_pred = kf.P
+        dx = zero15
         if stance[i]:
             if reinit_pending:
+                broken = True
                 # Re-initialise: zero velocity, tilt from gravity, keep position and heading.
                 R = quat_to_dcm(kf.x.q)
                 fwd = R[:, 0]
@@ -173,6 +199,8 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
                 reinit_pending = False
                 rejected_run = 0
             c = kf.correct(zupt, zero3, gate=bool(gate[i]))
+            if c.accepted:
+                dx = c.dx
             if not c.accepted:
                 stats["zupt_rejected"] += 1
                 rejected_run += 1
@@ -181,13 +209,31 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
             else:
                 rejected_run = 0
             if cfg.zaru and c.accepted:  # a vetoed stance is no stance: no zero angular rate either
-                kf.correct(ZeroAngularRate(gyr[i]), zero3)
+                cz = kf.correct(ZeroAngularRate(gyr[i]), zero3)
+                if cz.accepted:
+                    dx = dx + cz.dx  # the two corrections add to first order
+        if rts is not None:
+            if broken:
+                smooth_back()
+                rts.restart(i)
+            else:
+                if stance[i - 1] and not stance[i]:  # a stance just ended: smooth the stride back from it
+                    smooth_back()
+                rts.add(i, kf.transition, P_prev, P_pred, dx)
+                if len(rts) >= smooth_max:
+                    smooth_back()
         pos[i], vel[i], quat[i] = kf.x.p, kf.x.v, kf.x.q
         Ppos[i] = kf.P[:3, :3]
+    pos_forward = None
+    if rts is not None:
+        smooth_back()
+        pos_forward = pos.copy()
+        pos += e_smooth[:, :3]
+        vel += e_smooth[:, 3:6]
     sig = np.sqrt(np.clip(np.einsum("nii->ni", Ppos), 0.0, None))
     stats["P_min_eig"] = float(np.linalg.eigvalsh(kf.P).min())
     stats["P_asym"] = float(np.abs(kf.P - kf.P.T).max())
-    return FootInsResult(t.copy(), pos, vel, quat, sig, stance, Ppos, stats)
+    return FootInsResult(t.copy(), pos, vel, quat, sig, stance, Ppos, stats, pos_forward)
 
 
 def dedrift_i(imu: ImuBlock, stance_instants: np.ndarray, g: float | None = None, heading0: float = 0.0) -> np.ndarray:
