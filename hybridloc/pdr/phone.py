@@ -32,7 +32,7 @@ import numpy as np
 from scipy import signal
 
 from ..types import ImuBlock, StepEvent, Trajectory
-from ..units import DEG, wrap_angle
+from ..units import DEG, G0, wrap_angle
 from .attitude import AttitudeConfig, AttitudeFilter
 from .steplength import BounceHeightLength, LengthModel, StepFeatures
 
@@ -165,7 +165,10 @@ class PhonePdr:
         # running mean / variance over ~2 s (exponential)
         alpha = 1.0 / (2.0 * self.rate)
         if self._mean is None:
-            self._mean = y
+            # Start from g, the mean of |a| for a carried phone, not from the first sample: a recording
+            # that starts mid-step would otherwise hold the threshold above the bounces for seconds
+            # (ILC site1: walks starting with the recording lost their first 4-5 steps).
+            self._mean = G0
         d = y - self._mean
         self._mean += alpha * d
         self._var = (1 - alpha) * (self._var + alpha * d * d)
