@@ -1,6 +1,6 @@
 """Walkers: routes through a generated building and the truth of every step.
 
-A walker has a speed (N(1.3, 0.15) m/s), a natural step length (N(0.70, 0.06) m) and a step-length
+A walker has a speed (N(1.25, 0.15) m/s), a natural step length (N(0.65, 0.06) m) and a step-length
 constant K of the bounce-height model L = K (mean |a_v| T^2)^(1/3) (N(0.70, 0.04): the real-walk fit,
 with the 5 % spread between people of Weinberg's constant); the cadence is speed / step length. A
 route visits a few random rooms along shortest paths of the walkable graph (stairs take ~16 steps per
@@ -73,8 +73,8 @@ def _polyline(world: World, path: list[int]) -> list[tuple[float, float, int, st
 def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker: int = 0, t0: float = 1.7e9, close_loop: bool = False) -> Walk:
     """One walker for ``minutes``; with ``close_loop`` the walk always returns to its start after the
     time is up (a closed loop for return-to-start tests), otherwise 30 % of routes loop by chance."""
-    speed = float(np.clip(rng.normal(1.3, 0.15), 0.8, 1.8))
-    L = float(np.clip(rng.normal(0.70, 0.06), 0.5, 0.9))
+    speed = float(np.clip(rng.normal(1.25, 0.15), 0.8, 1.8))
+    L = float(np.clip(rng.normal(0.65, 0.06), 0.5, 0.9))
     K = float(np.clip(rng.normal(0.70, 0.04), 0.57, 0.85))
     cadence = speed / L
     comp = world.component
