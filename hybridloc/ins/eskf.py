@@ -23,7 +23,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from .measurements import DP, DTH, MeasurementModel
-from .strapdown import NominalState, quat_to_dcm, skew
+from .strapdown import NominalState, quat_to_dcm
 
 
 def _qmul_exp(q: np.ndarray, phi: np.ndarray) -> np.ndarray:
@@ -77,6 +77,25 @@ class Correction:
     S: np.ndarray
     nis: float  # normalised innovation squared
     dx: np.ndarray | None = None  # the error state injected (accepted corrections only)
+
+
+def _inv_spd_small(S: np.ndarray) -> np.ndarray:
+    """Inverse of a small symmetric innovation covariance: closed form for 1-3 dimensions (the ZUPT,
+    ZARU and heading updates run at every stance sample, where numpy's general inverse is most of
+    the cost), numpy's for larger ones."""
+    m = S.shape[0]
+    if m == 1:
+        return np.array([[1.0 / S[0, 0]]])
+    if m == 3:
+        a, b, c = S[0]
+        _, e, f = S[1]
+        i = S[2, 2]
+        A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
+        det = a * A + b * B + c * C
+        if det > 0.0:
+            E, F, I_ = a * i - c * c, b * c - a * f, a * e - b * b
+            return np.array([[A, B, C], [B, E, F], [C, F, I_]]) / det
+    return np.linalg.inv(S)
 
 
 class ErrorStateEkf:
@@ -156,7 +175,7 @@ class ErrorStateEkf:
         PHt = self.P @ H.T
         S = H @ PHt + R
         S = 0.5 * (S + S.T)
-        Sinv = np.linalg.inv(S)
+        Sinv = _inv_spd_small(S)
         nis = float(y @ Sinv @ y)
         if gate and nis > self._gate(len(y)):
             self.n_rejected += 1
@@ -167,7 +186,8 @@ class ErrorStateEkf:
         dx = K @ y
         self.x = self.x.plus(dx)
         # Reset: the attitude error's covariance seen through the injected rotation.
-        Gt = np.eye(3) - skew(0.5 * dx[DTH])
+        hx, hy, hz = 0.5 * dx[DTH]
+        Gt = np.array([[1.0, hz, -hy], [-hz, 1.0, hx], [hy, -hx, 1.0]])  # I - [dtheta/2]x
         P[DTH, :] = Gt @ P[DTH, :]
         P[:, DTH] = P[:, DTH] @ Gt.T
         self.P = 0.5 * (P + P.T)

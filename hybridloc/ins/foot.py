@@ -144,6 +144,7 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     P0[8, 8] = 1e-10  # heading is defined as heading0: no uncertainty at the start
     kf = ErrorStateEkf(x0, P0, nz, g)
     zupt = ZeroVelocity(cfg.zupt_sigma)
+    zaru = ZeroAngularRate(np.zeros(3))
     pos = np.zeros((n, 3))
     vel = np.zeros((n, 3))
     quat = np.zeros((n, 4))
@@ -209,7 +210,8 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
             else:
                 rejected_run = 0
             if cfg.zaru and c.accepted:  # a vetoed stance is no stance: no zero angular rate either
-                cz = kf.correct(ZeroAngularRate(gyr[i]), zero3)
+                zaru.omega = gyr[i]  # one model, its reading updated (no per-sample construction)
+                cz = kf.correct(zaru, zero3)
                 if cz.accepted:
                     dx = dx + cz.dx  # the two corrections add to first order
         if rts is not None:
