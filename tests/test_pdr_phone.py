@@ -207,6 +207,28 @@ def test_calibrator_recovers_weinberg_k(tmp_path):
     assert back.model.coef[0] == cal.model.coef[0] and back.n_segments == 40
 
 
+def test_calibrator_is_not_dragged_by_mis_marked_segments():
+    """Huber in the relative residual: 40 good segments (2 % distance noise) and 8 whose known
+    distance is 60 % too long (a mis-marked waypoint). Least squares moves K by about 8 / 48 x 60 % =
+    10 %. Robust, a bad segment's residual is 0.6 / 1.6 = 37.5 % of its distance, so it weighs
+    0.15 / 0.375 = 0.4 of a good one and K moves by about 3.2 / 43.2 x 60 % = 4.4 %."""
+    rng = np.random.default_rng(12)
+    K = 0.42
+    segs = []
+    for j in range(48):
+        feats = [StepFeatures(0.55, float(b)) for b in rng.uniform(2.0, 8.0, 20)]
+        D = sum(K * f.bounce**0.25 for f in feats) * (1 + 0.02 * rng.standard_normal())
+        segs.append((feats, D * (1.6 if j % 6 == 5 else 1.0)))
+    fits = {}
+    for name, hr in (("robust", 0.15), ("plain", None)):
+        cal = LengthCalibrator(WeinbergLength(0.3), forgetting=1.0, huber_rel=hr)
+        for feats, D in segs:
+            cal.update(feats, D, sigma_distance=0.5)
+        fits[name] = cal.model.coef[0]
+    assert fits["robust"] == pytest.approx(1.044 * K, rel=0.015)
+    assert fits["plain"] == pytest.approx(1.10 * K, rel=0.015)
+
+
 def test_kim_model_uses_the_mean_vertical_acceleration_and_calibrates():
     """Kim et al.: L = K (mean |a_v|)^(1/3). Same RLS as every model; 40 segments of 20 steps with 5 cm
     of distance noise pin K to well under 1 % (the regressor sums are ~25, so sigma_K ~ 0.05 / 25 / sqrt(40))."""
