@@ -66,6 +66,11 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
 
     x0, y0, h0 = parse_start(args.start)
     out = Path(args.out)
+    cal_path = Path(args.calibration) if args.calibration else None
+    if args.update_calibration and cal_path is None:
+        raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
+    if cal_path is not None and not cal_path.is_file() and not args.update_calibration:
+        raise ValueError(f"calibration {cal_path} not found (add --update-calibration to create it from waypointed walks)")
     status = 0
     for p in args.traces:
         try:
@@ -74,10 +79,14 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
             print(f"{p}: error: {exc}", file=sys.stderr)
             status = 1
             continue
-        model = LengthCalibrator.load(args.calibration).model if args.calibration else make_model(args.model)
+        cal = LengthCalibrator.load(cal_path) if cal_path is not None and cal_path.is_file() else LengthCalibrator(make_model(args.model))
+        model = cal.model
         cfg = PhonePdrConfig(detector=args.detector, walking_offset=args.offset, estimate_offset=args.estimate_offset)
         pdr = PhonePdr(imu.rate_hz, model, cfg, heading0=h0)
         steps = pdr.process(imu)
+        coef_used = [float(c) for c in model.coef]
+        if args.update_calibration:
+            _update_calibration(p, args.format, cal, cal_path, steps, pdr.features)
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
         write_steps_csv(d / "steps.csv", steps)
@@ -85,9 +94,33 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
         st = pdr.stats
         degraded = sum(1 for s in steps if s.degraded)
         rej = ", ".join(f"{k} x{v}" for k, v in st.rejected_samples.items()) or "none"
-        print(f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {list(map(float, model.coef))}), "
+        print(f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {coef_used}), "
               f"{degraded} with degraded heading, gaps {st.gaps}, rejected samples: {rej}; input: {report.summary()} -> {d}")
     return status
+
+
+def _update_calibration(path: str, fmt: str | None, cal, cal_path: Path, steps, features) -> None:
+    """The device's step-length calibration, updated from this walk's waypoint segments (known
+    distances) and saved; a walk without marked points leaves it as it was."""
+    import numpy as np
+
+    from .io import detect_format
+    from .pdr.steplength import calibrate_from_marks
+
+    marks = None
+    if (fmt or detect_format(path)) == "msft":
+        from .io.msft import read_ilc_trace
+
+        marks = read_ilc_trace(path).waypoints
+    if marks is None or len(marks) < 2:
+        print(f"{path}: no waypoints (known distances): calibration {cal_path} not updated", file=sys.stderr)
+        return
+    before = [float(c) for c in cal.model.coef]
+    n = calibrate_from_marks(cal, np.array([s.t for s in steps]), features, marks.t, marks.pos_enu)
+    if n:
+        cal.save(cal_path)
+    print(f"{path}: calibration {cal_path}: {n} waypoint segments, {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]} "
+          f"({cal.n_segments} segments in all)")
 
 
 def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
@@ -556,6 +589,9 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
     ph.add_argument("--model", choices=LENGTH_MODELS, default="height", help="step length model (default height: Kim's on the bounce height)")
     ph.add_argument("--calibration", help="a per-device calibration JSON (LengthCalibrator.save) to use instead of --model defaults")
+    ph.add_argument("--update-calibration", action="store_true",
+                    help="after each input, update --calibration from its waypoint segments (known distances; robust to a mis-marked one) and save it; "
+                         "created from --model when absent")
     ph.add_argument("--detector", choices=("peak", "autocorr"), default="peak", help="step detector family (default peak)")
     ph.add_argument("--offset", type=float, default=0.0, help="walking direction minus device heading, rad (phone in pocket/bag)")
     ph.add_argument("--estimate-offset", action="store_true", help="estimate the walking offset from the acceleration's principal axis")

@@ -351,3 +351,35 @@ def test_android_step_headings_match_our_forward_heading():
     straddles = np.array([steps[i - 1].t < 5.0 <= steps[i].t if i else False for i in range(len(steps))])
     assert err[~straddles].max() < 1e-9  # steps within one heading: exact
     assert err[straddles].max() < math.pi / 2  # the step over the turn: between the two
+
+
+def test_cli_updates_a_device_calibration_from_waypointed_walks(tmp_path):
+    """The bundled sample's walks (shipped, no ../shared needed) calibrate a device: the file is made
+    from the model's default, learns from the waypoint segments, stays a human step constant (the
+    bounce-height K is 0.70 +- ~10 % across people), and is then used as it is."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import hybridloc
+
+    walks = sorted((Path(hybridloc.__file__).parent / "data" / "ilc_site1_F1" / "F1" / "path_data_files").glob("*.txt*"))[:3]
+    assert walks
+    cal = tmp_path / "dev.json"
+
+    def run(*extra):
+        return subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "phone", *map(str, walks), "--out", str(tmp_path / "o"), "--calibration", str(cal), *extra],
+                              capture_output=True, text=True, timeout=300)
+
+    r = run()
+    assert r.returncode != 0 and "not found" in r.stderr  # no silent default when the file is missing
+    r = run("--update-calibration")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(cal.read_text())
+    assert d["model"] == "height" and d["n_segments"] >= 3
+    assert 0.5 <= d["coef"][0] <= 0.9
+    r = run()
+    assert r.returncode == 0, r.stderr
+    assert f"height [{d['coef'][0]}]" in r.stdout  # the saved constant is what the walks now use
+    assert json.loads(cal.read_text())["n_segments"] == d["n_segments"]  # and, without --update-calibration, it is left alone

@@ -28,10 +28,10 @@ from ..types import StepEvent
 from ..units import wrap_angle
 from .attitude import forward_headings
 from .phone import PhonePdr, PhonePdrConfig
-from .steplength import LengthCalibrator, StepFeatures, make_model
+from .steplength import MIN_CALIBRATION_SEGMENT_M, LengthCalibrator, StepFeatures, calibrate_from_marks, make_model
 
 #: Segments shorter than this are not scored for length or turn (a waypoint mark is ~0.5 m vague).
-MIN_SEGMENT_M = 3.0
+MIN_SEGMENT_M = MIN_CALIBRATION_SEGMENT_M
 
 
 @dataclass
@@ -171,11 +171,11 @@ def _interp(t, p, tq):
 
 
 def fit_model(runs: list[TraceRun], model_name: str):
+    """One calibration over all the walks' waypoint segments (the same update a device's own
+    calibration gets from ``hybridloc pdr phone --update-calibration``)."""
     cal = LengthCalibrator(make_model(model_name), forgetting=1.0)
     for r in runs:
-        for _, _, _, D, idx in _segments(r):
-            if D >= MIN_SEGMENT_M and len(idx) >= 2:
-                cal.update([r.features[i] for i in idx], D, sigma_distance=0.5)
+        calibrate_from_marks(cal, np.array([s.t for s in r.steps]), r.features, r.wp_t, r.wp_xy, min_segment_m=MIN_SEGMENT_M)
     return cal.model
 
 

@@ -153,10 +153,12 @@ class LengthCalibrator:
     weighs huber_rel D / |r| instead of fully, so a few bad distances cannot drag the coefficients.
     """
 
-    def __init__(self, model: LengthModel, prior_rel_sigma: float = 0.3, forgetting: float = 0.98, huber_rel: float | None = HUBER_REL):
+    def __init__(self, model: LengthModel, prior_rel_sigma: float = 0.1, forgetting: float = 0.98, huber_rel: float | None = HUBER_REL):
         self.model = model
         n = len(model.coef)
-        # Prior: the model's default coefficients, each uncertain by prior_rel_sigma of itself.
+        # Prior: the model's default coefficients, each uncertain by prior_rel_sigma of itself: 10 %,
+        # about twice the spread of Weinberg's constant between people, so one walk's few segments
+        # (one of them perhaps mis-marked) cannot swing a device's calibration far.
         self.P = np.diag((prior_rel_sigma * np.maximum(np.abs(model.coef), 0.1)) ** 2)
         self.forgetting = forgetting
         self.huber_rel = huber_rel
@@ -207,3 +209,28 @@ class LengthCalibrator:
         c.n_segments = int(d.get("n_segments", 0))
         c.sum_sq_rel = float(d.get("sum_sq_rel", 0.0))
         return c
+
+
+#: Shortest waypoint segment used to calibrate, m: on shorter ones the marks' own error (+-0.7 m on
+#: ILC site1) is more than the PDR's scale error to be learned.
+MIN_CALIBRATION_SEGMENT_M = 3.0
+
+
+def calibrate_from_marks(cal: LengthCalibrator, step_t: np.ndarray, features: list[StepFeatures], mark_t: np.ndarray, mark_xy: np.ndarray,
+                         sigma_distance: float = 0.5, rel_scatter: float = 0.08, min_segment_m: float = MIN_CALIBRATION_SEGMENT_M) -> int:
+    """Update ``cal`` from a walk with marked points (survey waypoints): each pair of consecutive marks
+    at least ``min_segment_m`` apart is a known distance (straight line) for the steps between their
+    times. Its error against the model is the marks' ``sigma_distance`` (m; two marks of ~0.35 m
+    each) and the PDR's own scale scatter from one segment to the next, ``rel_scatter`` of D (ILC
+    site1: +-7.7 %, a random part no coefficient can learn), so one segment cannot swing the
+    calibration. Returns the number of segments used."""
+    step_t = np.asarray(step_t, float)
+    mark_t, mark_xy = np.asarray(mark_t, float), np.asarray(mark_xy, float)
+    used = 0
+    for k in range(len(mark_t) - 1):
+        D = float(np.hypot(*(mark_xy[k + 1] - mark_xy[k])))
+        idx = np.flatnonzero((step_t > mark_t[k]) & (step_t <= mark_t[k + 1]))
+        if D >= min_segment_m and len(idx) >= 2:
+            cal.update([features[i] for i in idx], D, sigma_distance=math.hypot(sigma_distance, rel_scatter * D))
+            used += 1
+    return used
