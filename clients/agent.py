@@ -258,16 +258,17 @@ def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: floa
 
 
 def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False,
-                 local_fixes: list | None = None) -> None:
+                 local_fixes: list | None = None, length_model=None) -> PhonePdr:
     """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x
     (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`;
-    ``local_fixes``: [(AbsoluteFix, sigma_random or None)] from the device's own GPS / RFID, fused at their times)."""
+    ``local_fixes``: [(AbsoluteFix, sigma_random or None)] from the device's own GPS / RFID, fused at their times;
+    ``length_model``: the device's calibrated step-length model). Returns the PDR (its steps and features)."""
     local = sorted(local_fixes or [], key=lambda a: a[0].t)
     i_local = 0
     imu = trace.imu
     if imu is None:
         raise ValueError(f"{trace.path}: no IMU data to replay")
-    pdr = PhonePdr(imu.rate_hz)
+    pdr = PhonePdr(imu.rate_hz, length_model)
     scans = [s for s in trace.scans if s.technology is Technology.WIFI]
     marks = list(zip(trace.waypoints.t, trace.waypoints.pos_enu)) if survey else []
     t0 = float(imu.t[0])
@@ -304,6 +305,7 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
     for tm, xy in marks[i_mark:]:
         agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
     agent.maybe_flush(ts[-1], force=True)
+    return pdr
 
 
 LIVE_FORMAT = """Live phone input: one record per line, as the sensors produce them (a pipe, a FIFO, stdin):
@@ -322,12 +324,13 @@ class LiveStats:
     scans: int = 0
     bad_lines: int = 0
     first_bad: str = ""
+    pdr: PhonePdr | None = None  # its steps and features, e.g. for the device's step-length calibration
 
 
-def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False) -> LiveStats:
+def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, length_model=None) -> LiveStats:
     """Run the phone PDR on a live line stream (:data:`LIVE_FORMAT`) into ``agent`` as it arrives."""
-    pdr = PhonePdr(rate_hz)
-    st = LiveStats()
+    pdr = PhonePdr(rate_hz, length_model)
+    st = LiveStats(pdr=pdr)
     acc_checked: list[float] = []
     units_error = ""
     t_now = -math.inf

@@ -479,6 +479,9 @@ def _cmd_client(args: argparse.Namespace) -> int:
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)
     init = _parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
+    cal, cal_path = _client_calibration(args)
+    length_model = cal.model if cal is not None else None
+    pdr = None
     with open_client(args.endpoint, _security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
         fusion = None
         if args.filter == "particle":
@@ -504,7 +507,8 @@ def _cmd_client(args: argparse.Namespace) -> int:
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             src = sys.stdin if args.live == "-" else open(args.live, encoding="utf-8")
             try:
-                ls = live_phone(agent, src, args.rate, lockstep=args.lockstep)
+                ls = live_phone(agent, src, args.rate, lockstep=args.lockstep, length_model=length_model)
+                pdr = ls.pdr
             finally:
                 if src is not sys.stdin:
                     src.close()
@@ -526,11 +530,55 @@ def _cmd_client(args: argparse.Namespace) -> int:
                 local, rep = read_fixes_csv(args.fixes)
                 if not rep.ok:
                     print(f"{args.fixes}: {rep.summary()}", file=sys.stderr)
-            replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local)
+            pdr = replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local, length_model=length_model)
         r = agent.close(wait=args.ack_timeout)
+    if args.kind != "foot" and args.update_calibration and pdr is not None:
+        _client_update_calibration(device, args, cal, cal_path, pdr, agent.fusion, tr if args.replay else None)
     print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
           f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
     return 0
+
+
+def _client_calibration(args: argparse.Namespace):
+    """(calibrator, path) of a phone or survey client's --calibration; (None, None) without one."""
+    if args.kind == "foot" or not getattr(args, "calibration", None):
+        if getattr(args, "update_calibration", False):
+            raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
+        return None, None
+    from .pdr import LengthCalibrator, make_model
+
+    path = Path(args.calibration)
+    if path.is_file():
+        return LengthCalibrator.load(path), path
+    if not args.update_calibration:
+        raise ValueError(f"calibration {path} not found (add --update-calibration to create it)")
+    return LengthCalibrator(make_model("height")), path
+
+
+def _client_update_calibration(device: str, args: argparse.Namespace, cal, cal_path: Path, pdr, fusion, trace) -> None:
+    """A survey teaches the calibration from its marks, a phone from the scale its Kalman filter learned."""
+    import math
+
+    import numpy as np
+
+    from .fusion import LocalFusion
+    from .pdr.steplength import calibrate_from_marks, calibrate_from_scale
+
+    before = [float(c) for c in cal.model.coef]
+    if args.kind == "survey" and trace is not None and len(trace.waypoints) >= 2:
+        n = calibrate_from_marks(cal, np.array([s.t for s in pdr.steps]), pdr.features, trace.waypoints.t, trace.waypoints.pos_enu)
+        how = f"{n} marked segments"
+        learned = n > 0
+    elif isinstance(fusion, LocalFusion):
+        scale, sigma = float(fusion.x[3]), math.sqrt(max(float(fusion.P[3, 3]), 0.0))
+        learned = calibrate_from_scale(cal, pdr.features, scale, sigma)
+        how = f"the fused step scale {scale:.3f} +- {sigma:.3f}" + ("" if learned else " (not pinned by the fixes)")
+    else:
+        learned, how = False, f"no step scale from the {args.filter} filter"
+    if learned:
+        cal.save(cal_path)
+    print(f"{device}: calibration {cal_path}: {how}: {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]}"
+          + ("" if learned else " (not updated)"))
 
 
 def _parse_floats(text: str, n: int, what: str) -> tuple[float, ...]:
@@ -673,6 +721,11 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--tls-ca")
         c.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="foot recording format (detected by default)")
         c.add_argument("--rate", type=float, help="IMU rate: foot files without timestamps, and --live streams")
+        if kind != "foot":
+            c.add_argument("--calibration", metavar="FILE", help="the device's step-length calibration (as pdr phone --calibration)")
+            c.add_argument("--update-calibration", action="store_true",
+                           help="at the end, teach --calibration (created when absent) what this walk showed: a survey from its marks "
+                                "(known distances), a phone from the step-length scale its Kalman filter learned from the fixes")
         c.set_defaults(func=_cmd_client)
 
     sv = sub.add_parser("serve", help="run the server: Zenoh router + ingest + locate/map/status services")

@@ -146,6 +146,7 @@ def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_p
     sample: fixes arrive for the scans, and every live position of the particle filter lies on the
     floor plan (particles outside it or across its walls die). ``--filter kourogi`` runs alike."""
     import csv
+    import json
     import subprocess
     import sys
 
@@ -177,6 +178,18 @@ def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_p
         assert rk.returncode == 0, rk.stderr
         rows_k = list(csv.DictReader(open(pose_k)))
         assert rows_k and all(np.isfinite([float(w["x"]), float(w["y"]), float(w["sigma_x"])]).all() for w in rows_k)
+        # a device's step-length calibration: a survey teaches it from its marks, a phone from the
+        # step scale its Kalman filter learned from the fixes (when they pinned it)
+        cal = tmp_path / "dev.json"
+        rs = run("client", "survey", "--endpoint", ep, "--site", site, "--replay", str(traces[14]), "--speed", "0", "--device", "survey-cal",
+                 "--spool", str(tmp_path / "spool-s"), "--calibration", str(cal), "--update-calibration")
+        assert rs.returncode == 0, rs.stderr
+        d = json.loads(cal.read_text())
+        assert d["n_segments"] >= 1 and 0.5 <= d["coef"][0] <= 0.9, rs.stdout
+        rp = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep", "--device", "phone-cal",
+                 "--spool", str(tmp_path / "spool-c"), "--calibration", str(cal), "--update-calibration")
+        assert rp.returncode == 0, rp.stderr
+        assert "calibration" in rp.stdout and json.loads(cal.read_text())["n_segments"] >= d["n_segments"]
     finally:
         srv.terminate()
         srv.wait(30)

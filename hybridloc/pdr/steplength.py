@@ -234,3 +234,18 @@ def calibrate_from_marks(cal: LengthCalibrator, step_t: np.ndarray, features: li
             cal.update([features[i] for i in idx], D, sigma_distance=math.hypot(sigma_distance, rel_scatter * D))
             used += 1
     return used
+
+
+def calibrate_from_scale(cal: LengthCalibrator, features: list[StepFeatures], scale: float, sigma_scale: float) -> bool:
+    """Update ``cal`` from a step-length scale learned by fusion with absolute fixes (the Kalman
+    filter's ``s``: true length = s x the model's): the walk's steps are one known distance,
+    s times what the model gave them, uncertain by ``sigma_scale`` of it. Returns False (nothing
+    learned) without steps or with a scale the fixes did not pin (sigma_scale not below the
+    calibrator's own 10 % prior)."""
+    if not features or not (math.isfinite(scale) and math.isfinite(sigma_scale)) or scale <= 0 or sigma_scale >= 0.1:
+        return False
+    pred = float(sum(cal.model.length(f) for f in features))
+    if pred <= 0:
+        return False
+    cal.update(features, scale * pred, sigma_distance=max(sigma_scale * pred, 1e-3))
+    return True
