@@ -171,9 +171,7 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
             pos[i], vel[i], quat[i], Ppos[i] = pos[i - 1], vel[i - 1], quat[i - 1], Ppos[i - 1]
             continue
         dt = t[i] - t[last_i]
-        broken = False  # no smoothing across this transition (gap, re-initialisation, skipped NaN)
-        if i - last_i > 1:
-            broken = True
+        broken = i - last_i > 1  # no smoothing across this transition (skipped NaN, gap, re-initialisation)
         last_i = i
         if dt > cfg.max_gap:
             stats["gaps"] += 1
@@ -202,13 +200,12 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
             c = kf.correct(zupt, zero3, gate=bool(gate[i]))
             if c.accepted:
                 dx = c.dx
-            if not c.accepted:
+                rejected_run = 0
+            else:
                 stats["zupt_rejected"] += 1
                 rejected_run += 1
                 if rejected_run >= reinit_after:
                     reinit_pending = True
-            else:
-                rejected_run = 0
             if cfg.zaru and c.accepted:  # a vetoed stance is no stance: no zero angular rate either
                 zaru.omega = gyr[i]  # one model, its reading updated (no per-sample construction)
                 cz = kf.correct(zaru, zero3)
