@@ -84,7 +84,8 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
 
     The defaults were chosen on the 28 PyShoe VICON trials in ../shared/data (mean 2-D ARMSE 0.081 m
     without the context test, 0.074 m with it; re-gridded after the strapdown alignment fix, still
-    the best: 0.070 m); they are one setting for all trials, not per trial.
+    the best: 0.070 m; with the foot INS's vetting of doubtful ZUPTs 0.059, and 0.053 smoothed, see
+    foot.py); they are one setting for all trials, not per trial.
     """
     T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
     return T, adaptive_mask(T, rate_hz, window, decades, gamma_still, gamma_max, context, context_decades)
