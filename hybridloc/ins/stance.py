@@ -84,7 +84,7 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
 
     The defaults were chosen on the 28 PyShoe VICON trials in ../shared/data (mean 2-D ARMSE 0.081 m
     without the context test, 0.074 m with it; re-gridded after the strapdown alignment fix, still
-    the best: 0.070 m; with the foot INS's vetting of doubtful ZUPTs 0.059, and 0.053 smoothed, see
+    the best: 0.070 m; with the foot INS's vetting of doubtful ZUPTs 0.0594, and 0.0529 smoothed, see
     foot.py); they are one setting for all trials, not per trial.
     """
     T, _ = shoe(acc, gyr, np.inf, W, sigma_a, sigma_w, g)
