@@ -501,6 +501,12 @@ def _cmd_client(args: argparse.Namespace) -> int:
             from .fusion import KourogiFusion
 
             fusion = KourogiFusion(init=init, floor=args.floor)
+        elif args.floorplan:  # our Kalman filter, with the floors' grid directions (heuristic drift elimination)
+            from .demo import corridor_axes_of
+            from .fusion import LocalFusion
+            from .io.msft import read_ilc_site
+
+            fusion = LocalFusion(init=init, floor=args.floor, corridor_axes=corridor_axes_of(read_ilc_site(args.floorplan)))
         if args.live:
             from .clients.agent import live_phone
 
@@ -707,7 +713,8 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--filter", choices=("kalman", "particle", "kourogi"), default="kalman",
                        help="local fusion: our Kalman filter (position, heading bias, step scale), a particle filter with the site's walls "
                             "and walk prior, or Kourogi et al.'s own (position and velocity; the reference) (default kalman)")
-        c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout), for --filter particle")
+        c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout): walls and walk prior "
+                       "for --filter particle; for kalman, each floor's grid direction (heading drift elimination along corridors)")
         c.add_argument("--start", metavar="X,Y,SIGMA", help="known start position in the site frame (m) and its standard deviation")
         c.add_argument("--floor", help="floor at the start (with --start)")
         c.add_argument("--lockstep", action="store_true",

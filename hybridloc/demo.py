@@ -68,11 +68,14 @@ def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
     return out
 
 
-def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: int = 4, progress: bool = True):
+def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: int = 4, progress: bool = True, corridor_axes: dict | None = None):
     """Server + survey clients + map rebuild + phone clients, all real (Zenoh on loopback, SQLite).
+    ``corridor_axes`` (floor -> grid direction, :func:`corridor_axes_of`) go to the phones' Kalman filters.
 
     Returns [(trace, AgentResult)] of the phone clients.
     """
+    from .fusion import LocalFusion
+
     import shutil
 
     from .clients.agent import Agent, PoseWriter, open_client, replay_phone
@@ -98,7 +101,8 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
             tr = read_ilc_trace(path)
             dev = f"{kind}-{Path(path).name.split('.')[0][:40]}"
             with open_client(ep) as s:
-                ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model)
+                ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model,
+                           fusion=LocalFusion(corridor_axes=corridor_axes))
                 ag.uplink.wait_connected(10)
                 # the device's own GPS / RFID fixes where the recording has them (the simulator writes
                 # <walk>_fixes.csv beside each trace)
@@ -159,7 +163,8 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         survey, others = traces[::2] + traces[1::4], traces[3::4]
     else:
         survey, others, plan = bundled_split(sample)
-    results = run_pipeline(survey, others, out, speed, workers)
+    axes = corridor_axes_of(plan)
+    results = run_pipeline(survey, others, out, speed, workers, corridor_axes=axes)
     from .fusion import LocalFusion
 
     all_pdr, all_fused, all_known = [], [], []
@@ -170,7 +175,7 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         e_f = _fused_errors(r.poses, wt, wxy)
         # the same steps and server fixes, the filter started at the pose PDR alone is given
         start = _known_start(r, tr)
-        e_k = _fused_errors(_replay(LocalFusion(**start), r), wt, wxy) if start else np.full(len(e_f), np.nan)
+        e_k = _fused_errors(_replay(LocalFusion(**start, corridor_axes=axes), r), wt, wxy) if start else np.full(len(e_f), np.nan)
         all_pdr += e_p.tolist()
         all_fused += e_f.tolist()
         all_known += e_k.tolist()
@@ -188,6 +193,19 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
 
 def _floor_hits(poses, wt, floor) -> list[bool]:
     return [poses[i][3] == floor for i in _held(poses, wt) if i >= 0]
+
+
+def corridor_axes_of(plan) -> dict[str, float]:
+    """Floor name -> the direction of its dominant grid of walls (:func:`hybridloc.geo.dominant_axis`),
+    for the Kalman filter's heuristic drift elimination; floors without one are left out."""
+    from .geo import dominant_axis
+
+    out = {}
+    for f in plan.floors if plan is not None else ():
+        ax = dominant_axis(f.walls)
+        if ax is not None:
+            out[f.name] = ax[0]
+    return out
 
 
 def _known_start(r, tr) -> dict | None:
@@ -233,7 +251,9 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     others = traces[::replay_every]
     survey = [t for t in traces if t not in set(others)]
     t0 = time.monotonic()
-    results = run_pipeline(survey, others, out, speed=speed, workers=workers)
+    plan = read_ilc_site(site_dir)
+    axes = corridor_axes_of(plan)
+    results = run_pipeline(survey, others, out, speed=speed, workers=workers, corridor_axes=axes)
     import io
 
     site = read_ilc_trace(survey[0]).site or "site"
@@ -241,7 +261,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     got = store.load_map(site)
     store.close()
     rmap = RadioMap.load(io.BytesIO(got[1]))
-    prior = WalkPrior.from_radio_map(rmap, read_ilc_site(site_dir))
+    prior = WalkPrior.from_radio_map(rmap, plan)
     names = ["PDR only (oracle start pose)", "WiFi only (server fixes)", "fused, Kalman, live", "fused, particle + map",
              "fused, Kalman, start pose known", "fused, particle, start pose known",
              "Kourogi x/y/vx/vy (paper), cold", "Kourogi x/y/vx/vy, start known", "fused, particle, no map"]
@@ -261,7 +281,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
                     names[8]: _replay(ParticleFusion(), r)}  # what the floor plan and walk prior add
         start = _known_start(r, tr)
         if start:
-            variants[names[4]] = _replay(LocalFusion(**start), r)
+            variants[names[4]] = _replay(LocalFusion(**start, corridor_axes=axes), r)
             variants[names[5]] = _replay(ParticleFusion(prior, **start), r)
             variants[names[7]] = _replay(KourogiFusion(**start), r)
         for k in names[2:]:

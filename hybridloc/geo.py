@@ -104,3 +104,40 @@ def wall_crossings(walls: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndar
     o3, o4 = orient(c, d, a), orient(c, d, b)
     hit = (o1 * o2 < 0) & (o3 * o4 < 0)
     return hit.sum(axis=1)
+
+
+#: A floor has a dominant grid when at least this share of its wall length lies within
+#: ``DOMINANT_AXIS_BAND`` of one axis (mod 90 deg).
+DOMINANT_AXIS_MIN_SHARE = 0.3
+DOMINANT_AXIS_BAND = 10.0 * DEG
+
+
+def dominant_axis(walls: np.ndarray) -> tuple[float, float] | None:
+    """The direction (rad, in [0, pi/2)) of a floor's dominant grid, mod 90 deg, and the share of wall
+    length within ``DOMINANT_AXIS_BAND`` of it; None when no grid dominates (share below
+    ``DOMINANT_AXIS_MIN_SHARE``) or there are no walls.
+
+    The length-weighted histogram of wall orientations mod 90 deg (2 deg bins, circular) gives the
+    peak; the axis is the circular mean (of 4 theta) of the walls within the band around it, so
+    walls at other angles do not pull it (Borenstein's heuristic drift elimination assumes corridors
+    along such a grid).
+    """
+    w = np.asarray(walls, float).reshape(-1, 2, 2)
+    d = w[:, 1] - w[:, 0]
+    length = np.hypot(d[:, 0], d[:, 1])
+    ok = length > 0
+    if not ok.any():
+        return None
+    theta = np.mod(np.arctan2(d[ok, 1], d[ok, 0]), math.pi / 2)
+    length = length[ok]
+    nb = 45
+    hist = np.bincount(np.minimum((theta / (math.pi / 2) * nb).astype(int), nb - 1), weights=length, minlength=nb)
+    hist = hist + np.roll(hist, 1) + np.roll(hist, -1)  # circular smoothing over +-1 bin
+    peak = (np.argmax(hist) + 0.5) * (math.pi / 2) / nb
+    dev = np.mod(theta - peak + math.pi / 4, math.pi / 2) - math.pi / 4
+    near = np.abs(dev) <= DOMINANT_AXIS_BAND
+    share = float(length[near].sum() / length.sum())
+    if share < DOMINANT_AXIS_MIN_SHARE:
+        return None
+    z = np.sum(length[near] * np.exp(4j * theta[near]))
+    return float(np.mod(np.angle(z) / 4.0, math.pi / 2)), share

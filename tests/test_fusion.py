@@ -117,12 +117,12 @@ def test_run_fusion_reproduces_arrival_order():
 
 
 def test_measurement_jacobians_match_finite_differences():
-    from hybridloc.fusion.measurements import PositionFix, StepDisplacement
+    from hybridloc.fusion.measurements import CorridorHeading, PositionFix, StepDisplacement
 
     rng = np.random.default_rng(5)
     for _ in range(20):
         x = np.array([*rng.normal(0, 10, 2), rng.uniform(-np.pi, np.pi), rng.uniform(0.7, 1.3)])
-        for model in (PositionFix(np.eye(2)), StepDisplacement(rng.normal(0, 5, 2), np.eye(2))):
+        for model in (PositionFix(np.eye(2)), StepDisplacement(rng.normal(0, 5, 2), np.eye(2)), CorridorHeading(rng.uniform(-3, 3), 0.1)):
             H = model.jacobian(x)
             num = np.zeros_like(H)
             for k in range(4):
@@ -249,3 +249,30 @@ def test_kourogi_filter_fix_pause_and_gps_velocity():
     assert not ok  # a velocity the steps deny: outside the gate
     ok, _ = f.correct(DisplacementFix(t1 - 20.0, t1 - 10.0, [0.0, 5.0], np.eye(2) * 0.01, "gps"))
     assert not ok  # not the present velocity any more
+
+
+def test_corridor_heading_removes_a_heading_bias_along_the_grid_and_leaves_diagonals_alone():
+    """Heuristic drift elimination: a walk straight along the grid (true heading 0) whose PDR heading
+    reads 8 deg teaches the filter a bias of -8 deg (within 2: the pseudo-measurement's 10 deg over
+    ~35 straight steps averages to ~2 deg, and the random walk adds 0.5 deg per step); the track then
+    stays on the corridor. A walk at 45 deg (a diagonal, beyond the 20 deg capture) is left alone."""
+    bias = math.radians(8.0)
+    steps = _walk(40, bias)
+    f = LocalFusion(init=(0.0, 0.0, 1.0), floor="F1", corridor_axes={"F1": 0.0})
+    plain = LocalFusion(init=(0.0, 0.0, 1.0), floor="F1")
+    for st in steps:
+        f.predict(st)
+        plain.predict(st)
+    assert f.n_corridor >= 30
+    assert math.degrees(f.x[2]) == pytest.approx(-8.0, abs=2.0)
+    assert plain.x[2] == 0.0
+    assert abs(f.x[1]) < 0.5 * abs(plain.x[1])  # the sideways drift of 40 x 0.7 m x sin(8 deg) = 3.9 m, mostly gone
+    diag = LocalFusion(init=(0.0, 0.0, 1.0), floor="F1", corridor_axes={"F1": 0.0})
+    for st in _walk(40, math.radians(45.0)):
+        diag.predict(st)
+    assert diag.n_corridor == 0 and diag.x[2] == 0.0
+    # turning: no straight stretch, no correction
+    turn = LocalFusion(init=(0.0, 0.0, 1.0), floor="F1", corridor_axes={"F1": 0.0})
+    for i, st in enumerate(_walk(40, 0.0)):
+        turn.predict(StepEvent(st.t, st.length, math.radians(5.0 * (i % 2)) + math.radians(3.0 * i), st.sigma_length, st.sigma_heading))
+    assert turn.n_corridor <= 2

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from hybridloc.geo import GeodeticOrigin, ecef_to_geodetic, geodetic_to_ecef
+from hybridloc.geo import GeodeticOrigin, dominant_axis, ecef_to_geodetic, geodetic_to_ecef
 from hybridloc.units import DEG
 
 
@@ -35,3 +35,29 @@ def test_enu_round_trip_many_points():
 def test_origin_rejects_radians_mistaken_for_degrees():
     with pytest.raises(ValueError):
         GeodeticOrigin.from_degrees(100.0, 0.0)
+
+
+def test_dominant_axis_of_a_rotated_grid_and_none_without_one():
+    """A grid of walls turned by 30 deg (and their perpendiculars, the same axis mod 90 deg) with a
+    third as much wall length at random angles: the axis is 30 deg (to 0.5: the band mean of exact
+    grid walls); walls at uniform random angles have no dominant grid."""
+    rng = np.random.default_rng(3)
+    walls = []
+    for k in range(40):
+        a = np.radians(30.0) + (np.pi / 2) * (k % 2)
+        p0 = rng.uniform(-50, 50, 2)
+        walls.append([p0, p0 + 10.0 * np.array([np.cos(a), np.sin(a)])])
+    for _ in range(40):
+        a = rng.uniform(0, np.pi)
+        p0 = rng.uniform(-50, 50, 2)
+        walls.append([p0, p0 + 3.3 * np.array([np.cos(a), np.sin(a)])])
+    ax, share = dominant_axis(np.array(walls))
+    assert np.degrees(ax) == pytest.approx(30.0, abs=0.5)
+    assert 0.7 < share < 0.9
+    random_walls = []
+    for _ in range(400):
+        a = rng.uniform(0, np.pi)
+        p0 = rng.uniform(-50, 50, 2)
+        random_walls.append([p0, p0 + 5.0 * np.array([np.cos(a), np.sin(a)])])
+    assert dominant_axis(np.array(random_walls)) is None
+    assert dominant_axis(np.zeros((0, 2, 2))) is None

@@ -60,3 +60,28 @@ class StepDisplacement:
 
     def covariance(self) -> np.ndarray:
         return self.R
+
+
+class CorridorHeading:
+    """z = psi_pdr + b + v: the walking direction along a corridor of the floor's dominant grid.
+
+    Heuristic drift elimination (Borenstein et al.): while a walker goes straight, the true direction
+    is most likely one of the building's grid directions, so the one nearest to the corrected heading
+    psi_pdr + b is taken as a measurement of it. ``psi_pdr`` is the step's own heading; the
+    measurement teaches the heading bias b only (the residual must be wrapped to (-pi, pi]).
+    """
+
+    def __init__(self, psi_pdr: float, sigma: float):
+        self.psi = float(psi_pdr)
+        self.R = np.array([[sigma**2]])
+
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        return np.array([self.psi + x[2]])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        H = np.zeros((1, len(x)))
+        H[0, 2] = 1.0
+        return H
+
+    def covariance(self) -> np.ndarray:
+        return self.R
