@@ -496,7 +496,9 @@ def _cmd_client(args: argparse.Namespace) -> int:
             prior = fetch_walk_prior(s, args.site, plan)
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
-            fusion = ParticleFusion(prior, init=init, floor=args.floor)
+            from .demo import corridor_axes_of
+
+            fusion = ParticleFusion(prior, init=init, floor=args.floor, corridor_axes=corridor_axes_of(plan))
         elif args.filter == "kourogi":
             from .fusion import KourogiFusion
 

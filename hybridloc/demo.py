@@ -277,12 +277,12 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
         since += (np.asarray(wt[1:]) - wt[0]).tolist()
-        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior), r), names[6]: _replay(KourogiFusion(), r),
+        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior, corridor_axes=axes), r), names[6]: _replay(KourogiFusion(), r),
                     names[8]: _replay(ParticleFusion(), r)}  # what the floor plan and walk prior add
         start = _known_start(r, tr)
         if start:
             variants[names[4]] = _replay(LocalFusion(**start, corridor_axes=axes), r)
-            variants[names[5]] = _replay(ParticleFusion(prior, **start), r)
+            variants[names[5]] = _replay(ParticleFusion(prior, **start, corridor_axes=axes), r)
             variants[names[7]] = _replay(KourogiFusion(**start), r)
         for k in names[2:]:
             poses = variants.get(k, [])

@@ -276,3 +276,20 @@ def test_corridor_heading_removes_a_heading_bias_along_the_grid_and_leaves_diago
     for i, st in enumerate(_walk(40, 0.0)):
         turn.predict(StepEvent(st.t, st.length, math.radians(5.0 * (i % 2)) + math.radians(3.0 * i), st.sigma_length, st.sigma_heading))
     assert turn.n_corridor <= 2
+
+
+def test_particle_filter_corridor_heading_pulls_the_bias_cloud_to_the_grid():
+    """The particle filter's drift elimination: a straight walk along the grid whose PDR heading reads
+    8 deg moves the cloud's heading bias to -8 deg (each straight step weighs the particles by a
+    10 deg Gaussian of their offset from the grid; allow 3 deg for the bias random walk and the
+    sampling); a diagonal walk is never weighed, whatever single particles' biases would align."""
+    steps = _walk(40, math.radians(8.0))
+    f = ParticleFusion(init=(0.0, 0.0, 1.0), floor="F1", corridor_axes={"F1": 0.0})
+    for st in steps:
+        f.predict(st)
+    assert f.n_corridor >= 30
+    assert math.degrees(float(f.w @ f.b)) == pytest.approx(-8.0, abs=3.0)
+    diag = ParticleFusion(init=(0.0, 0.0, 1.0), floor="F1", corridor_axes={"F1": 0.0})
+    for st in _walk(40, math.radians(45.0)):
+        diag.predict(st)
+    assert diag.n_corridor == 0
