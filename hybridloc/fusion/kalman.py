@@ -135,20 +135,10 @@ class LocalFusion:
     def _corridor(self, step: StepEvent) -> None:
         """Heuristic drift elimination after a step (see ``FusionConfig.corridor_*``)."""
         axis = self.corridor_axes.get(self.floor) if self.floor is not None else None
-        if axis is None:
-            self._recent_headings.clear()
-            return
-        h = self._recent_headings
-        h.append(step.heading)
-        del h[: -self.cfg.straight_steps]
-        if len(h) < self.cfg.straight_steps:
-            return
-        spread = np.unwrap(h)
-        if spread.max() - spread.min() >= self.cfg.straight_tol:
+        if not straight_along(self._recent_headings, step.heading, axis, self.cfg.straight_steps, self.cfg.straight_tol):
             return
         psi = step.heading + self.x[2]
-        quarter = math.pi / 2
-        target = axis + round((psi - axis) / quarter) * quarter  # the nearest grid direction
+        target = nearest_grid_direction(psi, axis)
         y = wrap_angle(target - psi)
         if abs(y) >= self.cfg.corridor_capture:
             return
@@ -240,6 +230,26 @@ class LocalFusion:
     def _constrain(self) -> None:
         """Keep the step scale physical after an update."""
         self.x[3] = min(max(self.x[3], 0.5), 1.5)
+
+
+def straight_along(recent: list[float], heading: float, axis: float | None, steps: int, tol: float) -> bool:
+    """Heuristic drift elimination's trigger: keep the last ``steps`` step headings in ``recent``
+    (cleared where the floor has no grid ``axis``) and say whether they span less than ``tol``."""
+    if axis is None:
+        recent.clear()
+        return False
+    recent.append(heading)
+    del recent[:-steps]
+    if len(recent) < steps:
+        return False
+    u = np.unwrap(recent)
+    return bool(u.max() - u.min() < tol)
+
+
+def nearest_grid_direction(psi: float, axis: float) -> float:
+    """The direction of a grid (``axis`` mod pi/2) nearest to heading ``psi``, rad."""
+    quarter = math.pi / 2
+    return axis + round((psi - axis) / quarter) * quarter
 
 
 def joseph_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, H: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

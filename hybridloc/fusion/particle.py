@@ -36,7 +36,7 @@ from scipy.stats import chi2
 
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
-from .kalman import Estimate, _shift_floor, correlated_fix_cov, floor_after_fix
+from .kalman import Estimate, _shift_floor, correlated_fix_cov, floor_after_fix, nearest_grid_direction, straight_along
 from .walkprior import WalkPrior
 
 
@@ -211,21 +211,11 @@ class ParticleFusion:
         them with the grid must not be favoured."""
         cfg = self.cfg
         axis = self.corridor_axes.get(self.floor) if self.floor is not None else None
-        if axis is None:
-            self._recent_headings.clear()
+        if not straight_along(self._recent_headings, step.heading, axis, cfg.straight_steps, cfg.straight_tol):
             return
-        h = self._recent_headings
-        h.append(step.heading)
-        del h[: -cfg.straight_steps]
-        if len(h) < cfg.straight_steps:
-            return
-        spread = np.unwrap(h)
-        if spread.max() - spread.min() >= cfg.straight_tol:
-            return
-        quarter = math.pi / 2
         b_mean = math.atan2(float(self.w @ np.sin(self.b)), float(self.w @ np.cos(self.b)))
         psi = step.heading + b_mean
-        target = axis + round((psi - axis) / quarter) * quarter  # the grid direction nearest the cloud's heading
+        target = nearest_grid_direction(psi, axis)  # the grid direction nearest the cloud's heading
         if abs(wrap_angle(target - psi)) >= cfg.corridor_capture:
             return
         y = np.angle(np.exp(1j * (target - (step.heading + self.b))))  # each particle's offset, wrapped
