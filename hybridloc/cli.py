@@ -496,19 +496,19 @@ def _cmd_client(args: argparse.Namespace) -> int:
             prior = fetch_walk_prior(s, args.site, plan)
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
-            from .demo import corridor_axes_of
+            from .geo import corridor_axes
 
-            fusion = ParticleFusion(prior, init=init, floor=args.floor, corridor_axes=corridor_axes_of(plan))
+            fusion = ParticleFusion(prior, init=init, floor=args.floor, corridor_axes=corridor_axes(plan))
         elif args.filter == "kourogi":
             from .fusion import KourogiFusion
 
             fusion = KourogiFusion(init=init, floor=args.floor)
         elif args.floorplan:  # our Kalman filter, with the floors' grid directions (heuristic drift elimination)
-            from .demo import corridor_axes_of
             from .fusion import LocalFusion
+            from .geo import corridor_axes
             from .io.msft import read_ilc_site
 
-            fusion = LocalFusion(init=init, floor=args.floor, corridor_axes=corridor_axes_of(read_ilc_site(args.floorplan)))
+            fusion = LocalFusion(init=init, floor=args.floor, corridor_axes=corridor_axes(read_ilc_site(args.floorplan)))
         if args.live:
             from .clients.agent import live_phone
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import geo
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
@@ -70,15 +71,14 @@ def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
 
 def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: int = 4, progress: bool = True, corridor_axes: dict | None = None):
     """Server + survey clients + map rebuild + phone clients, all real (Zenoh on loopback, SQLite).
-    ``corridor_axes`` (floor -> grid direction, :func:`corridor_axes_of`) go to the phones' Kalman filters.
+    ``corridor_axes`` (floor -> grid direction, :func:`hybridloc.geo.corridor_axes`) go to the phones' Kalman filters.
 
     Returns [(trace, AgentResult)] of the phone clients.
     """
-    from .fusion import LocalFusion
-
     import shutil
 
     from .clients.agent import Agent, PoseWriter, open_client, replay_phone
+    from .fusion import LocalFusion
     from .server.rebuild import rebuild
     from .server.service import Server
     from .wire.zconfig import free_port
@@ -163,7 +163,7 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         survey, others = traces[::2] + traces[1::4], traces[3::4]
     else:
         survey, others, plan = bundled_split(sample)
-    axes = corridor_axes_of(plan)
+    axes = geo.corridor_axes(plan)
     results = run_pipeline(survey, others, out, speed, workers, corridor_axes=axes)
     from .fusion import LocalFusion
 
@@ -193,19 +193,6 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
 
 def _floor_hits(poses, wt, floor) -> list[bool]:
     return [poses[i][3] == floor for i in _held(poses, wt) if i >= 0]
-
-
-def corridor_axes_of(plan) -> dict[str, float]:
-    """Floor name -> the direction of its dominant grid of walls (:func:`hybridloc.geo.dominant_axis`),
-    for the Kalman filter's heuristic drift elimination; floors without one are left out."""
-    from .geo import dominant_axis
-
-    out = {}
-    for f in plan.floors if plan is not None else ():
-        ax = dominant_axis(f.walls)
-        if ax is not None:
-            out[f.name] = ax[0]
-    return out
 
 
 def _known_start(r, tr) -> dict | None:
@@ -252,7 +239,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     survey = [t for t in traces if t not in set(others)]
     t0 = time.monotonic()
     plan = read_ilc_site(site_dir)
-    axes = corridor_axes_of(plan)
+    axes = geo.corridor_axes(plan)
     results = run_pipeline(survey, others, out, speed=speed, workers=workers, corridor_axes=axes)
     import io
 

@@ -141,3 +141,14 @@ def dominant_axis(walls: np.ndarray) -> tuple[float, float] | None:
         return None
     z = np.sum(length[near] * np.exp(4j * theta[near]))
     return float(np.mod(np.angle(z) / 4.0, math.pi / 2)), share
+
+
+def corridor_axes(plan) -> dict[str, float]:
+    """Floor name -> the direction of its dominant grid of walls (:func:`dominant_axis`), for the
+    fusion filters' heuristic drift elimination; floors without one (and a missing plan) are left out."""
+    out = {}
+    for f in plan.floors if plan is not None else ():
+        ax = dominant_axis(f.walls)
+        if ax is not None:
+            out[f.name] = ax[0]
+    return out

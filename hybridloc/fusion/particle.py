@@ -218,7 +218,7 @@ class ParticleFusion:
         target = nearest_grid_direction(psi, axis)  # the grid direction nearest the cloud's heading
         if abs(wrap_angle(target - psi)) >= cfg.corridor_capture:
             return
-        y = np.angle(np.exp(1j * (target - (step.heading + self.b))))  # each particle's offset, wrapped
+        y = wrap_angle(target - (step.heading + self.b))  # each particle's offset
         like = np.exp(-0.5 * (y / cfg.corridor_sigma) ** 2)
         if self._weigh(like):
             self.n_corridor += 1
