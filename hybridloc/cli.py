@@ -35,6 +35,7 @@ def _cmd_data_inspect(args: argparse.Namespace) -> int:
 
 
 def _load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "m/s^2"):
+    """(imu, read report, device model, waypoints or None) of a recording."""
     from .io import detect_format
 
     fmt = fmt or detect_format(path)
@@ -44,7 +45,7 @@ def _load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = 
         tr = read_ilc_trace(path)
         if tr.imu is None:
             raise ValueError(f"{path}: no usable IMU data ({tr.report.summary()})")
-        return tr.imu, tr.report, tr.device_model
+        return tr.imu, tr.report, tr.device_model, tr.waypoints
     from .io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat
 
     if fmt == "csv":
@@ -55,38 +56,33 @@ def _load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = 
         rec = read_openshoe_mat(path, rate or 100.0)
     else:
         raise ValueError(f"{path}: format {fmt} holds no IMU data")
-    return rec.imu, rec.report, ""
+    return rec.imu, rec.report, "", None
 
 
 def _cmd_pdr_phone(args: argparse.Namespace) -> int:
     from .io.common import stem_of
     from .io.writers import write_trajectory_csv
-    from .pdr import LengthCalibrator, PhonePdr, PhonePdrConfig, dead_reckon, make_model
+    from .pdr import PhonePdr, PhonePdrConfig, dead_reckon, make_model
     from .pdr.files import parse_start, write_steps_csv
 
     x0, y0, h0 = parse_start(args.start)
     out = Path(args.out)
-    cal_path = Path(args.calibration) if args.calibration else None
-    if args.update_calibration and cal_path is None:
-        raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
-    if cal_path is not None and not cal_path.is_file() and not args.update_calibration:
-        raise ValueError(f"calibration {cal_path} not found (add --update-calibration to create it from waypointed walks)")
+    cal, cal_path = _open_calibration(args.calibration, args.update_calibration, args.model)
     status = 0
     for p in args.traces:
         try:
-            imu, report, device = _load_imu(p, args.format, None, args.accel_unit)
+            imu, report, device, marks = _load_imu(p, args.format, None, args.accel_unit)
         except (ValueError, OSError) as exc:
             print(f"{p}: error: {exc}", file=sys.stderr)
             status = 1
             continue
-        cal = LengthCalibrator.load(cal_path) if cal_path is not None and cal_path.is_file() else LengthCalibrator(make_model(args.model))
-        model = cal.model
+        model = cal.model if cal is not None else make_model(args.model)
         cfg = PhonePdrConfig(detector=args.detector, walking_offset=args.offset, estimate_offset=args.estimate_offset)
         pdr = PhonePdr(imu.rate_hz, model, cfg, heading0=h0)
         steps = pdr.process(imu)
         coef_used = [float(c) for c in model.coef]
         if args.update_calibration:
-            _update_calibration(p, args.format, cal, cal_path, steps, pdr.features)
+            _update_calibration(p, cal, cal_path, steps, pdr.features, marks)
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
         write_steps_csv(d / "steps.csv", steps)
@@ -99,19 +95,30 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
     return status
 
 
-def _update_calibration(path: str, fmt: str | None, cal, cal_path: Path, steps, features) -> None:
+def _open_calibration(path: str | None, update: bool, model_name: str):
+    """(calibrator, path) of --calibration FILE, created from ``model_name`` when absent and
+    ``update`` (--update-calibration) asks for it; (None, None) without a file."""
+    from .pdr import LengthCalibrator, make_model
+
+    if path is None:
+        if update:
+            raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
+        return None, None
+    p = Path(path)
+    if p.is_file():
+        return LengthCalibrator.load(p), p
+    if not update:
+        raise ValueError(f"calibration {p} not found (add --update-calibration to create it)")
+    return LengthCalibrator(make_model(model_name)), p
+
+
+def _update_calibration(path: str, cal, cal_path: Path, steps, features, marks) -> None:
     """The device's step-length calibration, updated from this walk's waypoint segments (known
     distances) and saved; a walk without marked points leaves it as it was."""
     import numpy as np
 
-    from .io import detect_format
     from .pdr.steplength import calibrate_from_marks
 
-    marks = None
-    if (fmt or detect_format(path)) == "msft":
-        from .io.msft import read_ilc_trace
-
-        marks = read_ilc_trace(path).waypoints
     if marks is None or len(marks) < 2:
         print(f"{path}: no waypoints (known distances): calibration {cal_path} not updated", file=sys.stderr)
         return
@@ -190,7 +197,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
     status = 0
     for p in args.files:
         try:
-            imu, report, _ = _load_imu(p, args.format, args.rate, args.accel_unit)
+            imu, report, _, _ = _load_imu(p, args.format, args.rate, args.accel_unit)
             if args.rate and args.format != "openshoe" and abs(imu.rate_hz - args.rate) > 0.05 * args.rate:
                 raise ValueError(f"--rate {args.rate} Hz disagrees with the file's timestamps ({imu.rate_hz:.1f} Hz)")
             if not 50.0 <= imu.rate_hz <= 2000.0:
@@ -479,7 +486,8 @@ def _cmd_client(args: argparse.Namespace) -> int:
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)
     init = _parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
-    cal, cal_path = _client_calibration(args)
+    # a phone's or survey's step-length calibration (foot clients have no such options)
+    cal, cal_path = _open_calibration(getattr(args, "calibration", None), getattr(args, "update_calibration", False), "height")
     length_model = cal.model if cal is not None else None
     pdr = None
     with open_client(args.endpoint, _security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
@@ -523,7 +531,7 @@ def _cmd_client(args: argparse.Namespace) -> int:
             print(f"{device}: live input: {ls.samples} IMU samples, {ls.scans} scans, {ls.bad_lines} malformed lines skipped"
                   + (f" (first: {ls.first_bad})" if ls.first_bad else ""))
         elif args.kind == "foot":
-            imu, _, _ = _load_imu(args.replay, args.format, args.rate)
+            imu, _, _, _ = _load_imu(args.replay, args.format, args.rate)
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             replay_foot(agent, imu, args.speed)
         else:
@@ -545,22 +553,6 @@ def _cmd_client(args: argparse.Namespace) -> int:
     print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
           f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
     return 0
-
-
-def _client_calibration(args: argparse.Namespace):
-    """(calibrator, path) of a phone or survey client's --calibration; (None, None) without one."""
-    if args.kind == "foot" or not getattr(args, "calibration", None):
-        if getattr(args, "update_calibration", False):
-            raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
-        return None, None
-    from .pdr import LengthCalibrator, make_model
-
-    path = Path(args.calibration)
-    if path.is_file():
-        return LengthCalibrator.load(path), path
-    if not args.update_calibration:
-        raise ValueError(f"calibration {path} not found (add --update-calibration to create it)")
-    return LengthCalibrator(make_model("height")), path
 
 
 def _client_update_calibration(device: str, args: argparse.Namespace, cal, cal_path: Path, pdr, fusion, trace) -> None:

@@ -123,9 +123,11 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     rate = imu.rate_hz
     x0, g_meas = _initial_state(imu, still_prefix(imu, cfg.init_seconds), heading0)
     g = cfg.gravity or g_meas
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # a NaN sample counts as a hard swing: nothing is vetted or called stance on its account
-        T = np.nan_to_num(stance_mod.shoe(acc, gyr, np.inf, g=g)[0], nan=np.inf)
+    T = None  # the SHOE statistic, needed by the adaptive detector and by the vetting only
+    if cfg.vet or (stance is None and cfg.detector == "adaptive"):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            # a NaN sample counts as a hard swing: nothing is vetted or called stance on its account
+            T = np.nan_to_num(stance_mod.shoe(acc, gyr, np.inf, g=g)[0], nan=np.inf)
     weak = np.zeros(n, bool)
     if stance is None:
         if cfg.detector == "adaptive":

@@ -137,9 +137,16 @@ def make_model(name: str, coef: list[float] | None = None) -> LengthModel:
 
 #: Relative residual beyond which a calibration segment is down-weighted (Huber). About 1.5 sigma of
 #: a segment's relative error on ILC site1 (PDR scale +-9.4 % and the marks' +-0.67 m on 7 m): there,
-#: cross-fitted, median segment error 9.4 -> 8.7 %, p90 24.5 -> 24.1 % (least squares was pulled down by
-#: first segments 50-70 % long), waypoint error mean 4.04 -> 4.09 m; 0.30: 9.0 %, 0.08: 8.6 %.
+#: cross-fitted with the marks' 0.5 m alone as a segment's noise, median segment error 9.4 -> 8.7 %,
+#: p90 24.5 -> 24.1 % (least squares was pulled down by first segments 50-70 % long), waypoint error
+#: mean 4.04 -> 4.09 m; 0.30: 9.0 %, 0.08: 8.6 %. With the segment scatter of calibrate_from_marks
+#: added: 9.0 %, 24.3 %, 4.05 m.
 HUBER_REL = 0.15
+
+#: A calibration's prior on each coefficient, relative: about twice the spread of Weinberg's constant
+#: between people, so one walk's few segments (one of them perhaps mis-marked) cannot swing a
+#: device's calibration far.
+PRIOR_REL_SIGMA = 0.1
 
 
 class LengthCalibrator:
@@ -153,12 +160,10 @@ class LengthCalibrator:
     weighs huber_rel D / |r| instead of fully, so a few bad distances cannot drag the coefficients.
     """
 
-    def __init__(self, model: LengthModel, prior_rel_sigma: float = 0.1, forgetting: float = 0.98, huber_rel: float | None = HUBER_REL):
+    def __init__(self, model: LengthModel, prior_rel_sigma: float = PRIOR_REL_SIGMA, forgetting: float = 0.98, huber_rel: float | None = HUBER_REL):
         self.model = model
         n = len(model.coef)
-        # Prior: the model's default coefficients, each uncertain by prior_rel_sigma of itself: 10 %,
-        # about twice the spread of Weinberg's constant between people, so one walk's few segments
-        # (one of them perhaps mis-marked) cannot swing a device's calibration far.
+        # Prior: the model's default coefficients, each uncertain by prior_rel_sigma of itself.
         self.P = np.diag((prior_rel_sigma * np.maximum(np.abs(model.coef), 0.1)) ** 2)
         self.forgetting = forgetting
         self.huber_rel = huber_rel
@@ -240,9 +245,9 @@ def calibrate_from_scale(cal: LengthCalibrator, features: list[StepFeatures], sc
     """Update ``cal`` from a step-length scale learned by fusion with absolute fixes (the Kalman
     filter's ``s``: true length = s x the model's): the walk's steps are one known distance,
     s times what the model gave them, uncertain by ``sigma_scale`` of it. Returns False (nothing
-    learned) without steps or with a scale the fixes did not pin (sigma_scale not below the
-    calibrator's own 10 % prior)."""
-    if not features or not (math.isfinite(scale) and math.isfinite(sigma_scale)) or scale <= 0 or sigma_scale >= 0.1:
+    learned) without steps or with a scale the fixes did not pin (sigma_scale not below a
+    calibration's own prior, ``PRIOR_REL_SIGMA``)."""
+    if not features or not (math.isfinite(scale) and math.isfinite(sigma_scale)) or scale <= 0 or sigma_scale >= PRIOR_REL_SIGMA:
         return False
     pred = float(sum(cal.model.length(f) for f in features))
     if pred <= 0:
