@@ -37,6 +37,10 @@ def test_synthetic_trace_units_and_grouping(tmp_path):
     body += "1574559496000\tTYPE_WIFI\tnet\tAA:BB:CC:00:00:01\t-50\t2412\t1574559495000\n"
     body += "1574559496000\tTYPE_WIFI\t\taa:bb:cc:00:00:02\t-70\t5180\t1574559496000\n"
     body += "1574559496100\tTYPE_BEACON\tUUID\t1\t2\t-59\t-80\t3.2\tE0:00\t1574559496100\n"
+    # Same uuid/major/minor, another beacon (MAC): a transmitter of its own, in the same 1 s scan.
+    body += "1574559496400\tTYPE_BEACON\tUUID\t1\t2\t-59\t-70\t1.1\tE0:01\t1574559496400\n"
+    body += "1574559496600\tTYPE_BEACON\tUUID\t1\t2\t-59\t-82\t3.5\tE0:00\t1574559496600\n"
+    body += "1574559497500\tTYPE_BEACON\tUUID\t1\t2\t-59\t-75\t2.0\tE0:00\t1574559497500\n"
     body += "1574559496200\tTYPE_WAYPOINT\t11.0\t21.0\n"
     tr = read_ilc_trace(_write(tmp_path, body))
     assert tr.floor == "F2" and tr.device_model == "ACME X1"
@@ -48,7 +52,10 @@ def test_synthetic_trace_units_and_grouping(tmp_path):
     assert wifi.frequency_hz["aa:bb:cc:00:00:01"] == pytest.approx(2.412e9)
     assert wifi.age_s["aa:bb:cc:00:00:01"] == pytest.approx(1.0)
     ble = [s for s in tr.scans if s.technology.value == "ble"]
-    assert list(ble[0].rssi_dbm) == ["uuid_1_2"]
+    assert [s.t for s in ble] == pytest.approx([1574559496.6, 1574559497.5])  # adverts grouped by 1 s
+    assert dict(ble[0].rssi_dbm) == {"uuid_1_2_e0:00": -82.0, "uuid_1_2_e0:01": -70.0}  # the newest advert
+    assert ble[0].age_s["uuid_1_2_e0:01"] == pytest.approx(0.2)
+    assert dict(ble[1].rssi_dbm) == {"uuid_1_2_e0:00": -75.0}
     assert len(tr.waypoints) == 2 and tr.report.ok
 
 

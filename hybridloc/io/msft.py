@@ -11,9 +11,14 @@ are ``unix_ms  TYPE_*  values...``:
 ``TYPE_ROTATION_VECTOR x y z acc``   Android rotation vector (kept for comparison only)
 ``TYPE_WIFI ssid bssid rssi f last`` one line per access point; lines sharing a timestamp form one
                                      scan; ``f`` in MHz; ``last`` = last-seen Unix ms
-``TYPE_BEACON uuid major minor tx rssi dist mac last``  iBeacon; id = ``uuid_major_minor``
+``TYPE_BEACON uuid major minor tx rssi dist mac last``  iBeacon; id = ``uuid_major_minor_mac``
 ``TYPE_WAYPOINT x y``                **ground truth**, floor-plan metres; kept apart from sensors
 =================================  ==========================================================
+
+Beacons: many deployments give every beacon the same ``uuid major minor`` (site1's mall: 264 beacons
+on F2 all ``9195b3ad-..._0_0``), so the MAC is part of a beacon's id. Each advert is its own line
+with its own timestamp; the adverts heard within ``BLE_SCAN_WINDOW_S`` of the first one form one BLE
+scan stamped at the newest advert, each reading with its age (the newest advert of a beacon kept).
 
 Known types we do not use (the ``_UNCALIBRATED`` forms, ``TYPE_BLUE``/``TYPE_BLU4`` raw BLE adverts,
 ``TYPE_DIST1``/``TYPE_DIST2``, ``TYPE_SENSOR_MAGNETIC_FIELD_ACCURACY_CHANGED``) are counted in the
@@ -163,7 +168,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
     meta: dict[str, str] = {}
     sensors: dict[str, list[list[float]]] = {k: [] for k in SENSOR_TYPES.values()}
     wifi: dict[float, dict[str, tuple[float, float, float]]] = {}
-    ble: dict[float, dict[str, float]] = {}
+    ble: list[tuple[float, str, float]] = []  # (t, beacon id, rssi) per advert
     wps: list[tuple[float, float, float]] = []
     for lineno, rtype, f in iter_ilc_records(path, report):
         if rtype == "#":
@@ -226,7 +231,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
             if not (math.isfinite(rssi) and RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM):
                 report.problem(lineno, "rssi-out-of-range", f"{f[5]} dBm")
                 continue
-            ble.setdefault(t, {})[f"{f[1]}_{f[2]}_{f[3]}".lower()] = rssi
+            ble.append((t, f"{f[1]}_{f[2]}_{f[3]}_{f[7].strip()}".lower().rstrip("_"), rssi))
         elif rtype == "TYPE_WAYPOINT":
             vals = _floats(f[1:], 2) if len(f) >= 3 else None
             if vals is None or not all(math.isfinite(v) for v in vals):
@@ -253,7 +258,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
     scans = [
         RfScan(t, Technology.WIFI, {k: v[0] for k, v in d.items()}, {k: v[1] for k, v in d.items()}, {k: v[2] for k, v in d.items()}, model)
         for t, d in wifi.items()
-    ] + [RfScan(t, Technology.BLE, d, device_model=model) for t, d in ble.items()]
+    ] + _ble_scans(ble, model)
     scans.sort(key=lambda s: (s.t, s.technology.value))
     wps.sort()
     wp = Waypoints(np.array([w[0] for w in wps]), np.array([[w[1], w[2]] for w in wps]).reshape(-1, 2), meta.get("FloorName") or None)
@@ -264,6 +269,31 @@ def _interp_rows(t_src: np.ndarray, v_src: np.ndarray, t_dst: np.ndarray) -> np.
     if len(t_src) == len(t_dst) and np.array_equal(t_src, t_dst):
         return v_src
     return np.column_stack([np.interp(t_dst, t_src, v_src[:, i]) for i in range(v_src.shape[1])])
+
+
+#: BLE adverts heard within this span of a group's first one form one scan, s. Android reports each
+#: advert as it arrives; a beacon advertising at 1-10 Hz is heard about once a second.
+BLE_SCAN_WINDOW_S = 1.0
+
+
+def _ble_scans(adverts: list[tuple[float, str, float]], model: str) -> list[RfScan]:
+    """Group time-sorted adverts into scans of at most ``BLE_SCAN_WINDOW_S`` (see module docstring)."""
+    out: list[RfScan] = []
+    group: dict[str, tuple[float, float]] = {}
+    t_first = t_last = -math.inf
+
+    def flush():
+        if group:
+            out.append(RfScan(t_last, Technology.BLE, {k: v[1] for k, v in group.items()}, age_s={k: t_last - v[0] for k, v in group.items()}, device_model=model))
+
+    for t, key, rssi in sorted(adverts, key=lambda a: a[0]):
+        if t - t_first > BLE_SCAN_WINDOW_S:
+            flush()
+            group, t_first = {}, t
+        group[key] = (t, rssi)  # the newest advert of a beacon
+        t_last = t
+    flush()
+    return out
 
 
 def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport) -> ImuBlock | None:
