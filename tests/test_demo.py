@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import numpy as np
+
 
 def test_demo_runs_end_to_end(tmp_path):
     r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "demo", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
@@ -14,3 +16,18 @@ def test_demo_runs_end_to_end(tmp_path):
     kinds = {f["properties"].get("kind") for f in fc["features"]}
     assert {"track", "true_waypoint", "floor"} <= kinds
     assert list((tmp_path / "poses").glob("*.csv"))
+
+
+def test_true_motion_average_keeps_a_map_bias_and_averages_noise():
+    """The radio map's floor in ``eval fusion``: fixes moved by the true motion and averaged. A bias
+    every fix shares survives whole; noise that alternates in sign averages out; no fix, no answer."""
+    from hybridloc.demo import _true_motion_average_errors
+
+    wp_t, wp_xy = np.array([0.0, 10.0, 20.0]), np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])  # 1 m/s east
+    t = np.arange(1.0, 21.0, 1.0)
+    noise = np.where(np.arange(t.size) % 2 == 0, 2.0, -2.0)
+    biased = [(ti, ti + 3.0, 4.0, "F1") for ti in t]  # every fix 5 m off, the same way
+    noisy = [(ti, ti, n, "F1") for ti, n in zip(t, noise)]
+    np.testing.assert_allclose(_true_motion_average_errors(biased, wp_t, wp_xy, 4.0), [5.0, 5.0])
+    np.testing.assert_allclose(_true_motion_average_errors(noisy, wp_t, wp_xy, np.inf), [0.0, 0.0], atol=1e-12)
+    assert np.isnan(_true_motion_average_errors([(30.0, 0.0, 0.0, "F1")], wp_t, wp_xy, 5.0)).all()
