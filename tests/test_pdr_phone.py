@@ -70,6 +70,39 @@ def test_attitude_follows_gyro_about_gravity_whatever_the_tilt():
     assert turned == pytest.approx(rate * 3.0 - rate / RATE, abs=2 * DEG)
 
 
+def test_a_still_phone_reads_its_gyro_bias_and_then_holds_its_heading():
+    """ZARU: a phone standing still with a raw gyro biased by 2 deg/s about the vertical (a consumer
+    gyro's turn-on bias) has its bias read within the first seconds; walking on straight for 60 s,
+    the heading holds to what the noise leaves (0.003 rad/s white at 50 Hz: ~1 deg), where the bias
+    alone would turn it by 120 deg. No magnetometer: the gyro alone has to do it."""
+    rng = np.random.default_rng(1)
+    imu, _ = synth_walk(rng, seconds=60.0, mag=False, still=4.0)
+    bias = np.array([0.0, 0.0, 2.0 * DEG])
+    imu = ImuBlock(imu.t, imu.accel_body, imu.gyro_body + bias, None)
+    pdr = PhonePdr(RATE, heading0=0.0)
+    steps = pdr.process(imu)
+    assert pdr.att.bias[2] == pytest.approx(bias[2], abs=0.1 * DEG)
+    drift = max(abs(s.heading) for s in steps)
+    assert drift < 3 * DEG
+
+
+def test_the_magnetometer_does_not_turn_a_still_phone():
+    """Standing still beside steel: the field turns by 30 deg while the phone does not. Nothing moves,
+    so the consistency test passes; the heading must still stay where the gyro holds it (k_mag = 0.1/s
+    would otherwise have pulled it ~30 deg (1 - e^-2) = 26 deg over 20 s)."""
+    f = AttitudeFilter()
+    m_nav = np.array([0.0, B_FIELD * math.cos(DIP), -B_FIELD * math.sin(DIP)])
+    acc = np.array([0.0, 0.0, G0])
+    for i in range(int(25 * RATE)):
+        t = i / RATE
+        m = _rz(30 * DEG if t > 5.0 else 0.0) @ m_nav  # a steady disturbance from 5 s on
+        f.update(t, acc, np.zeros(3), m)
+        if i == int(4.9 * RATE):
+            h0 = f.forward_heading()
+    assert f.still
+    assert abs(f.forward_heading() - h0) < 0.5 * DEG
+
+
 def test_step_count_and_turn_on_synthetic_walk():
     rng = np.random.default_rng(1)
     # 60 s straight, a 90 degree left turn spread over 4 s in the middle.

@@ -15,6 +15,15 @@ a gyro bias estimate. Each sample:
    * the magnetometer's heading change over ``consistency_window`` agrees with the gyro's within
      ``consistency_tol``.
    The references are learned from the first clean seconds and follow slowly afterwards.
+4. **Gyro bias**, which a phone's raw gyro has (1-3 deg/s at turn-on for consumer MEMS) and which
+   would otherwise turn into a heading drift no magnetometer pull can hold in a disturbed building:
+   * the accelerometer's tilt error drives the bias (Mahony's integral term) about the horizontal axes;
+   * standing still (zero angular rate update, ZARU; the survey's Ojeda & Borenstein use it on the
+     foot): while the specific force and the rate stay within ``still_acc_tol`` and
+     ``still_gyro_dev`` of their 0.5 s averages, and the rate below ``still_gyro_max``, for
+     ``still_time``, the gyro reads its own bias (the spell's mean, then averaged over ``zaru_tau``).
+     While still, the magnetometer does not turn the heading (step 3 cannot tell a clean field from
+     a steady disturbance when nothing moves).
 
 All per-sample arithmetic is plain Python floats: at 50 Hz this is several times faster than
 numpy on 3-vectors, and the filter is inherently sequential.
@@ -51,6 +60,16 @@ class AttitudeConfig:
     consistency_window: float = 0.5  # s
     consistency_tol: float = 8.0 * DEG  # rad over the window
     settle_time: float = 1.0  # s of clean field before the magnetometer corrects yaw again
+    #: still: the specific force within this of its own 0.5 s average, m/s^2 (a hand's tremor is
+    #: ~0.05-0.1; not |a| against g, which an accelerometer bias of 0.04 g would already fail) ...
+    still_acc_tol: float = 0.25
+    #: ... the rate within ``still_gyro_dev`` of its own average and below ``still_gyro_max``, rad/s
+    #: (a still phone reads its bias: consumer turn-on 3 sigma ~ 0.05)
+    still_gyro_dev: float = 0.03
+    still_gyro_max: float = 0.15
+    still_time: float = 0.5  # s the stillness must last before the gyro is read as bias
+    zaru_tau: float = 2.0  # s: averaging time of the bias while still
+    max_bias: float = 0.1  # rad/s: bias estimates are kept within this (a gyro beyond it is broken)
 
 
 def quat_mul(a, b):
@@ -162,6 +181,12 @@ class AttitudeFilter:
         self.n_mag_rejected = 0
         self.n_mag_used = 0
         self._g_body: list[float] | None = None  # low-passed specific force in the body frame
+        self._still_since: float | None = None
+        self._acc_avg: list[float] | None = None  # 0.5 s averages for the stillness test
+        self._gyr_avg: list[float] | None = None
+        self.n_zaru = 0  # samples read as gyro bias (standing still)
+        self.still = False  # held still for still_time: the ZARU is reading the bias
+        self._still_n = 0
 
     def initialise(self, t: float, acc, mag) -> None:
         self.q = triad(acc, mag)
@@ -180,6 +205,7 @@ class AttitudeFilter:
         cfg = self.cfg
         q = self.q
         R = quat_to_rot(q)
+        self._zaru(t, dt, acc, gyr)
         wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
         if cfg.gravity_tau > 0:
             g = self._g_body
@@ -250,6 +276,11 @@ class AttitudeFilter:
                 else:
                     self.mag_clean_since = None
                 self.mag_ok = clean and (t - self.mag_clean_since) >= cfg.settle_time if self.mag_clean_since is not None else False
+                if self.mag_ok and self.still:
+                    # Standing still, the consistency test sees nothing move and passes whatever the
+                    # field: a steel frame's steady pull would turn the heading by tens of degrees
+                    # over a pause. The gyro, its bias just read by the ZARU, holds the heading instead.
+                    self.mag_ok = False
                 if self.mag_ok:
                     self.n_mag_used += 1
                     # Rotate about nav z by k*err*dt: q <- qz * q, turning measured North onto +y.
@@ -260,6 +291,35 @@ class AttitudeFilter:
         else:
             self.mag_ok = False
         self.q = q
+
+    def _zaru(self, t: float, dt: float, acc, gyr) -> None:
+        """Zero angular rate update: a phone held still reads its gyro bias (see module docstring)."""
+        cfg = self.cfg
+        if self._acc_avg is None:
+            self._acc_avg, self._gyr_avg = list(acc), list(gyr)
+        a = min(dt / 0.5, 1.0)
+        for i in range(3):
+            self._acc_avg[i] += a * (acc[i] - self._acc_avg[i])
+            self._gyr_avg[i] += a * (gyr[i] - self._gyr_avg[i])
+        still = (_norm([acc[i] - self._acc_avg[i] for i in range(3)]) <= cfg.still_acc_tol
+                 and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev and _norm(gyr) <= cfg.still_gyro_max)
+        self.still = False
+        if not still:
+            self._still_since = None
+            self._still_n = 0
+            return
+        if self._still_since is None:
+            self._still_since = t
+        if t - self._still_since < cfg.still_time:
+            return
+        self.still = True
+        self.n_zaru += 1
+        self._still_n += 1
+        # the plain mean of the spell's rates while it is shorter than zaru_tau (a first short pause
+        # gives the whole bias at once), an exponential average over zaru_tau afterwards
+        a = max(min(dt / cfg.zaru_tau, 1.0), 1.0 / self._still_n)
+        for i in range(3):
+            self.bias[i] = min(max(self.bias[i] + a * (gyr[i] - self.bias[i]), -cfg.max_bias), cfg.max_bias)
 
     def forward_heading(self) -> float:
         """Heading (rad, CCW from nav East) of the device's forward direction, horizontal.

@@ -6,9 +6,12 @@ bounce a_v peaking at each heel strike, a_v = (A/2) cos(2 pi (t - t_k) / T_k) ar
 peak-to-peak bounce A chosen so that the bounce-height model with the walker's own K gives the true
 step length: mean |a_v| = A / pi = (L / K)^3 / T^2, kept within a factor 2 of the walker's natural
 bounce (short turning steps still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the
-heading psi), so the gyro reads (0, 0, dpsi/dt) when walking; handling adds smooth random rotations
-and accelerations. The magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor
-disturbance field.
+heading psi), so the gyro reads (0, 0, dpsi/dt) when walking. Handling (while standing) is a real
+motion: the phone is picked up, turned about (a smooth random rotation theta(t), about 0.5 rad per axis,
+that starts and ends at zero: put back in the same grip) and shaken with smooth accelerations, so the
+attitude is R = Rz(psi - pi/2) Exp(theta), the gyro reads that attitude's body rate and the
+accelerometer and magnetometer see the turned phone: the three sensors agree, as on a real phone.
+The magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor disturbance field.
 
 Foot (body x forward, y left, z up): per stride (two steps) the foot stands still for 60 % of the
 stride and swings 40 %. The swing's nav-frame acceleration is chosen sample by sample,
@@ -81,6 +84,37 @@ def _smooth_noise(rng: np.random.Generator, n: int, width: int) -> np.ndarray:
     return np.convolve(rng.standard_normal(n + len(k)), k, mode="same")[: n]
 
 
+#: s: a walker who stood turns to the next heading in this last moment before walking on
+TURN_S = 1.0
+#: Handling: rotation about each axis, rad (1 sigma), its correlation time, s, and the shaking, m/s^2.
+HANDLING_ANGLE = 0.5
+HANDLING_TIME_S = 0.5
+HANDLING_ACCEL = 2.0
+
+
+def _handle(idx: np.ndarray, t: np.ndarray, psi: np.ndarray, f_nav: np.ndarray, m_nav: np.ndarray,
+            acc: np.ndarray, gyr: np.ndarray, mag: np.ndarray, rng: np.random.Generator) -> None:
+    """One handling interval (samples ``idx``), written into acc, gyr and mag in place (module docstring).
+
+    theta(t) = w(t) n(t): n smooth unit noise per axis, w = HANDLING_ANGLE sin^2 of the interval's phase,
+    so the phone leaves and returns to its grip smoothly. Attitude R_k = Rz(psi_k - pi/2) Exp(theta_k);
+    the gyro at sample k is the body rate log(R_k^T R_(k+1)) / dt that carries it to the next sample
+    (the last sample's rate is the one before it: the grip is back, the rate is ~0)."""
+    from scipy.spatial.transform import Rotation
+
+    m = len(idx)
+    dt = float(np.median(np.diff(t[idx])))
+    width = max(1, int(round(HANDLING_TIME_S / dt)))
+    w = HANDLING_ANGLE * np.sin(math.pi * (np.arange(m) + 0.5) / m) ** 2
+    theta = w[:, None] * np.column_stack([_smooth_noise(rng, m, width) for _ in range(3)])
+    R = Rotation.from_euler("z", (psi[idx] - math.pi / 2)[:, None]) * Rotation.from_rotvec(theta)
+    shake = HANDLING_ACCEL * np.column_stack([_smooth_noise(rng, m, width) for _ in range(3)]) * (w / HANDLING_ANGLE)[:, None]
+    acc[idx] = R.inv().apply(f_nav[idx] + shake)
+    mag[idx] = R.inv().apply(m_nav[idx])
+    rate = (R[:-1].inv() * R[1:]).as_rotvec() / np.diff(t[idx])[:, None]
+    gyr[idx] = np.vstack([rate, rate[-1:]])
+
+
 def disturbance_field(rng: np.random.Generator, n_terms: int = 24, length: float = 4.0, amplitude: float = 8e-6):
     """A smooth random indoor magnetic disturbance (random Fourier features), tesla, f(x, y) -> (N, 3)."""
     w = rng.normal(0.0, 1.0 / length, (n_terms, 2))
@@ -99,8 +133,16 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
     n = len(t)
     ts = np.array([s.t for s in walk.steps])
     hs = np.unwrap(np.array([s.heading for s in walk.steps])) if walk.steps else np.zeros(0)
-    # heading: turn during the step that changes it (linear between step times)
-    psi = np.interp(t, ts, hs) if len(ts) else np.zeros(n)
+    # heading: turn during the step that changes it (linear between step times); across a pause the
+    # walker stands facing the way they came and turns in the last TURN_S before walking on (not
+    # slowly through the whole pause, which would leave no still moment)
+    T_nat = walk.step_length / walk.speed
+    kt, kh = list(ts), list(hs)
+    for i in np.flatnonzero(np.diff(ts) > 2.0 * T_nat)[::-1]:
+        turn_s = min(TURN_S, 0.5 * (ts[i + 1] - ts[i]))
+        kt.insert(i + 1, ts[i + 1] - turn_s)
+        kh.insert(i + 1, hs[i])
+    psi = np.interp(t, kt, kh) if len(ts) else np.zeros(n)
     dpsi = np.gradient(psi, t) if n > 1 else np.zeros(n)
     av = np.zeros(n)
     if len(ts):
@@ -108,38 +150,34 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
         k0 = np.clip(k - 1, 0, len(ts) - 1)
         # nearest step event and its period
         near = np.where(np.abs(t - ts[k0]) < np.abs(t - ts[k]), k0, k)
-        T = np.diff(np.concatenate([[ts[0] - 0.55], ts]))[near]
+        # a step's period is the time since the previous step, but a first step after standing takes
+        # no longer than a slow step (the bounce is the step's, not a slow swell through the pause)
+        T = np.minimum(np.diff(np.concatenate([[ts[0] - 0.55], ts])), 1.5 * walk.step_length / walk.speed)[near]
         # On stairs the horizontal step is short but the body still bounces like a full step:
         # use the walker's natural step length there.
         # The bounce-height relation (mean |a_v| = A / pi = (L / K)^3 / T^2) holds for steady walking; a
         # short step (turning, stopping) still bounces at least half as hard as a full one, and a stair
         # step like a full one.
         L = np.array([s.length if s.dz == 0 else walk.step_length for s in walk.steps])[near]
-        T_nat = walk.step_length / walk.speed
         A_nat = math.pi * (walk.step_length / walk.length_k) ** 3 / T_nat**2
         A = A_nat * np.clip((L / walk.step_length) ** 3 * (T_nat / T) ** 2, 0.5, 2.0)
         phase = (t - ts[near]) / T
         walking = np.abs(phase) <= 0.5
         av = np.where(walking, 0.5 * A * np.cos(2 * math.pi * phase), 0.0)
-    # handling while standing: smooth random rotations (about 1 rad/s) and accelerations (2 m/s^2)
-    handling = np.zeros(n, bool)
-    for a, b, h in walk.pauses:
-        if h:
-            handling |= (t >= a) & (t < b)
     c, s = np.cos(psi - math.pi / 2), np.sin(psi - math.pi / 2)
     f_nav = np.column_stack([np.zeros(n), np.zeros(n), G0 + av])
     # R = Rz(psi - pi/2): body = R^T nav
     acc = np.column_stack([c * f_nav[:, 0] + s * f_nav[:, 1], -s * f_nav[:, 0] + c * f_nav[:, 1], f_nav[:, 2]])
     gyr = np.column_stack([np.zeros(n), np.zeros(n), dpsi])
-    if handling.any():
-        for j in range(3):
-            gyr[:, j] += np.where(handling, _smooth_noise(rng, n, 8) * 1.0, 0.0)
-            acc[:, j] += np.where(handling, _smooth_noise(rng, n, 8) * 2.0, 0.0)
     pos, _ = walk.position_at(t)
     m_nav = np.tile([0.0, EARTH_FIELD_T * math.cos(EARTH_DIP), -EARTH_FIELD_T * math.sin(EARTH_DIP)], (n, 1))
     if mag_field is not None:
         m_nav = m_nav + mag_field(pos)
     mag = np.column_stack([c * m_nav[:, 0] + s * m_nav[:, 1], -s * m_nav[:, 0] + c * m_nav[:, 1], m_nav[:, 2]])
+    for a, b, handled in walk.pauses:
+        idx = np.flatnonzero((t >= a) & (t < b))
+        if handled and len(idx) > 2:
+            _handle(idx, t, psi, f_nav, m_nav, acc, gyr, mag, rng)
     if grade is not None:
         acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
         mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
