@@ -22,6 +22,10 @@ import numpy as np
 from .building import STOREY, World
 
 
+#: steps of one stair flight; a storey is two flights joined by a landing (16 steps of 0.22 m rise)
+STEPS_PER_FLIGHT = 8
+
+
 @dataclass(frozen=True)
 class TrueStep:
     t: float
@@ -124,11 +128,12 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
                     pauses.append((t, t + dt, False))
                     t += dt
                 else:
-                    # stairs: 16 steps per storey on switchback flights within the stairwell
+                    # stairs: 16 steps per storey on switchback flights within the stairwell, two
+                    # flights of 8 steps joined by a half turn on the landing
                     n = 16 * abs(fb - fa)
                     for j in range(n):
                         t += 1.0 / (0.8 * cadence) * float(rng.uniform(0.97, 1.03))
-                        heading = math.pi / 2 if j % 2 == 0 else -math.pi / 2
+                        heading = math.pi / 2 if (j // STEPS_PER_FLIGHT) % 2 == 0 else -math.pi / 2
                         x, y = x + 0.29 * math.cos(heading), y + 0.29 * math.sin(heading)
                         steps.append(TrueStep(t, x, y, fa if j < n - 1 else fb, heading, 0.29, math.copysign(STOREY / 16, fb - fa)))
                 fl = fb
