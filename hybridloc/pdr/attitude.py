@@ -21,7 +21,7 @@ a gyro bias estimate. Each sample:
    * standing still (zero angular rate update, ZARU; the survey's Ojeda & Borenstein use it on the
      foot): while the specific force and the rate stay within ``still_acc_tol`` and
      ``still_gyro_dev`` of their 0.5 s averages, and the rate below ``still_gyro_max``, for
-     ``still_time``, the gyro reads its own bias (the spell's mean, then averaged over ``zaru_tau``).
+     ``still_time``, the gyro reads its own bias (the mean of what was read still, then averaged over ``zaru_tau``).
      While still, the magnetometer does not turn the heading (step 3 cannot tell a clean field from
      a steady disturbance when nothing moves).
 
@@ -186,7 +186,6 @@ class AttitudeFilter:
         self._gyr_avg: list[float] | None = None
         self.n_zaru = 0  # samples read as gyro bias (standing still)
         self.still = False  # held still for still_time: the ZARU is reading the bias
-        self._still_n = 0
 
     def initialise(self, t: float, acc, mag) -> None:
         self.q = triad(acc, mag)
@@ -306,7 +305,6 @@ class AttitudeFilter:
         self.still = False
         if not still:
             self._still_since = None
-            self._still_n = 0
             return
         if self._still_since is None:
             self._still_since = t
@@ -314,10 +312,9 @@ class AttitudeFilter:
             return
         self.still = True
         self.n_zaru += 1
-        self._still_n += 1
-        # the plain mean of the spell's rates while it is shorter than zaru_tau (a first short pause
-        # gives the whole bias at once), an exponential average over zaru_tau afterwards
-        a = max(min(dt / cfg.zaru_tau, 1.0), 1.0 / self._still_n)
+        # the plain mean of all rates read still while they span less than zaru_tau (the first short
+        # pause gives the whole bias at once), an exponential average over zaru_tau afterwards
+        a = max(min(dt / cfg.zaru_tau, 1.0), 1.0 / self.n_zaru)
         for i in range(3):
             self.bias[i] = min(max(self.bias[i] + a * (gyr[i] - self.bias[i]), -cfg.max_bias), cfg.max_bias)
 
