@@ -24,7 +24,7 @@ import numpy as np
 
 from ..io.msft import read_ilc_trace
 from ..metrics import oracle_start_errors
-from ..types import StepEvent
+from ..types import ImuBlock, StepEvent
 from ..units import wrap_angle
 from .attitude import forward_headings
 from .phone import PhonePdr, PhonePdrConfig
@@ -236,3 +236,46 @@ def evaluate_phone_pdr(paths: list[Path], model_name: str = "height", config: Ph
     tn = np.array(turns).reshape(-1, 3)
     return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped,
                            sg[:, 0], sg[:, 1], tn[:, :2], tn[:, 2])
+
+
+def turn_in_hand(imu: ImuBlock, angle: float) -> ImuBlock:
+    """The same walk with the phone turned by ``angle`` (rad) about its own z axis (the screen's
+    normal) for the whole recording: a constant re-orientation, so all three sensors rotate together
+    and the recording stays physically consistent (new body axes = Rz(angle)^T old)."""
+    c, s = math.cos(angle), math.sin(angle)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    turn = lambda x: None if x is None else np.asarray(x) @ R  # noqa: E731  rows: R^T v
+    return ImuBlock(imu.t, turn(imu.accel_body), turn(imu.gyro_body), turn(imu.mag_body))
+
+
+def offset_recovery(paths: list[Path], angles_deg: tuple[float, ...] = (90.0, 180.0), sign_rules: tuple[str, ...] = ("gait", "continuity"),
+                    min_steps: int = 10) -> dict[str, dict[float, np.ndarray]]:
+    """How well the walking-direction offset is recovered when the phone is carried turned.
+
+    Each real walk is re-oriented (:func:`turn_in_hand`) by each angle and run with the offset
+    estimated; its walking heading (circular mean over the second half of the steps) is compared with
+    the same walk's unturned one. Returns rule -> angle -> |difference| per walk, rad."""
+    out: dict[str, dict[float, list]] = {r: {a: [] for a in angles_deg} for r in sign_rules}
+
+    def walk_heading(imu: ImuBlock, rule: str) -> float | None:
+        pdr = PhonePdr(imu.rate_hz, config=PhonePdrConfig(estimate_offset=True, offset_sign=rule))
+        steps = pdr.process(imu)
+        if len(steps) < min_steps:
+            return None
+        h = np.array([s.heading for s in steps[len(steps) // 2 :]])
+        return float(np.angle(np.exp(1j * h).mean()))
+
+    for p in paths:
+        tr = read_ilc_trace(p)
+        if tr.imu is None:
+            continue
+        for rule in sign_rules:
+            h0 = walk_heading(tr.imu, rule)
+            if h0 is None:
+                break
+            for a in angles_deg:
+                h = walk_heading(turn_in_hand(tr.imu, math.radians(a)), rule)
+                if h is not None:
+                    out[rule][a].append(abs(wrap_angle(h - h0)))
+    return {r: {a: np.array(v) for a, v in d.items()} for r, d in out.items()}
+

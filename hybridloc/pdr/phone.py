@@ -60,7 +60,13 @@ class PhonePdrConfig:
     release_vertical_share: float = 0.7  # ... or if the vertical share of its acceleration is at least this
     step_lag_range: tuple[float, float] = (0.3, 1.0)  # s, one step
     walking_offset: float = 0.0  # rad, walking direction minus device forward heading
-    estimate_offset: bool = False  # estimate the offset from the horizontal acceleration's principal axis
+    estimate_offset: bool = False  # estimate the offset from the gait's horizontal acceleration (see _update_offset)
+    offset_gain: float = 0.1  # per step, of the running circular mean of the walking direction
+    offset_prior_steps: float = 3.0  # weight of ``walking_offset`` at the start, in (clear) steps
+    #: how the walking axis's 180 deg ambiguity is resolved: "gait" (the forward acceleration rises with
+    #: the vertical) or "continuity" (the half nearer the current offset: the common textbook way,
+    #: kept to measure against; a wrong start stays wrong)
+    offset_sign: str = "gait"
     sigma_mag_heading: float = 12.0 * DEG  # absolute heading from a clean indoor magnetometer
     gyro_drift: float = 0.2 * DEG  # rad/s growth of heading uncertainty without the magnetometer
     sigma_offset: float = 5.0 * DEG
@@ -89,6 +95,8 @@ class PhonePdr:
             raise ValueError(f"phone IMU rate {rate_hz} Hz is implausible (expected 5-1000 Hz)")
         if config is not None and config.detector not in ("peak", "autocorr"):
             raise ValueError(f"unknown step detector {config.detector!r}")
+        if config is not None and config.offset_sign not in ("gait", "continuity"):
+            raise ValueError(f"unknown walking-offset sign rule {config.offset_sign!r}; choose gait or continuity")
         self.cfg = config or PhonePdrConfig()
         self.rate = rate_hz
         self.model = length_model or BounceHeightLength()
@@ -123,6 +131,8 @@ class PhonePdr:
         self._degraded_next = ""
         self._period = 0.55
         self._offset = self.cfg.walking_offset
+        # weighted sum of unit vectors of the per-step offsets (the prior counts as a few clear steps)
+        self._offset_sum = complex(math.cos(self._offset), math.sin(self._offset)) * self.cfg.offset_gain * self.cfg.offset_prior_steps
         self.steps: list[StepEvent] = []
         #: The features behind each emitted step (same order as ``steps``), for length calibration.
         self.features: list[StepFeatures] = []
@@ -368,23 +378,45 @@ class PhonePdr:
         return ev
 
     def _update_offset(self, seg, fwd: float) -> None:
-        """Walking direction from the principal axis of horizontal acceleration over the step.
+        """Walking direction over the step, for the device-to-walking offset (phone in a pocket or a
+        bag, or held sideways).
 
-        The axis has a 180 degree ambiguity; it is resolved by continuity with the current offset
-        (which starts at ``walking_offset``), so a wrong start stays wrong: use with a sensible prior.
+        The axis: the principal axis of the horizontal acceleration over the step (walking shakes the
+        phone most along the way it goes). Its 180 degree ambiguity is resolved by the gait, not by
+        continuity with a prior: along the way forward the horizontal acceleration rises and falls
+        with the vertical one (the body brakes as it lands and pushes off as it rises; ILC site1,
+        phones in hand: positive correlation in 95 % of 4 s windows, median 0.48). Each step's
+        direction, weighted by how clear its axis and its sign are, enters a running circular mean
+        (about ``1 / offset_gain`` steps) that starts at ``walking_offset`` with the weight of
+        ``offset_prior_steps`` steps.
+
+        Known limit: for a phone held in front, the principal axis leans ~20 deg (median, ILC site1)
+        into the sway, so the estimate is for carrying modes where the offset is unknown and large;
+        a phone in the hand is better served by ``walking_offset`` = 0 and no estimate (the default).
         """
         ax = np.array([h[5] for h in seg])
         ay = np.array([h[6] for h in seg])
+        av = np.array([h[2] for h in seg])
         ax -= ax.mean()
         ay -= ay.mean()
+        av -= av.mean()
         cxx, cyy, cxy = float(ax @ ax), float(ay @ ay), float(ax @ ay)
         if cxx + cyy <= 0:
             return
         axis = 0.5 * math.atan2(2 * cxy, cxx - cyy)
+        along = ax * math.cos(axis) + ay * math.sin(axis)
+        sv = float(along @ av)
+        if self.cfg.offset_sign == "continuity":
+            sv = math.cos(wrap_angle(axis - fwd - self._offset)) * abs(sv)
+        if sv < 0:
+            axis += math.pi
+        ecc = math.sqrt((cxx - cyy) ** 2 + 4 * cxy * cxy) / (cxx + cyy)  # 1 for a line, 0 for a circle
+        den = math.sqrt(float(along @ along) * float(av @ av))
+        w = ecc * (abs(sv) / den if den > 0 else 0.0)
         off = wrap_angle(axis - fwd)
-        if abs(wrap_angle(off - self._offset)) > math.pi / 2:
-            off = wrap_angle(off + math.pi)
-        self._offset = wrap_angle(self._offset + 0.1 * wrap_angle(off - self._offset))
+        g = self.cfg.offset_gain
+        self._offset_sum = (1 - g) * self._offset_sum + g * w * complex(math.cos(off), math.sin(off))
+        self._offset = math.atan2(self._offset_sum.imag, self._offset_sum.real)
 
     # ------------------------------------------------------------------
     def process(self, imu: ImuBlock) -> list[StepEvent]:
