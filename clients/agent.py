@@ -26,7 +26,7 @@ import zenoh
 from hybridloc.fusion import Estimate, GpsDifferencer, LocalFusion
 from hybridloc.geo import GeodeticOrigin
 from hybridloc.io.writers import gga_sentence
-from hybridloc.pdr.phone import PhonePdr
+from hybridloc.pdr.phone import PhonePdr, PhonePdrConfig
 from hybridloc.types import Technology
 from hybridloc.units import DEG
 from hybridloc.wire import protocol as P
@@ -258,17 +258,18 @@ def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: floa
 
 
 def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False,
-                 local_fixes: list | None = None, length_model=None) -> PhonePdr:
+                 local_fixes: list | None = None, length_model=None, pdr_config: PhonePdrConfig | None = None) -> PhonePdr:
     """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x
     (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`;
     ``local_fixes``: [(AbsoluteFix, sigma_random or None)] from the device's own GPS / RFID, fused at their times;
-    ``length_model``: the device's calibrated step-length model). Returns the PDR (its steps and features)."""
+    ``length_model``: the device's calibrated step-length model; ``pdr_config``: the PDR's settings, e.g. the
+    walking offset of a phone carried in a pocket). Returns the PDR (its steps and features)."""
     local = sorted(local_fixes or [], key=lambda a: a[0].t)
     i_local = 0
     imu = trace.imu
     if imu is None:
         raise ValueError(f"{trace.path}: no IMU data to replay")
-    pdr = PhonePdr(imu.rate_hz, length_model)
+    pdr = PhonePdr(imu.rate_hz, length_model, pdr_config)
     scans = [s for s in trace.scans if s.technology is Technology.WIFI]
     marks = list(zip(trace.waypoints.t, trace.waypoints.pos_enu)) if survey else []
     t0 = float(imu.t[0])
@@ -327,9 +328,10 @@ class LiveStats:
     pdr: PhonePdr | None = None  # its steps and features, e.g. for the device's step-length calibration
 
 
-def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, length_model=None) -> LiveStats:
-    """Run the phone PDR on a live line stream (:data:`LIVE_FORMAT`) into ``agent`` as it arrives."""
-    pdr = PhonePdr(rate_hz, length_model)
+def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, length_model=None, pdr_config: PhonePdrConfig | None = None) -> LiveStats:
+    """Run the phone PDR on a live line stream (:data:`LIVE_FORMAT`) into ``agent`` as it arrives
+    (``length_model``, ``pdr_config`` as in :func:`replay_phone`)."""
+    pdr = PhonePdr(rate_hz, length_model, pdr_config)
     st = LiveStats(pdr=pdr)
     acc_checked: list[float] = []
     units_error = ""

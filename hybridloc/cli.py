@@ -496,6 +496,11 @@ def _cmd_client(args: argparse.Namespace) -> int:
     # a phone's or survey's step-length calibration (foot clients have no such options)
     cal, cal_path = _open_calibration(getattr(args, "calibration", None), getattr(args, "update_calibration", False), "height")
     length_model = cal.model if cal is not None else None
+    pdr_config = None
+    if args.kind != "foot":
+        from .pdr import PhonePdrConfig
+
+        pdr_config = PhonePdrConfig(walking_offset=args.offset, estimate_offset=args.estimate_offset)
     pdr = None
     with open_client(args.endpoint, _security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
         fusion = None
@@ -530,7 +535,7 @@ def _cmd_client(args: argparse.Namespace) -> int:
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             src = sys.stdin if args.live == "-" else open(args.live, encoding="utf-8")
             try:
-                ls = live_phone(agent, src, args.rate, lockstep=args.lockstep, length_model=length_model)
+                ls = live_phone(agent, src, args.rate, lockstep=args.lockstep, length_model=length_model, pdr_config=pdr_config)
                 pdr = ls.pdr
             finally:
                 if src is not sys.stdin:
@@ -553,7 +558,8 @@ def _cmd_client(args: argparse.Namespace) -> int:
                 local, rep = read_fixes_csv(args.fixes)
                 if not rep.ok:
                     print(f"{args.fixes}: {rep.summary()}", file=sys.stderr)
-            pdr = replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local, length_model=length_model)
+            pdr = replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local, length_model=length_model,
+                               pdr_config=pdr_config)
         r = agent.close(wait=args.ack_timeout)
     if args.kind != "foot" and args.update_calibration and pdr is not None:
         _client_update_calibration(device, args, cal, cal_path, pdr, agent.fusion, tr if args.replay else None)
@@ -731,6 +737,9 @@ def build_parser() -> argparse.ArgumentParser:
         c.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="foot recording format (detected by default)")
         c.add_argument("--rate", type=float, help="IMU rate: foot files without timestamps, and --live streams")
         if kind != "foot":
+            c.add_argument("--offset", type=float, default=0.0, help="walking direction minus the phone's heading, rad (as pdr phone --offset)")
+            c.add_argument("--estimate-offset", action="store_true", help="estimate the walking offset from the gait (as pdr phone --estimate-offset): "
+                           "a phone carried in a pocket or bag")
             c.add_argument("--calibration", metavar="FILE", help="the device's step-length calibration (as pdr phone --calibration)")
             c.add_argument("--update-calibration", action="store_true",
                            help="at the end, teach --calibration (created when absent) what this walk showed: a survey from its marks "

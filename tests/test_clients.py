@@ -250,3 +250,34 @@ def test_cli_phone_client_live_from_a_pipe(tmp_path):
     r = run("client", "phone", "--endpoint", ep, "--site", site, "--live", "-", "--rate", "50", "--spool", str(tmp_path / "spool2"),
             input="\n".join(g_lines) + "\n")
     assert r.returncode != 0 and "in g" in r.stderr
+
+
+def test_phone_client_carried_turned_estimates_its_walking_offset(tmp_path):
+    """The client's PDR settings reach its PDR: the bundled walk replayed with the phone turned by
+    180 deg (a pocket, upside down) and --estimate-offset walks the same way as the phone held
+    normally (within 20 deg, the estimator's spread on real walks); without it, backwards."""
+    import dataclasses
+
+    from hybridloc.clients.agent import Agent, PoseWriter, replay_phone
+    from hybridloc.io.msft import find_ilc_traces, read_ilc_trace
+    from hybridloc.pdr import PhonePdrConfig
+    from hybridloc.pdr.evaluate import turn_in_hand
+    from hybridloc.samples import ILC_SITE1_F1
+    from hybridloc.units import wrap_angle
+    from hybridloc.wire.zconfig import client_config
+
+    tr = max((read_ilc_trace(p) for p in find_ilc_traces(ILC_SITE1_F1)), key=lambda t: t.imu.t[-1] - t.imu.t[0])
+    turned = dataclasses.replace(tr, imu=turn_in_hand(tr.imu, math.pi))
+    conf = client_config(f"unixsock-stream/{tmp_path}/none.sock")
+    conf.insert_json5("mode", '"peer"')  # no server: the agent dead-reckons and spools
+    heading = {}
+    with zenoh.open(conf) as s:
+        for name, trace, cfg in (("held", tr, PhonePdrConfig(estimate_offset=True)), ("turned", turned, PhonePdrConfig(estimate_offset=True)),
+                                 ("turned, no estimate", turned, None)):
+            ag = Agent(s, "site1", f"p-{len(heading)}", tmp_path / f"spool{len(heading)}", PoseWriter(None), tr.device_model, init=(0.0, 0.0, 1.0))
+            pdr = replay_phone(ag, trace, speed=0.0, pdr_config=cfg)
+            ag.close(wait=0.1)
+            h = np.array([st.heading for st in pdr.steps[len(pdr.steps) // 2 :]])
+            heading[name] = float(np.angle(np.exp(1j * h).mean()))
+    assert abs(wrap_angle(heading["turned"] - heading["held"])) < math.radians(20)
+    assert abs(wrap_angle(heading["turned, no estimate"] - heading["held"])) > math.radians(120)
