@@ -91,7 +91,7 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
         degraded = sum(1 for s in steps if s.degraded)
         rej = ", ".join(f"{k} x{v}" for k, v in st.rejected_samples.items()) or "none"
         print(f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {coef_used}), "
-              f"{degraded} with degraded heading, gaps {st.gaps}, rejected samples: {rej}; input: {report.summary()} -> {d}")
+              f"{degraded} with degraded heading, gaps {st.gaps}, saturated samples {st.saturated}, rejected samples: {rej}; input: {report.summary()} -> {d}")
     return status
 
 

@@ -68,6 +68,9 @@ class ImuBlock:
         Magnetic field in the body frame, tesla; None when the unit has no magnetometer.
     source : str
         Where the block came from (file name, device id), for messages.
+    accel_range, gyro_range : float or None
+        The sensors' full scale, m/s^2 and rad/s (Android's ``maximumRange``), when known: a reading at
+        the full scale is saturated (clipped), so the motion it stands for was larger.
     """
 
     t: np.ndarray
@@ -75,6 +78,8 @@ class ImuBlock:
     gyro_body: np.ndarray
     mag_body: np.ndarray | None = None
     source: str = ""
+    accel_range: float | None = None
+    gyro_range: float | None = None
 
     def __post_init__(self) -> None:
         t = _frozen_array(self.t, name="t", ndim=1)
@@ -85,6 +90,9 @@ class ImuBlock:
         for name, arr in (("accel_body", acc), ("gyro_body", gyr), ("mag_body", mag)):
             if arr is not None and arr.shape[0] != t.shape[0]:
                 raise ValueError(f"{name}: {arr.shape[0]} rows but {t.shape[0]} timestamps")
+        for name, r in (("accel_range", self.accel_range), ("gyro_range", self.gyro_range)):
+            if r is not None and not (math.isfinite(r) and r > 0):
+                raise ValueError(f"{name} must be a positive full scale, got {r}")
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "accel_body", acc)
         object.__setattr__(self, "gyro_body", gyr)

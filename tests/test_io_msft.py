@@ -142,3 +142,15 @@ def test_waypoints_lie_on_their_floor_plan(ilc_site1):
         pts = np.vstack([read_ilc_trace(f).waypoints.pos_enu for f in files])
         inside = shapely.covers(floor.outline.buffer(1.0), shapely.points(pts))
         assert inside.mean() >= 0.98, f"{floor.name}: {inside.mean():.2%} of waypoints inside the outline"
+
+
+def test_sensor_full_scale_comes_from_the_header(tmp_path):
+    """Android's sensor spec lines give the accelerometer's and gyroscope's full scale (the OPPO of
+    site1: 39.22661 m/s^2 = 4 g and 34.906586 rad/s = 2000 deg/s); a trace without them has none."""
+    spec = ("#\ttype:1\tname:BMI160 Accelerometer\tvendor:BOSCH\tresolution:0.0024\tpower:0.18\tmaximumRange:39.22661\n"
+            "#\ttype:4\tname:BMI160 Gyroscope\tvendor:BOSCH\tresolution:0.0011\tpower:0.9\tmaximumRange:34.906586\n"
+            "#\ttype:2\tname:AK09911 Magnetometer\tvendor:AKM\tresolution:0.6\tpower:2.4\tmaximumRange:4911.9995\n")
+    tr = read_ilc_trace(_write(tmp_path, HEADER + spec + _sensor_lines(1574559495300, 20)))
+    assert tr.imu.accel_range == pytest.approx(39.22661) and tr.imu.gyro_range == pytest.approx(34.906586)
+    bare = read_ilc_trace(_write(tmp_path, HEADER + _sensor_lines(1574559495300, 20), name="bare.txt.gz"))
+    assert bare.imu.accel_range is None and bare.imu.gyro_range is None

@@ -444,3 +444,32 @@ def test_walking_offset_is_recovered_whatever_way_the_phone_is_carried():
                 assert d < math.radians(20), (deg, math.degrees(d))
             elif deg == 180:
                 assert d > math.radians(160)  # the textbook rule keeps the wrong half it started with
+
+
+def test_a_clipped_gyro_is_flagged_and_widens_the_heading_sigma():
+    """A walk with a quick 90 deg turn (3 rad/s for ~0.5 s) read by a gyro whose full scale is 2 rad/s:
+    the clipped samples are counted, the steps around them say "saturated", and the heading sigma
+    after the turn grows by about what the clipping may have lost (~(3 - 2) rad/s x 0.5 s = 0.5 rad,
+    bounded below by the clipped rate x the clipped time's share counted, 2 x 0.5 = 1 rad at most).
+    With the full scale unknown, the flat-topped plateau gives the same flag."""
+    rng = np.random.default_rng(2)
+    turn = lambda t: 0.0 if t < 20 else min((t - 20) * 3.0, math.pi / 2)  # noqa: E731
+    imu, _ = synth_walk(rng, seconds=40.0, heading=turn, mag=False)
+    full = 2.0
+    clipped = ImuBlock(imu.t, imu.accel_body, np.clip(imu.gyro_body, -full, full), None, gyro_range=full)
+    pdr = PhonePdr(RATE)
+    steps = pdr.process(clipped)
+    assert pdr.stats.saturated > 10  # ~0.5 s at 50 Hz
+    flagged = [s for s in steps if s.degraded == "saturated"]
+    assert 1 <= len(flagged) <= 3
+    before = max(s.sigma_heading for s in steps if s.t < 19.5)
+    after = min(s.sigma_heading for s in steps if s.t > 21.0)
+    assert after ** 2 - before ** 2 > 0.3**2
+    unknown = PhonePdr(RATE)  # no full scale: the repeated extreme reading is the sign
+    unknown.process(ImuBlock(imu.t, imu.accel_body, np.clip(imu.gyro_body, -6.5, 6.5), None))
+    assert unknown.stats.saturated == 0  # never reached: nothing repeats at the clip
+    plateau = PhonePdr(RATE)
+    g = imu.gyro_body.copy()
+    g[(imu.t > 20.0) & (imu.t < 20.5), 2] = 7.0  # a flat top beyond a walking phone's range
+    plateau.process(ImuBlock(imu.t, imu.accel_body, g, None))
+    assert plateau.stats.saturated >= 20

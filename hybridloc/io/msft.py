@@ -15,6 +15,10 @@ are ``unix_ms  TYPE_*  values...``:
 ``TYPE_WAYPOINT x y``                **ground truth**, floor-plan metres; kept apart from sensors
 =================================  ==========================================================
 
+Header lines ``type:N name:... maximumRange:R`` give each sensor's full scale: the accelerometer's
+(type 1, m/s^2) and gyroscope's (type 4, rad/s) become the IMU block's ``accel_range`` and
+``gyro_range``, so saturated (clipped) readings can be told.
+
 Beacons: many deployments give every beacon the same ``uuid major minor`` (site1's mall: 264 beacons
 on F2 all ``9195b3ad-..._0_0``), so the MAC is part of a beacon's id. Each advert is its own line
 with its own timestamp; the adverts heard within ``BLE_SCAN_WINDOW_S`` of the first one form one BLE
@@ -166,16 +170,24 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
     path = str(path)
     report = ReadReport(path, on_error)
     meta: dict[str, str] = {}
+    full_scale: dict[str, float] = {}  # Android sensor type -> maximumRange (1 accelerometer, 4 gyroscope)
     sensors: dict[str, list[list[float]]] = {k: [] for k in SENSOR_TYPES.values()}
     wifi: dict[float, dict[str, tuple[float, float, float]]] = {}
     ble: list[tuple[float, str, float]] = []  # (t, beacon id, rssi) per advert
     wps: list[tuple[float, float, float]] = []
     for lineno, rtype, f in iter_ilc_records(path, report):
         if rtype == "#":
+            line_meta = {}
             for part in f:
                 if ":" in part:
                     k, v = part.split(":", 1)
-                    meta[k.strip()] = v.strip()
+                    line_meta[k.strip()] = v.strip()
+            meta.update(line_meta)
+            if "type" in line_meta and "maximumRange" in line_meta:  # a sensor's spec line (Android sensor type)
+                try:
+                    full_scale[line_meta["type"]] = float(line_meta["maximumRange"])
+                except ValueError:
+                    report.problem(lineno, "malformed-line", f"maximumRange {line_meta['maximumRange']!r}")
             continue
         try:
             t_ms = float(f[0])
@@ -249,7 +261,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
         a = np.asarray(v, dtype=float).reshape(-1, 4)
         t, (vals,) = sort_unique(a[:, 0], [a[:, 1:]], report, k)
         streams[k] = np.column_stack([t, vals])
-    imu = _assemble_imu(streams, path, report)
+    imu = _assemble_imu(streams, path, report, full_scale)
     rv = None
     if len(streams["rv"]):
         xyz = streams["rv"][:, 1:4]
@@ -296,7 +308,7 @@ def _ble_scans(adverts: list[tuple[float, str, float]], model: str) -> list[RfSc
     return out
 
 
-def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport) -> ImuBlock | None:
+def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport, full_scale: dict[str, float] | None = None) -> ImuBlock | None:
     acc, gyr, mag = streams["acc"], streams["gyr"], streams["mag"]
     if len(acc) < 2 or len(gyr) < 2:
         if len(acc) or len(gyr):
@@ -318,7 +330,8 @@ def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport)
     m = _interp_rows(mag[:, 0], mag[:, 1:4], t) * UT_TO_T if len(mag) >= 2 else None
     if m is None:
         report.note("no-magnetometer", 1, "heading will rely on the gyroscope only")
-    return ImuBlock(t, acc[:, 1:4], g, m, source=path)
+    fs = {k: v for k, v in (full_scale or {}).items() if math.isfinite(v) and v > 0}
+    return ImuBlock(t, acc[:, 1:4], g, m, source=path, accel_range=fs.get("1"), gyro_range=fs.get("4"))
 
 
 # ----------------------------------------------------------------------------------------------

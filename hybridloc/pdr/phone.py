@@ -75,6 +75,15 @@ class PhonePdrConfig:
     attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
 
 
+#: A reading at this share of the sensor's full scale or beyond is saturated.
+SATURATION_SHARE = 0.995
+#: Full scale unknown: this many consecutive identical readings beyond a walking phone's plausible
+#: range (3 g; 6 rad/s, a brisk turn of the wrist) are a clipped plateau.
+SATURATION_REPEATS = 3
+PLATEAU_ACCEL = 3.0 * G0
+PLATEAU_GYRO = 6.0
+
+
 @dataclass
 class PdrStats:
     samples: int = 0
@@ -82,6 +91,7 @@ class PdrStats:
     candidates: int = 0
     steps: int = 0
     gaps: int = 0
+    saturated: int = 0  # samples with a reading at the sensor's full scale (kept, flagged)
 
     def reject(self, reason: str) -> None:
         self.rejected_samples[reason] = self.rejected_samples.get(reason, 0) + 1
@@ -90,7 +100,10 @@ class PdrStats:
 class PhonePdr:
     """Streaming step-and-heading PDR for one phone."""
 
-    def __init__(self, rate_hz: float, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = None):
+    def __init__(self, rate_hz: float, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = None,
+                 accel_range: float | None = None, gyro_range: float | None = None):
+        """``accel_range``, ``gyro_range``: the sensors' full scale (m/s^2, rad/s) when known
+        (:meth:`process` takes them from the IMU block); see :meth:`_saturation`."""
         if not (5.0 <= rate_hz <= 1000.0):
             raise ValueError(f"phone IMU rate {rate_hz} Hz is implausible (expected 5-1000 Hz)")
         if config is not None and config.detector not in ("peak", "autocorr"):
@@ -133,6 +146,10 @@ class PhonePdr:
         self._offset = self.cfg.walking_offset
         # weighted sum of unit vectors of the per-step offsets (the prior counts as a few clear steps)
         self._offset_sum = complex(math.cos(self._offset), math.sin(self._offset)) * self.cfg.offset_gain * self.cfg.offset_prior_steps
+        self.accel_range, self.gyro_range = accel_range, gyro_range
+        self._plateau = [0, 0]  # consecutive identical extreme readings (accelerometer, gyroscope)
+        self._prev_raw: tuple | None = None
+        self._sat_angle = 0.0  # rad: how far the clipped gyro readings may have left the heading off
         self.steps: list[StepEvent] = []
         #: The features behind each emitted step (same order as ``steps``), for length calibration.
         self.features: list[StepFeatures] = []
@@ -155,6 +172,7 @@ class PhonePdr:
                 self.stats.gaps += 1
                 self._reset_detection()
                 self._degraded_next = "gap"
+        self._saturation(t, acc, gyr)
         self._last_t = t
         self.stats.samples += 1
         att = self.att
@@ -353,7 +371,7 @@ class PhonePdr:
         dpsi = None if self._prev_heading is None else wrap_angle(psi - self._prev_heading)
         since_mag = math.inf if self._mag_clean_t is None else max(0.0, ts - self._mag_clean_t)
         sig_h = math.hypot(cfg.sigma_mag_heading if since_mag < math.inf else math.pi / 2, cfg.gyro_drift * (since_mag if since_mag < math.inf else 0.0))
-        sig_h = min(math.hypot(sig_h, cfg.sigma_offset), math.pi)
+        sig_h = min(math.hypot(sig_h, cfg.sigma_offset, self._sat_angle), math.pi)
         degraded = self._degraded_next
         if not self.att.has_mag:
             degraded = degraded or "no-mag"
@@ -418,9 +436,40 @@ class PhonePdr:
         self._offset_sum = (1 - g) * self._offset_sum + g * w * complex(math.cos(off), math.sin(off))
         self._offset = math.atan2(self._offset_sum.imag, self._offset_sum.real)
 
+    def _saturation(self, t: float, acc, gyr) -> None:
+        """Flag readings at the sensors' full scale: the motion they stand for was larger, so the step
+        they fall in carries a "saturated" note, and a clipped gyro leaves the heading off by up to
+        about the clipped rate times the sample interval per sample (added to the steps' heading
+        sigma until the magnetometer is trusted again). With the full scale unknown, a reading
+        repeated exactly on ``SATURATION_REPEATS`` consecutive samples beyond a walking phone's
+        plausible range (``PLATEAU_ACCEL`` m/s^2, ``PLATEAU_GYRO`` rad/s) is taken as a clipped plateau."""
+        dt = t - self._last_t if self._last_t is not None else 1.0 / self.rate
+        flags = []
+        for k, (v, full, plausible) in enumerate(((acc, self.accel_range, PLATEAU_ACCEL), (gyr, self.gyro_range, PLATEAU_GYRO))):
+            peak = max(abs(v[0]), abs(v[1]), abs(v[2]))
+            if full is not None:
+                flags.append(peak >= SATURATION_SHARE * full)
+                continue
+            prev = self._prev_raw[k] if self._prev_raw is not None else None
+            same = prev is not None and peak >= plausible and any(v[i] == prev[i] and abs(v[i]) >= plausible for i in range(3))
+            self._plateau[k] = self._plateau[k] + 1 if same else 0
+            flags.append(self._plateau[k] >= SATURATION_REPEATS - 1)
+        self._prev_raw = (tuple(acc), tuple(gyr))
+        if flags[1]:
+            self._sat_angle += max(abs(gyr[0]), abs(gyr[1]), abs(gyr[2])) * min(max(dt, 0.0), 0.1)
+        elif self.att.mag_ok:
+            self._sat_angle = 0.0
+        if flags[0] or flags[1]:
+            self.stats.saturated += 1
+            self._degraded_next = self._degraded_next or "saturated"
+
     # ------------------------------------------------------------------
     def process(self, imu: ImuBlock) -> list[StepEvent]:
         """Feed a whole block; returns the steps it completed."""
+        if self.accel_range is None:
+            self.accel_range = imu.accel_range
+        if self.gyro_range is None:
+            self.gyro_range = imu.gyro_range
         out: list[StepEvent] = []
         t = imu.t.tolist()
         acc = imu.accel_body.tolist()

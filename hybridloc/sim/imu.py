@@ -181,6 +181,7 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
     if grade is not None:
         acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
         mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
+        return ImuBlock(t, acc, gyr, mag, accel_range=GRADES[grade].accel_range, gyro_range=GRADES[grade].gyro_range)
     return ImuBlock(t, acc, gyr, mag)
 
 

@@ -130,6 +130,10 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
     with gzip.open(path, "wt", encoding="utf-8", compresslevel=3) as f:
         f.write(f"#\tstartTime:{ms(walk.t0)}\n#\tSiteID:sim-{world.seed}\tSiteName:simulated building {world.seed}\tFloorId:{fl}\tFloorName:{fl}\n")
         f.write(f"#\tBrand:{brand}\tModel:{model}\tAndroidName:sim\tAPILevel:0\n")
+        # the sensors' full scale, as Android reports it (type 1 accelerometer, 4 gyroscope)
+        for typ, name, full in ((1, "Accelerometer", imu.accel_range), (4, "Gyroscope", imu.gyro_range)):
+            if full is not None:
+                f.write(f"#\ttype:{typ}\tname:SIM {name}\tvendor:hybridloc\tmaximumRange:{full:.6f}\n")
         f.write("\n".join(r[2] for r in lines))
         f.write(f"\n#\tendTime:{ms(walk.t1)}\n")
 
