@@ -231,7 +231,8 @@ class RfScan:
         Scan time, s.
     technology : Technology
     rssi_dbm : Mapping[str, float]
-        Transmitter id (BSSID, beacon MAC or UUID:major:minor, RFID tag/reader id) -> RSSI, dBm,
+        Transmitter id (BSSID; a beacon's uuid_major_minor_mac, since deployments reuse one UUID and
+        major/minor for many beacons; RFID tag/reader id) -> RSSI, dBm,
         each in [RSSI_MIN_DBM, RSSI_MAX_DBM].
     frequency_hz : Mapping[str, float]
         Transmitter id -> carrier frequency, Hz, where known (WiFi); may be empty.
