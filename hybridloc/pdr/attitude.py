@@ -20,8 +20,11 @@ a gyro bias estimate. Each sample:
    * the accelerometer's tilt error drives the bias (Mahony's integral term) about the horizontal axes;
    * standing still (zero angular rate update, ZARU; the survey's Ojeda & Borenstein use it on the
      foot): while the specific force and the rate stay within ``still_acc_tol`` and
-     ``still_gyro_dev`` of their 0.5 s averages, and the rate below ``still_gyro_max``, for
-     ``still_time``, the gyro reads its own bias (the mean of what was read still, then averaged over ``zaru_tau``).
+     ``still_gyro_dev`` of their 0.5 s averages, the rate within ``still_gyro_max`` of the bias
+     estimate and the magnetic field (body frame) within ``still_mag_noise`` + ``still_mag_rate`` x the
+     spell's duration of where it was when the spell began (a slow steady turn looks like a bias to the gyro, not to the magnetometer), for
+     ``still_time``, the gyro reads its own bias (the mean of what was read still, then averaged over
+     ``zaru_tau``).
      While still, the magnetometer does not turn the heading (step 3 cannot tell a clean field from
      a steady disturbance when nothing moves).
 
@@ -63,10 +66,18 @@ class AttitudeConfig:
     #: still: the specific force within this of its own 0.5 s average, m/s^2 (a hand's tremor is
     #: ~0.05-0.1; not |a| against g, which an accelerometer bias of 0.04 g would already fail) ...
     still_acc_tol: float = 0.25
-    #: ... the rate within ``still_gyro_dev`` of its own average and below ``still_gyro_max``, rad/s
-    #: (a still phone reads its bias: consumer turn-on 3 sigma ~ 0.05)
+    #: ... the rate within ``still_gyro_dev`` of its own average, rad/s ...
     still_gyro_dev: float = 0.03
+    #: ... and, with a magnetometer, the field in the body frame turned since the spell began by less
+    #: than ``still_mag_noise`` + ``still_mag_rate`` x its duration (the one sensor that sees a slow
+    #: steady turn, which the gyro alone cannot tell from a bias; 0.3 uT of noise on 45 uT is 0.4 deg)
+    #: and the rate within ``still_gyro_max`` of the bias estimate; without one, within
+    #: ``still_gyro_max_nomag`` (a person standing and turning slowly, 4 deg/s = 0.07 rad/s, is not
+    #: still; a bias beyond it, 3 sigma of a consumer gyro's turn-on bias, is not learned)
+    still_mag_noise: float = 0.5 * DEG
+    still_mag_rate: float = 0.5 * DEG
     still_gyro_max: float = 0.15
+    still_gyro_max_nomag: float = 0.05
     still_time: float = 0.5  # s the stillness must last before the gyro is read as bias
     zaru_tau: float = 2.0  # s: averaging time of the bias while still
     max_bias: float = 0.1  # rad/s: bias estimates are kept within this (a gyro beyond it is broken)
@@ -182,6 +193,8 @@ class AttitudeFilter:
         self.n_mag_used = 0
         self._g_body: list[float] | None = None  # low-passed specific force in the body frame
         self._still_since: float | None = None
+        self._still_mag: list[float] | None = None  # the field (body frame, 0.5 s average) when the still spell began
+        self._mag_avg: list[float] | None = None
         self._acc_avg: list[float] | None = None  # 0.5 s averages for the stillness test
         self._gyr_avg: list[float] | None = None
         self.n_zaru = 0  # samples read as gyro bias (standing still)
@@ -204,7 +217,7 @@ class AttitudeFilter:
         cfg = self.cfg
         q = self.q
         R = quat_to_rot(q)
-        self._zaru(t, dt, acc, gyr)
+        self._zaru(t, dt, acc, gyr, mag)
         wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
         if cfg.gravity_tau > 0:
             g = self._g_body
@@ -291,7 +304,7 @@ class AttitudeFilter:
             self.mag_ok = False
         self.q = q
 
-    def _zaru(self, t: float, dt: float, acc, gyr) -> None:
+    def _zaru(self, t: float, dt: float, acc, gyr, mag=None) -> None:
         """Zero angular rate update: a phone held still reads its gyro bias (see module docstring)."""
         cfg = self.cfg
         if self._acc_avg is None:
@@ -300,14 +313,28 @@ class AttitudeFilter:
         for i in range(3):
             self._acc_avg[i] += a * (acc[i] - self._acc_avg[i])
             self._gyr_avg[i] += a * (gyr[i] - self._gyr_avg[i])
+        b = self.bias
         still = (_norm([acc[i] - self._acc_avg[i] for i in range(3)]) <= cfg.still_acc_tol
-                 and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev and _norm(gyr) <= cfg.still_gyro_max)
+                 and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev
+                 and _norm([gyr[i] - b[i] for i in range(3)]) <= (cfg.still_gyro_max if mag is not None else cfg.still_gyro_max_nomag))
+        if mag is not None:  # the field's 0.5 s average: a turn of a few tenths of a degree shows through the noise
+            if self._mag_avg is None:
+                self._mag_avg = list(mag)
+            for i in range(3):
+                self._mag_avg[i] += a * (mag[i] - self._mag_avg[i])
+            mag = self._mag_avg
+        if still and mag is not None and self._still_mag is not None and self._still_since is not None:
+            m0 = self._still_mag
+            c = (m0[0] * mag[0] + m0[1] * mag[1] + m0[2] * mag[2]) / max(_norm(m0) * _norm(mag), 1e-30)
+            still = c >= math.cos(min(cfg.still_mag_noise + cfg.still_mag_rate * (t - self._still_since), math.pi))
         self.still = False
         if not still:
             self._still_since = None
+            self._still_mag = None
             return
         if self._still_since is None:
             self._still_since = t
+            self._still_mag = list(mag) if mag is not None else None
         if t - self._still_since < cfg.still_time:
             return
         self.still = True
