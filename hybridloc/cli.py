@@ -341,7 +341,12 @@ def _cmd_locate(args: argparse.Namespace) -> int:
 def _cmd_map_show(args: argparse.Namespace) -> int:
     from .radio.plot import plot_map
 
-    plot_map(args.map, args.out, args.tx)
+    plan = None
+    if args.floorplan:
+        from .io.msft import read_ilc_site
+
+        plan = read_ilc_site(args.floorplan)
+    plot_map(args.map, args.out, args.tx, plan)
     print(f"wrote {args.out}")
     return 0
 
@@ -685,6 +690,8 @@ def build_parser() -> argparse.ArgumentParser:
     ms.add_argument("map", metavar="MAP")
     ms.add_argument("--out", required=True, metavar="PNG")
     ms.add_argument("--tx", help="transmitter to draw (default: the most widely seen)")
+    ms.add_argument("--floorplan", metavar="GEOJSON", help="floor plan to draw under the maps: a site folder (Indoor Location Competition layout) "
+                    "or a simulated world's folder, as for map build")
     ms.set_defaults(func=_cmd_map_show)
 
     mi = msub.add_parser("import", help="store a radio map file as the site's newest version on the server database")

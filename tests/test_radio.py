@@ -163,6 +163,9 @@ def test_cli_build_locate_show_on_bundled_sample(tmp_path):
     r = run("map", "show", str(m), "--out", str(tmp_path / "m.png"))
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "m.png").read_bytes()[:4] == b"\x89PNG"
+    r = run("map", "show", str(m), "--floorplan", str(ILC_SITE1_F1), "--out", str(tmp_path / "plan.png"))  # over the floor plan
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "plan.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.shared_data

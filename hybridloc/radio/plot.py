@@ -1,17 +1,20 @@
-"""``hybridloc map show``: coverage and one transmitter's heat map per floor, as a PNG (matplotlib)."""
+"""``hybridloc map show``: coverage and one transmitter's heat map per floor, as a PNG (matplotlib),
+over the floor plan's walls when one is given."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from ..types import FloorPlan
 from .radiomap import RadioMap
 
 
-def plot_map(map_path: str, out_png: str, tx: str | None = None) -> None:
+def plot_map(map_path: str, out_png: str, tx: str | None = None, plan: FloorPlan | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
 
     rmap = RadioMap.load(map_path)
     floors = list(rmap.floors.values())
@@ -35,10 +38,29 @@ def plot_map(map_path: str, out_png: str, tx: str | None = None) -> None:
             s2 = row[1].scatter(f.cells[:, 0], f.cells[:, 1], c=vals, s=4, marker="s", cmap="inferno", vmin=-100, vmax=-30)
             fig.colorbar(s2, ax=row[1], label="mean RSSI, dBm")
         row[1].set_title(f"{f.name}: {tx}")
+        walls, rooms = _plan_lines(plan, f.name)
         for ax in row:
+            if rooms:
+                ax.add_collection(LineCollection(rooms, colors="0.8", linewidths=0.5, zorder=0))
+            if walls is not None:
+                ax.add_collection(LineCollection(walls, colors="0.45", linewidths=0.7, zorder=0))
             ax.set_aspect("equal")
             ax.set_xlabel("x (m)")
             ax.set_ylabel("y (m)")
     fig.tight_layout()
     fig.savefig(out_png, dpi=80)
     plt.close(fig)
+
+
+def _plan_lines(plan: FloorPlan | None, floor: str) -> tuple[np.ndarray | None, list[np.ndarray]]:
+    """The floor's wall segments (M, 2, 2) and its rooms' outlines (shops, offices: lighter), or
+    (None, []) without a plan or that floor in it."""
+    if plan is None:
+        return None, []
+    try:
+        fl = plan.floor(floor)
+    except KeyError:
+        return None, []
+    w = np.asarray(fl.walls, float)
+    rooms = [np.asarray(poly.exterior.coords) for _, poly in fl.rooms if not poly.is_empty]
+    return (w if w.size else None), rooms
