@@ -225,7 +225,8 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         write_steps_csv(d / "steps.csv", st)
         s = res.stats
         print(f"{p}: {len(res.t)} samples at {imu.rate_hz:.1f} Hz, {len(st)} strides, {s['stance_samples']} stance samples, "
-              f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, re-initialisations {s['reinit']}; input: {report.summary()} -> {d}")
+              f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']}, re-initialisations {s['reinit']}; "
+              f"input: {report.summary()} -> {d}")
     return status
 
 

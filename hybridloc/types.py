@@ -101,6 +101,33 @@ class ImuBlock:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
+    def saturated(self, plausible_accel: float, plausible_gyro: float, repeats: int = 3, share: float = 0.995) -> tuple[np.ndarray, np.ndarray]:
+        """Per sample, (accelerometer saturated, gyroscope saturated), boolean (N,) each.
+
+        With the full scale known, a reading at ``share`` of it or beyond on any axis. Unknown, the same
+        reading on ``repeats`` consecutive samples of an axis beyond what the carrier can plausibly
+        produce (``plausible_accel`` m/s^2, ``plausible_gyro`` rad/s): a clipped plateau; a live signal
+        does not repeat exactly up there."""
+        out = []
+        for x, full, plausible in ((self.accel_body, self.accel_range, plausible_accel), (self.gyro_body, self.gyro_range, plausible_gyro)):
+            with np.errstate(invalid="ignore"):
+                if full is not None:
+                    out.append(np.any(np.abs(x) >= share * full, axis=1))
+                    continue
+                # same[k]: sample k equals sample k - 1 up there (sample 0 has no predecessor)
+                same = np.zeros(x.shape, bool)
+                same[1:] = (x[1:] == x[:-1]) & (np.abs(x[1:]) >= plausible)
+            flat = same.copy()  # flat[k]: samples k - repeats + 1 .. k all equal (the last of a plateau)
+            for d in range(1, repeats - 1):
+                flat[d:] &= same[:-d]
+                flat[:d] = False
+            # mark the whole plateau: every sample within repeats - 1 before a flagged one on that axis
+            mask = flat.copy()
+            for d in range(1, repeats):
+                mask[:-d] |= flat[d:]
+            out.append(np.any(mask, axis=1))
+        return out[0], out[1]
+
     @property
     def duration(self) -> float:
         """Time from first to last sample, s."""

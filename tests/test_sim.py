@@ -206,3 +206,16 @@ def test_world_on_a_real_floor_plan_walkers_keep_to_its_corridors(tmp_path):
             assert inside[len(inside) // 2 :].all()
         else:
             assert inside.all()
+
+
+def test_foot_ins_counts_clipped_readings(world):
+    """A foot IMU whose gyro clips at 4 rad/s (a swing reaches 10+): the clipped samples are counted
+    in the run's statistics (and printed by ``pdr foot``); the full-range recording has none."""
+    from hybridloc.types import ImuBlock
+
+    walk = simulate_walk(world, np.random.default_rng(8), 1.0)
+    imu, _ = foot_imu(walk, np.random.default_rng(9), grade="industrial")
+    assert run_foot_ins(imu).stats["saturated_samples"] == 0
+    clipped = ImuBlock(imu.t, imu.accel_body, np.clip(imu.gyro_body, -4.0, 4.0), gyro_range=4.0)
+    n = run_foot_ins(clipped).stats["saturated_samples"]
+    assert n == int((np.abs(imu.gyro_body) >= 0.995 * 4.0).any(axis=1).sum()) and n > 100

@@ -97,3 +97,21 @@ def test_position_covariance_grows_by_step_covariance():
     s = StepEvent(t=1.0, length=1.0, heading=0.0, sigma_length=0.1, sigma_heading=0.1)
     C = s.propagate_position_covariance(np.eye(2) * 0.01)
     np.testing.assert_allclose(C, np.diag([0.01 + 0.01, 0.01 + math.tan(0.1) ** 2]))
+
+
+def test_imu_block_tells_saturated_readings():
+    """At the full scale when it is known; otherwise only a reading repeated exactly on 3 samples
+    beyond the plausible range (a clipped plateau). A 2-sample repeat, or a plateau below the
+    plausible range, is not saturation."""
+    t = np.arange(12) * 0.01
+    acc = np.tile([0.0, 0.0, 9.8], (12, 1))
+    gyr = np.zeros((12, 3))
+    gyr[3:7, 0] = 8.0  # a 4-sample plateau
+    gyr[9:11, 1] = 8.0  # a 2-sample one
+    sa, sg = ImuBlock(t, acc, gyr).saturated(50.0, 5.0)
+    assert not sa.any() and sg.nonzero()[0].tolist() == [3, 4, 5, 6]
+    assert not ImuBlock(t, acc, gyr).saturated(50.0, 10.0)[1].any()  # below the plausible range
+    sa, sg = ImuBlock(t, acc, gyr, accel_range=9.8, gyro_range=8.0).saturated(50.0, 5.0)
+    assert sa.all() and sg.nonzero()[0].tolist() == [3, 4, 5, 6, 9, 10]
+    with pytest.raises(ValueError, match="full scale"):
+        ImuBlock(t, acc, gyr, gyro_range=-1.0)

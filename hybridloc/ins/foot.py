@@ -42,12 +42,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..types import ImuBlock, StepEvent
-from ..units import wrap_angle
+from ..units import G0, wrap_angle
 from . import stance as stance_mod
 from .eskf import ErrorStateEkf, ImuNoise
 from .measurements import ZeroAngularRate, ZeroVelocity
 from .smoother import IntervalRts
 from .strapdown import NominalState, level_from_accel, quat_to_dcm
+
+
+#: Full scale unknown: identical readings on 3 samples beyond these are a clipped plateau (a foot
+#: reaches 10 g at heel strike and 10 rad/s in the swing; a live signal does not repeat exactly there).
+PLATEAU_ACCEL = 5.0 * G0
+PLATEAU_GYRO = 5.0
 
 
 @dataclass
@@ -120,6 +126,11 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
         raise ValueError("too few IMU samples for a foot INS")
     acc, gyr, t = imu.accel_body, imu.gyro_body, imu.t
     finite = np.all(np.isfinite(acc), axis=1) & np.all(np.isfinite(gyr), axis=1)
+    # Clipped readings: the specific force or rate was larger than read, by an unknown amount. They are
+    # counted and reported, and used as read: giving their velocity / attitude step the variance of a
+    # miss of half the reading made the simulated walks worse (a foot IMU clipped at 2.5 g: 3.2 -> 4.2 %
+    # of the path; at 4 rad/s: 21 -> 56 %), the ZUPT then spreading the miss into heading.
+    sat_a, sat_g = imu.saturated(PLATEAU_ACCEL, PLATEAU_GYRO)
     rate = imu.rate_hz
     x0, g_meas = _initial_state(imu, still_prefix(imu, cfg.init_seconds), heading0)
     g = cfg.gravity or g_meas
@@ -153,7 +164,7 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     Ppos = np.zeros((n, 3, 3))
     quat[0] = x0.q
     Ppos[0] = kf.P[:3, :3]
-    stats = {"nan_samples": int((~finite).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum()),
+    stats = {"nan_samples": int((~finite).sum()), "saturated_samples": int((sat_a | sat_g).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum()),
              "vetted_samples": int((gate & stance).sum()), "weak_samples": int(weak.sum())}
     rejected_run = 0
     reinit_pending = False

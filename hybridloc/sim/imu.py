@@ -267,4 +267,5 @@ def foot_imu(walk: Walk, rng: np.random.Generator, rate: float = 200.0, grade: s
         gyr[i] = (dq[1:] * (ang / vn) if vn > 1e-15 else 2 * dq[1:]) / dt
     if grade is not None:
         acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
+        return ImuBlock(t, acc, gyr, accel_range=GRADES[grade].accel_range, gyro_range=GRADES[grade].gyro_range), FootTruth(t, pos, quat, stance)
     return ImuBlock(t, acc, gyr), FootTruth(t, pos, quat, stance)
