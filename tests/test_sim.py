@@ -14,7 +14,7 @@ from hybridloc.pdr.phone import run_phone_pdr
 from hybridloc.geo import wall_crossings
 from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import GRADES, foot_imu, phone_imu
-from hybridloc.sim.radio import make_radio_model, rssi, simulate_radio
+from hybridloc.sim.radio import PATH_LOSS_N, SHADOW_LENGTH, SHADOW_SD, make_radio_model, rssi, simulate_radio
 from hybridloc.sim.walker import simulate_walk
 from hybridloc.units import G0, wrap_angle
 
@@ -125,10 +125,13 @@ def test_radio_follows_path_loss_and_is_spatially_correlated(world):
     x0, y0, f0 = world.aps[ap]
     near = np.mean([rssi(model, np.array([ap]), np.array([x0 + 2.0, y0]), int(f0), rng)[0] for _ in range(200)])
     far = np.mean([rssi(model, np.array([ap]), np.array([x0 + 20.0, y0]), int(f0), rng)[0] for _ in range(200)])
-    assert near - far > 10 * 2.2 * 1.0 - 8  # one decade of distance: 22 dB of path loss, minus shadowing swings
+    # one decade of distance: 10 n dB of path loss; the shadowing at two places 18 m apart differs by
+    # sigma_S sqrt(2 (1 - rho)), rho = exp(-d^2 / 2 L^2) for the Gaussian-kernel field: 3 sigma of it
+    rho = math.exp(-(18.0**2) / (2 * SHADOW_LENGTH**2))
+    assert near - far > 10 * PATH_LOSS_N - 3 * SHADOW_SD * math.sqrt(2 * (1 - rho))
     a = [rssi(model, np.array([ap]), np.array([x0 + 10.0, y0 + 0.3]), int(f0), rng)[0] for _ in range(200)]
     b = [rssi(model, np.array([ap]), np.array([x0 + 10.3, y0 + 0.3]), int(f0), rng)[0] for _ in range(200)]
-    assert abs(np.mean(a) - np.mean(b)) < 2.0  # 0.3 m apart (correlation length 3 m): nearly the same
+    assert abs(np.mean(a) - np.mean(b)) < 2.0  # 0.3 m apart (correlation length SHADOW_LENGTH, metres): nearly the same
     walk = simulate_walk(world, np.random.default_rng(8), 2.0)
     radio = simulate_radio(model, walk, np.random.default_rng(9), wifi_period=4.0)
     gaps = np.diff([s.t for s in radio.wifi])

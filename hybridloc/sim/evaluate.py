@@ -145,6 +145,9 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
     print("    sim  " + "  ".join(f"{v:6.3f}" for v in sim_sim))
     if have_real:
         print("    real " + "  ".join(f"{v:6.3f}" for v in real_sim))
+        diff = np.array(sim_sim) - np.array(real_sim)
+        print(f"    rms difference sim - real {float(np.sqrt(np.nanmean(diff**2))):.3f} (the radio model's n, shadowing and noise are set on it; "
+              "the real scans carry survey-label error, the simulated ones their true positions)")
     r = pdr_on_sim(walks, imus)
 
     def rate(k: int, minutes: float) -> str:

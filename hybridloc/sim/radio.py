@@ -4,12 +4,20 @@ RSSI (dBm) of transmitter j at position p on floor f:
 
     P0_j - 10 n log10(max(d, 1 m)) - W * walls(j, p) - F * |f - f_j| + S_j(p) + e + o_device
 
-* log-distance path loss (P0 -38 dBm at 1 m for 2.4 GHz, -45 dBm for 5 GHz, n = 2.2 inside the free
-  corridor; walls add W = 4 dB each, counted on the floor plan; floors F = 15 dB each);
+* log-distance path loss (P0 -38 dBm at 1 m for 2.4 GHz, -45 dBm for 5 GHz, n = 2.8; walls add
+  W = 4 dB each, counted on the floor plan; floors F = 15 dB each);
 * S_j: spatially correlated shadowing, a Gaussian random field (random Fourier features) with
-  sigma 4 dB and correlation length 3 m: the same place looks alike, nearby places look similar;
-* e: temporal noise N(0, 2 dB); o_device: the phone model's offset;
+  sigma 6 dB and correlation length 8 m: the same place looks alike, nearby places look similar;
+* e: temporal noise N(0, 3.5 dB); o_device: the phone model's offset;
 * a reading exists above the detection threshold (-92 dBm WiFi, -95 dBm BLE).
+
+The four numbers n, sigma_S, its length and sigma_e are set so that fingerprints are as alike, place
+to place, as real ones (``hybridloc eval sim-realism``: the median cosine similarity of two scans by
+their distance apart, against ILC site1's; rms difference over the 0-2 ... 20-40 m bins 0.11 with
+n = 2.2, 4 dB, 3 m, 2 dB, 0.03 with these), all within the usual indoor ranges (n 2-3.5, shadowing
+4-8 dB decorrelating over metres, temporal 2-6 dB). The simulated scans keep their true positions,
+the real ones carry the survey labels' metre or two of error, which lowers the real similarity of the
+nearest pairs a little.
 
 Scan throttling: a WiFi scan every ``wifi_period`` s (3-4 s, Android's foreground rate; pass 30 for
 Android 9's 4 scans per 2 minutes), a BLE report per beacon per second. RFID readers at doors detect
@@ -33,10 +41,10 @@ from .walker import Walk
 
 WALL_DB = 4.0
 FLOOR_DB = 15.0
-PATH_LOSS_N = 2.2
-SHADOW_SD = 4.0
-SHADOW_LENGTH = 3.0
-TEMPORAL_SD = 2.0
+PATH_LOSS_N = 2.8
+SHADOW_SD = 6.0
+SHADOW_LENGTH = 8.0
+TEMPORAL_SD = 3.5
 
 
 RFID_RANGE = 1.5  # m, tag-to-reader detection range (Kourogi sec. 4)
