@@ -355,7 +355,7 @@ def _cmd_map_show(args: argparse.Namespace) -> int:
 def _cmd_eval_fingerprint(args: argparse.Namespace) -> int:
     from .radio.evaluate import run_fingerprint_eval
 
-    return run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every)
+    return run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every, args.uji_validation)
 
 
 def _cmd_sim_world(args: argparse.Namespace) -> int:
@@ -825,6 +825,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     efp = esub.add_parser("fingerprint", help="fingerprint positioning on UJIIndoorLoc and Indoor Location Competition data")
     efp.add_argument("--uji", default="../shared/data/ujiindoorloc/trainingData.csv.gz", help="UJIIndoorLoc CSV ('' to skip)")
+    efp.add_argument("--uji-validation", metavar="CSV", help="UJIIndoorLoc validation file for the standard split (default: validationData.csv "
+                     "beside --uji when present; '' to skip)")
     efp.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="Indoor Location Competition site folder ('' to skip)")
     efp.add_argument("--folds", type=int, default=4, help="trace folds for the ILC leave-traces-out test")
     efp.add_argument("--every", type=int, default=1, help="use every N-th ILC trace")

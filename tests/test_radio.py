@@ -181,6 +181,32 @@ def test_uji_knn_building_and_floor(shared_data):
     assert building >= 0.99  # buildings are 100s of metres apart with their own access points
 
 
+@pytest.mark.shared_data
+def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_data, tmp_path):
+    """The standard protocol (all training rows as references, the validation file's rows as queries)
+    through ``eval fingerprint``: here with a validation file made of one user's rows (user 11) and a
+    training file of the others', both in the original CSV layout, so the path that scores the real
+    validationData.csv, once it is beside the training file, runs end to end."""
+    import gzip
+    import subprocess
+    import sys
+
+    from hybridloc.radio.evaluate import evaluate_uji_split
+
+    with gzip.open(shared_data / "ujiindoorloc" / "trainingData.csv.gz", "rt") as f:
+        header, *rows = f.read().splitlines()
+    user = header.split(",").index("USERID")
+    train, val = tmp_path / "trainingData.csv", tmp_path / "validationData.csv"
+    train.write_text("\n".join([header] + [r for r in rows if r.split(",")[user] != "11"][::4]) + "\n")
+    val.write_text("\n".join([header] + [r for r in rows if r.split(",")[user] == "11"][::10]) + "\n")
+    v = evaluate_uji_split(str(train), str(val))
+    assert v["ours"]["n"] > 300 and v["ours"]["building"] >= 0.99  # buildings are 100s of m apart, own APs
+    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "standard split" in r.stdout and "ratio of mean error ours/plain" in r.stdout
+
+
 def test_sorensen_neighbours_match_scipy_bray_curtis():
     """The sparse sum-of-minima form is the Bray-Curtis distance exactly (scipy's cdist as reference)."""
     from scipy import sparse

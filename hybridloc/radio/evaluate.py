@@ -5,7 +5,9 @@
   from all the others (all floors), and every held-out scan between two waypoints is scored against the
   waypoints interpolated to its time.
 * UJIIndoorLoc: cross-validation grouped by user (every user's rows are located with the other users'
-  rows as references), with a plain 3-NN on raw dBm measured in the same run.
+  rows as references), with a plain 3-NN on raw dBm measured in the same run; and, when the validation
+  file (validationData.csv) lies beside the training one or is named, the standard split (every
+  training row a reference, every validation row a query).
 """
 
 from __future__ import annotations
@@ -133,17 +135,67 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
     return out
 
 
+def evaluate_uji_split(train_path: str, test_path: str, k: int = 5) -> dict:
+    """The standard UJIIndoorLoc protocol: references = every training row, queries = every row of the
+    validation file, answered by our weighted kNN and by the plain 3-NN on raw dBm in the same run.
+    Returns name -> {"errors", "floor", "building", "n"} (errors NaN where the floor is wrong)."""
+    from ..io.uji import read_uji
+    from .sources import uji_floor_name
+
+    def labelled(path):
+        d = read_uji(path)
+        return [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in np.flatnonzero(np.isfinite(d.rssi_dbm).any(axis=1))]
+
+    refs, test = labelled(train_path), labelled(test_path)
+    if not refs or not test:
+        raise ValueError(f"no usable rows in {train_path if not refs else test_path}")
+    out = {}
+    for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw", metric="euclidean"))):
+        res = loc.locate_many([t.scan for t in test])
+        bh = [r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0] for t, r in zip(test, res)]
+        fh = [r.fix is not None and r.fix.floor == t.floor for t, r in zip(test, res)]
+        e = [float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if ok else float("nan") for t, r, ok in zip(test, res, fh)]
+        out[name] = {"errors": np.array(e), "floor": float(np.mean(fh)), "building": float(np.mean(bh)), "n": len(test)}
+    return out
+
+
+def find_uji_validation(train_path: str) -> Path | None:
+    """UJIIndoorLoc's validation file beside the training one (validationData.csv, gzipped or not)."""
+    folder = Path(train_path).parent
+    for name in ("validationData.csv", "validationData.csv.gz"):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
 def _fmt(e: np.ndarray) -> str:
     e = e[np.isfinite(e)]
     return f"mean {e.mean():.2f} m, median {np.median(e):.2f}, p75 {np.percentile(e, 75):.2f}, p95 {np.percentile(e, 95):.2f} (n={len(e)})"
 
 
-def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1) -> int:
+def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji_validation: str | None = None) -> int:
     if uji:
         if not Path(uji).is_file():
             raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
+        if uji_validation == "":
+            val = None
+        elif uji_validation:
+            if not Path(uji_validation).is_file():
+                raise ValueError(f"UJIIndoorLoc validation file {uji_validation} not found")
+            val = Path(uji_validation)
+        else:
+            val = find_uji_validation(uji)
+        if val is not None:
+            v = evaluate_uji_split(uji, str(val))
+            print(f"UJIIndoorLoc standard split: references {uji}, queries {val} ({v['ours']['n']} scans)")
+            for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
+                print(f"  {label:<36} building hit {100 * v[name]['building']:.2f}%  floor hit {100 * v[name]['floor']:.2f}%  "
+                      f"2-D error on the right floor: {_fmt(v[name]['errors'])}")
+            print(f"  ratio of mean error ours/plain: {np.nanmean(v['ours']['errors']) / np.nanmean(v['plain']['errors']):.2f}")
+            print("  (goal: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m)")
         r = evaluate_uji(uji)
-        print(f"UJIIndoorLoc {uji}: cross-validation grouped by user (validationData.csv is not available here)")
+        print(f"UJIIndoorLoc {uji}: cross-validation grouped by user"
+              + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)"))
         for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
             print(f"  {title}:")
             for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
