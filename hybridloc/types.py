@@ -50,6 +50,13 @@ def _check_time(t: np.ndarray, name: str = "t") -> None:
 
 # ----------------------------------------------------------------------------------------------
 # Inertial data
+#: A reading at this share of the sensor's full scale or beyond is saturated (clipped).
+SATURATION_SHARE = 0.995
+#: With the full scale unknown, this many consecutive identical readings of an axis beyond what the
+#: carrier can plausibly produce are a clipped plateau (a live signal does not repeat exactly there).
+SATURATION_REPEATS = 3
+
+
 # ----------------------------------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class ImuBlock:
@@ -101,7 +108,8 @@ class ImuBlock:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
-    def saturated(self, plausible_accel: float, plausible_gyro: float, repeats: int = 3, share: float = 0.995) -> tuple[np.ndarray, np.ndarray]:
+    def saturated(self, plausible_accel: float, plausible_gyro: float, repeats: int = SATURATION_REPEATS,
+                  share: float = SATURATION_SHARE) -> tuple[np.ndarray, np.ndarray]:
         """Per sample, (accelerometer saturated, gyroscope saturated), boolean (N,) each.
 
         With the full scale known, a reading at ``share`` of it or beyond on any axis. Unknown, the same

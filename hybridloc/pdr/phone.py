@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import signal
 
-from ..types import ImuBlock, StepEvent, Trajectory
+from ..types import SATURATION_REPEATS, SATURATION_SHARE, ImuBlock, StepEvent, Trajectory
 from ..units import DEG, G0, wrap_angle
 from .attitude import AttitudeConfig, AttitudeFilter
 from .steplength import BounceHeightLength, LengthModel, StepFeatures
@@ -75,11 +75,9 @@ class PhonePdrConfig:
     attitude: AttitudeConfig = field(default_factory=AttitudeConfig)
 
 
-#: A reading at this share of the sensor's full scale or beyond is saturated.
-SATURATION_SHARE = 0.995
-#: Full scale unknown: this many consecutive identical readings beyond a walking phone's plausible
-#: range (3 g; 6 rad/s, a brisk turn of the wrist) are a clipped plateau.
-SATURATION_REPEATS = 3
+#: Full scale unknown: identical readings of an axis on SATURATION_REPEATS consecutive samples beyond a
+#: walking phone's plausible range (3 g; 6 rad/s, a brisk turn of the wrist) are a clipped plateau,
+#: as :meth:`ImuBlock.saturated <hybridloc.types.ImuBlock.saturated>` decides for a whole block.
 PLATEAU_ACCEL = 3.0 * G0
 PLATEAU_GYRO = 6.0
 
@@ -147,7 +145,7 @@ class PhonePdr:
         # weighted sum of unit vectors of the per-step offsets (the prior counts as a few clear steps)
         self._offset_sum = complex(math.cos(self._offset), math.sin(self._offset)) * self.cfg.offset_gain * self.cfg.offset_prior_steps
         self.accel_range, self.gyro_range = accel_range, gyro_range
-        self._plateau = [0, 0]  # consecutive identical extreme readings (accelerometer, gyroscope)
+        self._plateau = [[0, 0, 0], [0, 0, 0]]  # per axis, consecutive identical extreme readings (accelerometer, gyroscope)
         self._prev_raw: tuple | None = None
         self._sat_angle = 0.0  # rad: how far the clipped gyro readings may have left the heading off
         self.steps: list[StepEvent] = []
@@ -446,14 +444,14 @@ class PhonePdr:
         dt = t - self._last_t if self._last_t is not None else 1.0 / self.rate
         flags = []
         for k, (v, full, plausible) in enumerate(((acc, self.accel_range, PLATEAU_ACCEL), (gyr, self.gyro_range, PLATEAU_GYRO))):
-            peak = max(abs(v[0]), abs(v[1]), abs(v[2]))
             if full is not None:
-                flags.append(peak >= SATURATION_SHARE * full)
+                flags.append(max(abs(v[0]), abs(v[1]), abs(v[2])) >= SATURATION_SHARE * full)
                 continue
             prev = self._prev_raw[k] if self._prev_raw is not None else None
-            same = prev is not None and peak >= plausible and any(v[i] == prev[i] and abs(v[i]) >= plausible for i in range(3))
-            self._plateau[k] = self._plateau[k] + 1 if same else 0
-            flags.append(self._plateau[k] >= SATURATION_REPEATS - 1)
+            run = self._plateau[k]
+            for i in range(3):  # per axis, as ImuBlock.saturated (streaming: from the plateau's last sample on)
+                run[i] = run[i] + 1 if prev is not None and v[i] == prev[i] and abs(v[i]) >= plausible else 0
+            flags.append(max(run) >= SATURATION_REPEATS - 1)
         self._prev_raw = (tuple(acc), tuple(gyr))
         if flags[1]:
             self._sat_angle += max(abs(gyr[0]), abs(gyr[1]), abs(gyr[2])) * min(max(dt, 0.0), 0.1)
