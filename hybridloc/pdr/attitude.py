@@ -22,9 +22,9 @@ a gyro bias estimate. Each sample:
      foot): while the specific force and the rate stay within ``still_acc_tol`` and
      ``still_gyro_dev`` of their 0.5 s averages, the rate within ``still_gyro_max`` of the bias
      estimate and the magnetic field (body frame) within ``still_mag_noise`` + ``still_mag_rate`` x the
-     spell's duration of where it was when the spell began (a slow steady turn looks like a bias to the gyro, not to the magnetometer), for
-     ``still_time``, the gyro reads its own bias (the mean of what was read still, then averaged over
-     ``zaru_tau``).
+     spell's duration of where it was when the spell began (a slow steady turn looks like a bias to
+     the gyro, not to the magnetometer), for ``still_time``, the gyro reads its own bias (the mean of
+     what was read still, then averaged over ``zaru_tau``).
      While still, the magnetometer does not turn the heading (step 3 cannot tell a clean field from
      a steady disturbance when nothing moves).
 
@@ -67,6 +67,7 @@ class AttitudeConfig:
     consistency_window: float = 0.5  # s
     consistency_tol: float = 8.0 * DEG  # rad over the window
     settle_time: float = 1.0  # s of clean field before the magnetometer corrects yaw again
+    zaru: bool = True  # read the gyro bias while standing still (as FootInsConfig.zaru on the foot)
     #: still: the specific force within this of its own 0.5 s average, m/s^2 (a hand's tremor is
     #: ~0.05-0.1; not |a| against g, which an accelerometer bias of 0.04 g would already fail) ...
     still_acc_tol: float = 0.25
@@ -221,7 +222,8 @@ class AttitudeFilter:
         cfg = self.cfg
         q = self.q
         R = quat_to_rot(q)
-        self._zaru(t, dt, acc, gyr, mag)
+        if cfg.zaru:
+            self._zaru(t, dt, acc, gyr, mag)
         wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
         if cfg.gravity_tau > 0:
             g = self._g_body
@@ -327,7 +329,7 @@ class AttitudeFilter:
             for i in range(3):
                 self._mag_avg[i] += a * (mag[i] - self._mag_avg[i])
             mag = self._mag_avg
-        if still and mag is not None and self._still_mag is not None and self._still_since is not None:
+        if still and mag is not None and self._still_mag is not None:  # set with _still_since, when a spell begins
             m0 = self._still_mag
             c = (m0[0] * mag[0] + m0[1] * mag[1] + m0[2] * mag[2]) / max(_norm(m0) * _norm(mag), 1e-30)
             still = c >= math.cos(min(cfg.still_mag_noise + cfg.still_mag_rate * (t - self._still_since), math.pi))

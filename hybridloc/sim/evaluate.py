@@ -11,11 +11,11 @@ import numpy as np
 from ..pdr.attitude import AttitudeConfig
 from ..pdr.phone import PhonePdrConfig, run_phone_pdr
 from ..radio.survey import LabelledScan
+from ..units import wrap_angle
 from .building import generate_world
 from .imu import disturbance_field, phone_imu
 from .radio import make_radio_model, simulate_radio
 from .realism import DIST_BINS, in_range, rssi_slopes, similarity_by_distance, spectrum_peaks
-from ..units import wrap_angle
 from .walker import simulate_walk
 
 
@@ -163,7 +163,7 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
           f"(count error {100 * r['count_error']:+.2f}%; goal within 1 %); false steps standing {rate(r['false_standing'], r['standing_min'])}, "
           f"handling {rate(r['false_handling'], r['handling_min'])}; goal <= 1/min")
     # The same walks through a plain heading: gyro integration with no bias estimate and no compass.
-    plain = pdr_on_sim(walks, imus, AttitudeConfig(k_mag=0.0, ki_acc=0.0, still_gyro_max=-1.0))
+    plain = pdr_on_sim(walks, imus, AttitudeConfig(k_mag=0.0, ki_acc=0.0, zaru=False))
     h, hp = np.degrees(r["heading_errors"]), np.degrees(plain["heading_errors"])
     print(f"heading on the simulated walks (relative to the first step, straight walking, {minutes:g} min walks with raw consumer gyros "
           f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
