@@ -90,6 +90,44 @@ def evaluate_ilc(traces: list[TraceData], folds: int = 4, method: str = "prob", 
 UJI_COVERED_M = 5.0
 
 
+#: The two kNN answers UJIIndoorLoc is scored with: ours and the plain one of the literature.
+UJI_METHODS = (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm"))
+
+
+def _uji_labelled(path: str) -> tuple[list[LabelledScan], np.ndarray]:
+    """The rows of a UJIIndoorLoc file that heard something, as labelled scans, and their users."""
+    from ..io.uji import read_uji
+    from .sources import uji_floor_name
+
+    d = read_uji(path)
+    rows = np.flatnonzero(np.isfinite(d.rssi_dbm).any(axis=1))
+    return [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in rows], d.user[rows]
+
+
+def _uji_locators(refs: list[LabelledScan], k: int) -> dict[str, KnnLocator]:
+    """The locators of :data:`UJI_METHODS` over ``refs``."""
+    return {"ours": KnnLocator(refs, k=k), "plain": KnnLocator(refs, k=3, representation="raw", metric="euclidean")}
+
+
+def _uji_score(loc: KnnLocator, test: list[LabelledScan]) -> tuple[list[float], list[bool], list[bool]]:
+    """Per query: 2-D error (NaN on a wrong floor), floor hit, building hit (floor names are ``b<B>_f<F>``)."""
+    e, fh, bh = [], [], []
+    for t, r in zip(test, loc.locate_many([t.scan for t in test])):
+        on_floor = r.fix is not None and r.fix.floor == t.floor
+        bh.append(r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0])
+        fh.append(on_floor)
+        e.append(float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if on_floor else float("nan"))
+    return e, fh, bh
+
+
+def _print_uji(results: dict, indent: str) -> None:
+    """One row per method of :data:`UJI_METHODS` and the ratio of their mean errors."""
+    for name, label in UJI_METHODS:
+        v = results[name]
+        print(f"{indent}{label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
+    print(f"{indent}ratio of mean error ours/plain: {np.nanmean(results['ours']['errors']) / np.nanmean(results['plain']['errors']):.2f}")
+
+
 def evaluate_uji(path: str, k: int = 5) -> dict:
     """Grouped-by-user cross-validation of weighted kNN (Sorensen on powed-rel) against a plain 3-NN
     on raw dBm (Euclidean).
@@ -102,14 +140,8 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
     """
     from scipy.spatial import cKDTree
 
-    from ..io.uji import read_uji
-    from .sources import uji_floor_name
-
-    d = read_uji(path)
-    keep = np.isfinite(d.rssi_dbm).any(axis=1)
-    labelled = [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in np.flatnonzero(keep)]
-    users = d.user[keep]
-    res = {"ours": ([], [], []), "plain": ([], [], [])}
+    labelled, users = _uji_labelled(path)
+    res = {name: ([], [], []) for name, _ in UJI_METHODS}
     covered = []
     for u in np.unique(users):
         refs = [ls for ls, uu in zip(labelled, users) if uu != u]
@@ -119,13 +151,9 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
             by_floor.setdefault(r.floor, []).append(r.pos_enu[:2])
         trees = {f: cKDTree(np.array(v)) for f, v in by_floor.items()}
         covered += [t.floor in trees and trees[t.floor].query(t.pos_enu[:2])[0] <= UJI_COVERED_M for t in test]
-        for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw", metric="euclidean"))):
-            out = loc.locate_many([t.scan for t in test])
-            e, fh, bh = res[name]
-            for t, r in zip(test, out):
-                bh.append(r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0])
-                fh.append(r.fix is not None and r.fix.floor == t.floor)
-                e.append(float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if r.fix is not None and r.fix.floor == t.floor else float("nan"))
+        for name, loc in _uji_locators(refs, k).items():
+            for acc, part in zip(res[name], _uji_score(loc, test)):
+                acc += part
     cov = np.array(covered, bool)
     out: dict = {"covered_share": float(cov.mean())}
     for n, v in res.items():
@@ -139,22 +167,12 @@ def evaluate_uji_split(train_path: str, test_path: str, k: int = 5) -> dict:
     """The standard UJIIndoorLoc protocol: references = every training row, queries = every row of the
     validation file, answered by our weighted kNN and by the plain 3-NN on raw dBm in the same run.
     Returns name -> {"errors", "floor", "building", "n"} (errors NaN where the floor is wrong)."""
-    from ..io.uji import read_uji
-    from .sources import uji_floor_name
-
-    def labelled(path):
-        d = read_uji(path)
-        return [LabelledScan(d.scan(r), d.pos[r].copy(), 1.0, uji_floor_name(d.building[r], d.floor[r])) for r in np.flatnonzero(np.isfinite(d.rssi_dbm).any(axis=1))]
-
-    refs, test = labelled(train_path), labelled(test_path)
+    refs, test = _uji_labelled(train_path)[0], _uji_labelled(test_path)[0]
     if not refs or not test:
         raise ValueError(f"no usable rows in {train_path if not refs else test_path}")
     out = {}
-    for name, loc in (("ours", KnnLocator(refs, k=k)), ("plain", KnnLocator(refs, k=3, representation="raw", metric="euclidean"))):
-        res = loc.locate_many([t.scan for t in test])
-        bh = [r.fix is not None and r.fix.floor.split("_")[0] == t.floor.split("_")[0] for t, r in zip(test, res)]
-        fh = [r.fix is not None and r.fix.floor == t.floor for t, r in zip(test, res)]
-        e = [float(np.linalg.norm(r.fix.pos_enu - t.pos_enu)) if ok else float("nan") for t, r, ok in zip(test, res, fh)]
+    for name, loc in _uji_locators(refs, k).items():
+        e, fh, bh = _uji_score(loc, test)
         out[name] = {"errors": np.array(e), "floor": float(np.mean(fh)), "building": float(np.mean(bh)), "n": len(test)}
     return out
 
@@ -188,20 +206,14 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         if val is not None:
             v = evaluate_uji_split(uji, str(val))
             print(f"UJIIndoorLoc standard split: references {uji}, queries {val} ({v['ours']['n']} scans)")
-            for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
-                print(f"  {label:<36} building hit {100 * v[name]['building']:.2f}%  floor hit {100 * v[name]['floor']:.2f}%  "
-                      f"2-D error on the right floor: {_fmt(v[name]['errors'])}")
-            print(f"  ratio of mean error ours/plain: {np.nanmean(v['ours']['errors']) / np.nanmean(v['plain']['errors']):.2f}")
+            _print_uji(v, "  ")
             print("  (goal: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m)")
         r = evaluate_uji(uji)
         print(f"UJIIndoorLoc {uji}: cross-validation grouped by user"
               + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)"))
         for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
             print(f"  {title}:")
-            for name, label in (("ours", "weighted 5-NN, Sorensen, powed-rel"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
-                v = r[name][subset]
-                print(f"    {label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
-            print(f"    ratio of mean error ours/plain: {np.nanmean(r['ours'][subset]['errors']) / np.nanmean(r['plain'][subset]['errors']):.2f}")
+            _print_uji({name: r[name][subset] for name, _ in UJI_METHODS}, "    ")
         print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
     if ilc:
         if not Path(ilc).is_dir():
