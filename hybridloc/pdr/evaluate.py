@@ -16,6 +16,7 @@ other half, so no trace is scored with a model fitted to itself.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -245,7 +246,8 @@ def turn_in_hand(imu: ImuBlock, angle: float) -> ImuBlock:
     c, s = math.cos(angle), math.sin(angle)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     turn = lambda x: None if x is None else np.asarray(x) @ R  # noqa: E731  rows: R^T v
-    return ImuBlock(imu.t, turn(imu.accel_body), turn(imu.gyro_body), turn(imu.mag_body))
+    # the same block otherwise (source, full scale): only the axes turn
+    return dataclasses.replace(imu, accel_body=turn(imu.accel_body), gyro_body=turn(imu.gyro_body), mag_body=turn(imu.mag_body))
 
 
 def offset_recovery(paths: list[Path], angles_deg: tuple[float, ...] = (90.0, 180.0), sign_rules: tuple[str, ...] = ("gait", "continuity"),

@@ -78,6 +78,11 @@ def apply_errors(t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, grade: SensorG
     return out[0], out[1]
 
 
+def _full_scale(grade: str) -> dict:
+    """The grade's full scale as ImuBlock fields (the simulated sensors clip there)."""
+    return {"accel_range": GRADES[grade].accel_range, "gyro_range": GRADES[grade].gyro_range}
+
+
 def _smooth_noise(rng: np.random.Generator, n: int, width: int) -> np.ndarray:
     k = np.exp(-0.5 * (np.arange(-3 * width, 3 * width + 1) / width) ** 2)
     k /= np.sqrt((k**2).sum())
@@ -152,7 +157,7 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
         near = np.where(np.abs(t - ts[k0]) < np.abs(t - ts[k]), k0, k)
         # a step's period is the time since the previous step, but a first step after standing takes
         # no longer than a slow step (the bounce is the step's, not a slow swell through the pause)
-        T = np.minimum(np.diff(np.concatenate([[ts[0] - 0.55], ts])), 1.5 * walk.step_length / walk.speed)[near]
+        T = np.minimum(np.diff(np.concatenate([[ts[0] - 0.55], ts])), 1.5 * T_nat)[near]
         # On stairs the horizontal step is short but the body still bounces like a full step:
         # use the walker's natural step length there.
         # The bounce-height relation (mean |a_v| = A / pi = (L / K)^3 / T^2) holds for steady walking; a
@@ -178,11 +183,11 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
         idx = np.flatnonzero((t >= a) & (t < b))
         if handled and len(idx) > 2:
             _handle(idx, t, psi, f_nav, m_nav, acc, gyr, mag, rng)
-    if grade is not None:
-        acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
-        mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
-        return ImuBlock(t, acc, gyr, mag, accel_range=GRADES[grade].accel_range, gyro_range=GRADES[grade].gyro_range)
-    return ImuBlock(t, acc, gyr, mag)
+    if grade is None:
+        return ImuBlock(t, acc, gyr, mag)
+    acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
+    mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
+    return ImuBlock(t, acc, gyr, mag, **_full_scale(grade))
 
 
 @dataclass
@@ -265,7 +270,7 @@ def foot_imu(walk: Walk, rng: np.random.Generator, rate: float = 200.0, grade: s
         vn = np.linalg.norm(dq[1:])
         ang = 2 * math.atan2(vn, dq[0])
         gyr[i] = (dq[1:] * (ang / vn) if vn > 1e-15 else 2 * dq[1:]) / dt
-    if grade is not None:
-        acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
-        return ImuBlock(t, acc, gyr, accel_range=GRADES[grade].accel_range, gyro_range=GRADES[grade].gyro_range), FootTruth(t, pos, quat, stance)
-    return ImuBlock(t, acc, gyr), FootTruth(t, pos, quat, stance)
+    if grade is None:
+        return ImuBlock(t, acc, gyr), FootTruth(t, pos, quat, stance)
+    acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
+    return ImuBlock(t, acc, gyr, **_full_scale(grade)), FootTruth(t, pos, quat, stance)

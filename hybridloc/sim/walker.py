@@ -4,8 +4,9 @@ A walker has a speed (N(1.25, 0.15) m/s), a natural step length (N(0.65, 0.06) m
 constant K of the bounce-height model L = K (mean |a_v| T^2)^(1/3) (N(0.70, 0.04): the real-walk fit,
 with the 5 % spread between people of Weinberg's constant); the cadence is speed / step length. A
 route visits a few random rooms along shortest paths of the walkable graph (stairs take 16 steps per
-storey on two flights of 8 joined by a landing's half turn, a lift ride 10 s of standing), pauses 3-15 s at each destination (sometimes handling the
-phone), some routes return to their start (loops) and some start outdoors in front of the entrance.
+storey on two flights of 8 joined by a landing's half turn, a lift ride 10 s of standing), pauses
+3-15 s at each destination (sometimes handling the phone), some routes return to their start (loops)
+and some start outdoors in front of the entrance.
 
 The truth is a list of :class:`TrueStep` (time, position after the step, floor, heading, length) and
 the walking/standing/handling intervals; the IMU synthesis (:mod:`.imu`) and the radio (:mod:`.radio`)
