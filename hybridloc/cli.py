@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
+from .progress import Progress
 
 #: step length models of ``pdr phone --model`` and ``eval pdr-phone --model`` (hybridloc.pdr.steplength.MODELS)
 LENGTH_MODELS = ("constant", "weinberg", "frequency", "kim", "height")
@@ -372,10 +373,8 @@ def _cmd_sim_walk(args: argparse.Namespace) -> int:
 
     world = load_world(args.world)
 
-    def progress(i, n):
-        print(f"\r[sim] walker {i}/{n}", end="" if i < n else "\n", file=sys.stderr, flush=True)
-
-    out = simulate_walks(world, args.walkers, args.minutes, args.carrier, args.out, args.seed, progress)
+    bar = Progress("[sim] walker", args.walkers)
+    out = simulate_walks(world, args.walkers, args.minutes, args.carrier, args.out, args.seed, lambda i, n: bar.update(i))
     print(f"{len(out)} walks of {args.minutes:g} min ({args.carrier}) -> {args.out}")
     return 0
 
@@ -469,11 +468,12 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
     from .server.store import Store
 
     st = Store(args.db)
-    width = 30
+    bars: list[Progress] = []
 
     def progress(i, n, dev):
-        done = int(width * i / n)
-        print(f"\r[{'#' * done}{'.' * (width - done)}] {i}/{n} devices ({dev})", end="" if i < n else "\n", file=sys.stderr, flush=True)
+        if not bars:
+            bars.append(Progress("[rebuild] devices", n, bar_width=30))
+        bars[0].update(i, f"({dev})")
 
     try:
         v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
 from .pdr.phone import dead_reckon
+from .progress import Progress
 from .samples import ILC_SITE1_F1
 
 
@@ -117,22 +119,24 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                 replay_phone(ag, tr, spd, survey=kind == "survey", lockstep=kind == "phone", local_fixes=local)
                 return tr, ag.close(wait=30)
 
+        bar = Progress("[pipeline] surveys uploaded", len(survey), sys.stdout) if progress else None
         with cf.ThreadPoolExecutor(workers) as ex:
             for i, _ in enumerate(ex.map(lambda p: run_agent(p, "survey", 0.0), survey), 1):
-                say(f"\r[pipeline] surveys uploaded {i}/{len(survey)}", end="", flush=True)
-        say(flush=True)
+                if bar:
+                    bar.update(i)
         v, n_lab, _ = rebuild(server.store, site, out / "rebuild-cache")
         if v is None:
             raise RuntimeError("no radio map could be built from the surveys")
         server.load_map(site)
         say(f"[pipeline] radio map version {v} rebuilt from {n_lab} labelled scans of the stored surveys", flush=True)
         results = []
+        bar = Progress(f"[pipeline] phone clients (replayed at {speed:g}x) finished", len(others), sys.stdout) if progress else None
         with cf.ThreadPoolExecutor(workers) as ex:
             futs = [ex.submit(run_agent, p, "phone", speed) for p in others]
             for i, f in enumerate(cf.as_completed(futs), 1):
                 results.append(f.result())
-                say(f"\r[pipeline] phone clients finished {i}/{len(others)} (replayed at {speed:g}x)", end="", flush=True)
-        say(flush=True)
+                if bar:
+                    bar.update(i)
     finally:
         server.stop()
     return sorted(results, key=lambda x: x[1].device)
