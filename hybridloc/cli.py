@@ -139,7 +139,7 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     from .io.msft import find_ilc_traces
     from .metrics import summarize_errors
     from .pdr import PhonePdrConfig
-    from .pdr.evaluate import collect_runs, decompose_segment_errors, decompose_turn_errors, evaluate_phone_pdr, offset_recovery
+    from .pdr.evaluate import collect_runs, decompose_segment_errors, decompose_turn_errors, evaluate_phone_pdr, fit_model, marks_on_straight_walks, offset_recovery
 
     paths = find_ilc_traces(args.dir)[:: args.every]
     if not paths:
@@ -184,6 +184,11 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
            if s_turn > 1e-3 else "a part independent of segment length not resolvable from 0")
     print(f"turn errors decompose (robust fit, sigmas) as {own} and +-{s_mark:.2f} m across the segment at each end "
           f"(the waypoint marks, and the PDR track's sideways position at the mark times): the turn error shrinks as 1/length")
+    straight, n_turns = marks_on_straight_walks(runs, fit_model(runs, args.model))
+    if straight.size:
+        print(f"marks on straight walks: where our heading and Android's both see a turn under 5 deg ({straight.size} of {n_turns} turns), the "
+              f"waypoints turn by median {np.median(straight):.1f} deg, p90 {np.percentile(straight, 90):.1f} deg, {100 * np.mean(straight >= 10):.0f}% "
+              "by 10 deg or more: the marks' own direction error, which no PDR removes")
     rec = offset_recovery(paths[::5])
     share = {r: {a: 100 * float(np.mean(v < math.radians(20))) if len(v) else float("nan") for a, v in d.items()} for r, d in rec.items()}
     angles = list(rec["gait"])

@@ -31,3 +31,27 @@ def test_true_motion_average_keeps_a_map_bias_and_averages_noise():
     np.testing.assert_allclose(_true_motion_average_errors(biased, wp_t, wp_xy, 4.0), [5.0, 5.0])
     np.testing.assert_allclose(_true_motion_average_errors(noisy, wp_t, wp_xy, np.inf), [0.0, 0.0], atol=1e-12)
     assert np.isnan(_true_motion_average_errors([(30.0, 0.0, 0.0, "F1")], wp_t, wp_xy, 5.0)).all()
+
+
+def test_true_motion_steps_retrace_the_waypoints():
+    """The perfect PDR of ``eval fusion``: dead-reckoned from the first waypoint, its steps land on
+    the waypoint path at every step time (an L-shaped walk, the turn between two steps); steps before
+    the first or after the last waypoint do not move."""
+    import math
+
+    from hybridloc.demo import true_motion_steps
+    from hybridloc.types import StepEvent
+
+    wp_t, wp_xy = np.array([0.0, 10.0, 20.0]), np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 5.0]])
+    t = np.arange(-1.0, 22.0, 0.55)
+    steps = [StepEvent(t=float(ti), length=0.7, heading=1.0, sigma_length=0.1, sigma_heading=0.2, degraded="no-mag") for ti in t]
+    ideal = true_motion_steps(steps, wp_t, wp_xy)
+    assert [s.t for s in ideal] == [s.t for s in steps]
+    pos = np.cumsum([[s.length * math.cos(s.heading), s.length * math.sin(s.heading)] for s in ideal], axis=0)
+    tc = np.clip(t, 0.0, 20.0)
+    truth = np.column_stack([np.interp(tc, wp_t, wp_xy[:, 0]), np.interp(tc, wp_t, wp_xy[:, 1])])
+    assert np.allclose(pos, truth - truth[0], atol=1e-9)
+    assert ideal[0].length == 0.0 and ideal[-1].length == 0.0 and all(s.degraded == "" for s in ideal)
+    moving = [s for s in ideal if s.length > 0]
+    assert all(abs(s.heading) < 1e-9 or abs(s.heading - math.pi / 2) < 1e-9 or 0 < s.heading < math.pi / 2 for s in moving)
+    assert true_motion_steps([], wp_t, wp_xy) == [] and true_motion_steps(steps, wp_t[:1], wp_xy[:1]) == []

@@ -499,3 +499,28 @@ def test_a_clipped_gyro_is_flagged_and_widens_the_heading_sigma():
     g[(imu.t > 20.0) & (imu.t < 20.5), 2] = 7.0  # a flat top beyond a walking phone's range
     plateau.process(ImuBlock(imu.t, imu.accel_body, g, None))
     assert plateau.stats.saturated >= 20
+
+
+def test_marks_on_straight_walks_are_the_marks_own_turns():
+    """Two headings that both see a straight walk east; the waypoints zig-zag 1 m either side every
+    7 m. What ``marks_on_straight_walks`` reports is the marks' own turns (2 atan(2/7) each), and a
+    walk whose headings do turn is not counted as straight."""
+    from hybridloc.pdr.evaluate import TraceRun, marks_on_straight_walks
+    from hybridloc.pdr.steplength import ConstantLength
+    from hybridloc.types import StepEvent
+
+    t = np.arange(0.5, 40.0, 0.5)  # steps of 0.5 m every 0.5 s: 1 m/s east
+    feats = [StepFeatures(0.5, 3.0, 1.0)] * len(t)
+    wp_t = np.arange(0.0, 36.0, 7.0)
+    wp_xy = np.column_stack([wp_t, np.where(np.arange(wp_t.size) % 2 == 0, 1.0, -1.0)])
+
+    def run(heading):
+        steps = [StepEvent(t=float(ti), length=0.5, heading=heading(ti), sigma_length=0.05, sigma_heading=0.05) for ti in t]
+        return TraceRun("walk", steps, feats, wp_t, wp_xy, np.array([s.heading for s in steps]))
+
+    seen, n = marks_on_straight_walks([run(lambda ti: 0.0)], ConstantLength(0.5))
+    assert n == wp_t.size - 2 and seen.size == n
+    assert np.allclose(seen, math.degrees(2 * math.atan2(2.0, 7.0)), atol=0.5)  # the marks' turn, to the track's interpolation
+    curving = run(lambda ti: 0.3 * math.sin(ti / 3.0))  # swings +-17 deg: these turns are the walker's
+    seen, n = marks_on_straight_walks([curving], ConstantLength(0.5))
+    assert n == wp_t.size - 2 and seen.size < n

@@ -180,6 +180,39 @@ def fit_model(runs: list[TraceRun], model_name: str):
     return cal.model
 
 
+def _turns(run: TraceRun, tracks: list[np.ndarray]):
+    """(k, true turn, turn of each track) at each waypoint k whose segments on both sides are scored:
+    at least MIN_SEGMENT_M long, and at least 0.5 m long in every track (positions at the waypoint
+    times). A turn is the change of a segment's direction from one segment to the next, rad."""
+    dirs = []
+    for k, t0, t1, D, idx in _segments(run):
+        moves = [w[k + 1] - w[k] for w in [run.wp_xy] + tracks]
+        ok = D >= MIN_SEGMENT_M and all(np.linalg.norm(m) > 0.5 for m in moves[1:])
+        dirs.append([math.atan2(m[1], m[0]) for m in moves] if ok else None)
+    for k in range(1, len(dirs)):
+        if dirs[k] is not None and dirs[k - 1] is not None:
+            yield (k, *(wrap_angle(a - b) for a, b in zip(dirs[k], dirs[k - 1])))
+
+
+def marks_on_straight_walks(runs: list[TraceRun], model, straight_deg: float = 5.0) -> tuple[np.ndarray, int]:
+    """The waypoint marks' own turn (deg, absolute) where two heading estimators from the same phone,
+    ours and Android's rotation vector, both see the walker go straight (turn under ``straight_deg``),
+    and how many turns were compared. A walker cannot turn 10 deg unseen by a gyro (nor could both
+    filters miss it alike), so what the marks show there is their own direction error: a part of the
+    heading-change error no PDR can remove. Traces without a rotation vector are left out."""
+    seen, n = [], 0
+    for r in runs:
+        if r.android_heading is None or not r.features:
+            continue
+        L = np.array([model.length(f) for f in r.features])
+        tracks = [_interp(*_track(r, L, h), r.wp_t) for h in ("ours", "android")]
+        for k, turn_t, turn_ours, turn_android in _turns(r, tracks):
+            n += 1
+            if max(abs(turn_ours), abs(turn_android)) < math.radians(straight_deg):
+                seen.append(abs(math.degrees(turn_t)))
+    return np.array(seen), n
+
+
 def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None, heading: str = "ours") -> tuple[list[float], list[float], list[float]]:
     """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m),
     ``turns`` (D before, D after, error in rad) of each scored turn; ``heading`` as in :func:`_track`."""
@@ -188,26 +221,18 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
         t, p = _track(r, L, heading)
         wp_est = _interp(t, p, r.wp_t)
-        true_dirs, est_dirs, lens = [], [], []
+        lens = []
         for k, t0, t1, D, idx in _segments(r):
-            d_est = wp_est[k + 1] - wp_est[k]
-            d_true = r.wp_xy[k + 1] - r.wp_xy[k]
-            ok = D >= MIN_SEGMENT_M
-            if ok:
-                est_len = float(np.linalg.norm(d_est))
+            if D >= MIN_SEGMENT_M:
+                est_len = float(np.linalg.norm(wp_est[k + 1] - wp_est[k]))
                 len_err.append(abs(est_len - D) / D)
                 if seg is not None:
                     seg.append((D, est_len - D))
             lens.append(D)
-            true_dirs.append(math.atan2(d_true[1], d_true[0]) if ok else None)
-            est_dirs.append(math.atan2(d_est[1], d_est[0]) if ok and np.linalg.norm(d_est) > 0.5 else None)
-        for k in range(1, len(true_dirs)):
-            if None not in (true_dirs[k], true_dirs[k - 1], est_dirs[k], est_dirs[k - 1]):
-                turn_t = wrap_angle(true_dirs[k] - true_dirs[k - 1])
-                turn_e = wrap_angle(est_dirs[k] - est_dirs[k - 1])
-                turn_err.append(abs(wrap_angle(turn_e - turn_t)) * 180 / math.pi)
-                if turns is not None:
-                    turns.append((lens[k - 1], lens[k], wrap_angle(turn_e - turn_t)))
+        for k, turn_t, turn_e in _turns(r, [wp_est]):
+            turn_err.append(abs(wrap_angle(turn_e - turn_t)) * 180 / math.pi)
+            if turns is not None:
+                turns.append((lens[k - 1], lens[k], wrap_angle(turn_e - turn_t)))
         # PDR-only track from the first waypoint, rotated so its first segment points the true way.
         wp_err.extend(oracle_start_errors(wp_est, r.wp_xy).tolist())
     return len_err, turn_err, wp_err
