@@ -223,3 +223,24 @@ def test_sorensen_neighbours_match_scipy_bray_curtis():
     assert np.allclose(D[1:], np.sort(ref, axis=1)[:, :6], atol=1e-12)
     assert np.allclose(np.take_along_axis(ref, I[1:], axis=1), D[1:], atol=1e-12)
     assert np.allclose(D[0], 1.0)
+
+
+def test_route_groups_and_folds_hold_a_repeated_route_together():
+    """Walks of one route (same floor, the same marks give or take 0.3 m) share a group whatever their
+    direction; the same marks on another floor, or a route 3 m aside, do not. Route folds never split
+    a group, and use every fold they can."""
+    from hybridloc.radio.evaluate import TraceData, route_folds, route_groups
+
+    line = np.column_stack([np.arange(0.0, 30.0, 5.0), np.zeros(6)])
+    rng = np.random.default_rng(3)
+
+    def walk(name, xy, floor="F1"):
+        return TraceData(name, floor, [], np.arange(len(xy), dtype=float), xy, [])
+
+    traces = [walk("a", line), walk("b", line[::-1] + rng.normal(0, 0.3, line.shape)), walk("c", line, "F2"),
+              walk("d", line + [0.0, 3.0]), walk("e", line + [0.0, 3.2]), walk("f", line + [100.0, 0.0]), walk("g", np.zeros((0, 2)))]
+    g = route_groups(traces)
+    assert g[0] == g[1] and g[3] == g[4]
+    assert len({g[0], g[2], g[3], g[5], g[6]}) == 5
+    f = route_folds(traces, 3, np.random.default_rng(0))
+    assert f[0] == f[1] and f[3] == f[4] and set(f) == {0, 1, 2}
