@@ -362,8 +362,32 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
           "same filters, cold: " + ", ".join(f"{k} {np.nanmean(v):.2f} m" for k, v in perfect.items())
           + f"; against WiFi only ({np.nanmean(E[names[1]]):.2f} m): " + ", ".join(_rel(np.nanmean(v), np.nanmean(E[names[1]])) for v in perfect.values())
           + ". What a cold start leaves above this is the PDR's; the rest is the radio map's")
+    # Surveyors walked some routes more than once with the same marks: a client whose route is also
+    # among the surveys walks a path the map has seen walked; the others walk new paths.
+    seen = _routes_walked_by_surveys(traces, survey)
+    on_seen = np.concatenate([np.full(max(len(tr.waypoints.t) - 1, 0), str(tr.path) in seen) for tr, _ in results]).astype(bool)
+    n_seen = sum(str(tr.path) in seen for tr, _ in results)
+    for label, m, n in (("on a route a survey also walked", on_seen, n_seen), ("on a route no survey walked", ~on_seen, len(results) - n_seen)):
+        if m.any():
+            print(f"  clients {label} ({n} clients, {int(m.sum())} waypoints): mean error "
+                  + ", ".join(f"{k} {np.nanmean(E[k][m]):.2f} m" for k in (names[0], names[1], names[2], names[4])))
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
     return 0
+
+
+def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:
+    """Paths (as str) of the traces whose route (:func:`hybridloc.radio.evaluate.route_groups`) one of
+    the ``survey`` traces also walked."""
+    from types import SimpleNamespace
+
+    from .io.msft import read_ilc_waypoints
+    from .radio.evaluate import route_groups
+
+    wps = [read_ilc_waypoints(p) for p in traces]
+    groups = route_groups([SimpleNamespace(floor=w.floor or "", wp_xy=w.pos_enu) for w in wps])
+    surveyed = {str(p) for p in survey}
+    walked = {g for p, g in zip(traces, groups) if str(p) in surveyed}
+    return {str(p) for p, g in zip(traces, groups) if g in walked and str(p) not in surveyed}
 
 
 def _write_outputs(out: Path, plan, results) -> None:

@@ -55,3 +55,22 @@ def test_true_motion_steps_retrace_the_waypoints():
     moving = [s for s in ideal if s.length > 0]
     assert all(abs(s.heading) < 1e-9 or abs(s.heading - math.pi / 2) < 1e-9 or 0 < s.heading < math.pi / 2 for s in moving)
     assert true_motion_steps([], wp_t, wp_xy) == [] and true_motion_steps(steps, wp_t[:1], wp_xy[:1]) == []
+
+
+def test_clients_on_a_surveyed_route_are_told_apart(tmp_path):
+    """eval fusion splits its clients by whether a survey walked their route (the same marks, give or
+    take 1 m, on the same floor), read from the traces' waypoints alone."""
+    from hybridloc.demo import _routes_walked_by_surveys
+
+    def trace(name, floor, marks):
+        lines = [f"#\tSiteID:s\tFloorName:{floor}"] + [f"{1574559495000 + 5000 * i}\tTYPE_WAYPOINT\t{x}\t{y}" for i, (x, y) in enumerate(marks)]
+        p = tmp_path / f"{name}.txt"
+        p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+        return p
+
+    route = [(0, 0), (5, 0), (10, 0), (10, 5)]
+    survey = [trace("s1", "F1", route), trace("s2", "F2", [(0, 0), (0, 9)])]
+    again = trace("c1", "F1", [(x + 0.2, y - 0.2) for x, y in route][::-1])  # the same route, walked back
+    upstairs = trace("c2", "F2", route)  # the same marks on another floor
+    aside = trace("c3", "F1", [(x, y + 4.0) for x, y in route])
+    assert _routes_walked_by_surveys(survey + [again, upstairs, aside], survey) == {str(again)}

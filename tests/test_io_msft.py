@@ -6,7 +6,7 @@ import shapely
 
 from hybridloc.io import detect_format
 from hybridloc.io.common import DataFormatError
-from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_site, read_ilc_trace
+from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_site, read_ilc_trace, read_ilc_waypoints
 
 HEADER = "#\tstartTime:1574559495255\n#\tSiteID:s1\tSiteName:test\tFloorId:f\tFloorName:F2\n#\tBrand:ACME\tModel:X1\n"
 
@@ -154,3 +154,21 @@ def test_sensor_full_scale_comes_from_the_header(tmp_path):
     assert tr.imu.accel_range == pytest.approx(39.22661) and tr.imu.gyro_range == pytest.approx(34.906586)
     bare = read_ilc_trace(_write(tmp_path, HEADER + _sensor_lines(1574559495300, 20), name="bare.txt.gz"))
     assert bare.imu.accel_range is None and bare.imu.gyro_range is None
+
+
+def test_waypoints_alone_read_as_the_whole_trace_reads_them(tmp_path):
+    """read_ilc_waypoints skips the sensor lines unparsed but checks its own lines alike: unsorted
+    marks sorted, bad ones reported; the floor from the header. On the bundled sample too."""
+    from hybridloc.samples import ILC_SITE1_F1
+
+    lines = HEADER + _sensor_lines(1574559495300, 20)
+    lines += "1574559496000\tTYPE_WAYPOINT\t5.0\t6.0\n1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\n"
+    lines += "1574559495\tTYPE_WAYPOINT\t1\t2\n1574559497000\tTYPE_WAYPOINT\tnan\t2\n"
+    p = _write(tmp_path, lines)
+    w = read_ilc_waypoints(p)
+    assert w.floor == "F2" and np.allclose(w.t, [1574559495.4, 1574559496.0]) and np.allclose(w.pos_enu, [[1, 2], [5, 6]])
+    with pytest.raises(DataFormatError, match="bad-timestamp"):
+        read_ilc_waypoints(p, on_error="raise")
+    for path in find_ilc_traces(ILC_SITE1_F1)[:5]:
+        a, b = read_ilc_trace(path).waypoints, read_ilc_waypoints(path)
+        assert a.floor == b.floor and np.array_equal(a.t, b.t) and np.array_equal(a.pos_enu, b.pos_enu)

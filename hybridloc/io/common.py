@@ -103,8 +103,9 @@ def open_binary(path: str | os.PathLike):
     return open(path, "rb")
 
 
-def iter_lines(path: str | os.PathLike, report: ReadReport, encoding: str = "utf-8") -> Iterator[tuple[int, str]]:
-    """Stream ``(line_number, text)`` pairs (1-based, newline stripped) from a plain or gzip file.
+def iter_lines(path: str | os.PathLike, report: ReadReport, encoding: str = "utf-8", keep=None) -> Iterator[tuple[int, str]]:
+    """Stream ``(line_number, text)`` pairs (1-based, newline stripped) from a plain or gzip file;
+    with ``keep`` (raw bytes -> bool), only the lines it keeps are decoded and yielded.
 
     A truncated or corrupt gzip stream ends the iteration with a ``truncated`` problem in the report
     (or :class:`DataFormatError` with ``on_error="raise"``); the lines before it are kept. Bytes that
@@ -115,6 +116,8 @@ def iter_lines(path: str | os.PathLike, report: ReadReport, encoding: str = "utf
         try:
             for raw_line in raw:
                 lineno += 1
+                if keep is not None and not keep(raw_line):
+                    continue
                 try:
                     text = raw_line.decode(encoding)
                 except UnicodeDecodeError:

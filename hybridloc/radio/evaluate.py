@@ -70,8 +70,9 @@ class FingerprintScore:
 SAME_ROUTE_M = 1.0
 
 
-def route_groups(traces: list[TraceData], tol_m: float = SAME_ROUTE_M) -> np.ndarray:
-    """Group id per trace: walks of the same route (same floor, each walk's waypoints within
+def route_groups(traces: list, tol_m: float = SAME_ROUTE_M) -> np.ndarray:
+    """Group id per trace (anything with ``floor`` and ``wp_xy``, the waypoints (N, 2) m): walks of
+    the same route (same floor, each walk's waypoints within
     ``tol_m`` on average of the other's nearest waypoint) share one. Indoor Location Competition
     surveyors walked some planned routes more than once, minutes apart, with the very same marks; a
     fold that holds out one walk of such a route while its repeat stays in the map scores a path the
