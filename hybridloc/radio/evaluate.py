@@ -288,6 +288,7 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         print(f"  routes held out whole ({len(repeated)} of {len(traces)} walks follow a route walked more than once, with the same marks; "
               f"in the folds above {seen} of them have a repeat in the map), weighted 5-NN: floor hit {100 * np.mean(s.floor_hits):.2f}%  "
               f"error on the right floor: {_fmt(e)}; on the repeated routes' walks {np.nanmean(rep) if rep.size else float('nan'):.2f} m, "
-              f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m")
+              f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
+              f"(mean area {np.mean(s.region_areas):.0f} m^2)")
         print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
     return 0
