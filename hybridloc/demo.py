@@ -30,8 +30,8 @@ from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
 from .pdr.phone import dead_reckon
 from .progress import Progress
-from .units import wrap_angle
 from .samples import ILC_SITE1_F1
+from .units import wrap_angle
 
 
 

@@ -72,11 +72,10 @@ SAME_ROUTE_M = 1.0
 
 def route_groups(traces: list, tol_m: float = SAME_ROUTE_M) -> np.ndarray:
     """Group id per trace (anything with ``floor`` and ``wp_xy``, the waypoints (N, 2) m): walks of
-    the same route (same floor, each walk's waypoints within
-    ``tol_m`` on average of the other's nearest waypoint) share one. Indoor Location Competition
-    surveyors walked some planned routes more than once, minutes apart, with the very same marks; a
-    fold that holds out one walk of such a route while its repeat stays in the map scores a path the
-    map has already seen walked."""
+    the same route share one (same floor; each walk's waypoints within ``tol_m``, on average, of the
+    other's nearest waypoint, either way). Indoor Location Competition surveyors walked some planned
+    routes more than once, minutes apart, with the very same marks; a fold that holds out one walk of
+    such a route while its repeat stays in the map scores a path the map has already seen walked."""
     n = len(traces)
     parent = list(range(n))
 
@@ -275,7 +274,7 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
             print(f"  {label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
                   f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}")
         # The folds above deal walks recorded one after the other to different folds, so a route walked
-        # twice in a row always has one walk in the map. Held out whole, routes show what a path the
+        # twice in a row nearly always has one walk in the map. Held out whole, routes show what a path the
         # map has never seen walked gets.
         groups = route_groups(traces)
         repeated = {t.name for t, g in zip(traces, groups) if np.count_nonzero(groups == g) > 1}
