@@ -10,9 +10,10 @@
 * :class:`BounceHeightLength`: L = K (mean |a_v| T^2)^(1/3), T the step's duration. The vertical
   acceleration of a bounce of height h repeated every T is ~ h (2 pi / T)^2, so mean |a_v| T^2 is
   proportional to h: this is Kim's model on the bounce height instead of its acceleration, which
-  grows with cadence for the same step (ILC site1, 2-fold cross-fit: segment length error median
-  9.5 %, p90 26.1 % against Kim's 10.3 / 27.6 and Weinberg's 11.1 / 28.7; exponents 1/2 and 1/4 on h
-  gave 9.9 / 28.4 and 9.8 / 26.3).
+  grows with cadence for the same step (``hybridloc eval pdr-phone`` on ILC site1, 2-fold cross-fit:
+  segment length error median 9.0 %, p90 24.3 % against Kim's 9.7 / 26.2, Weinberg's 10.3 / 26.8,
+  the step-frequency line's 11.2 / 30.3 and a constant length's 10.6 / 27.9; when the model was
+  chosen, exponents 1/2 and 1/4 on h did worse: 9.9 / 28.4 and 9.8 / 26.3 against 9.5 / 26.1).
 
 Calibration (:class:`LengthCalibrator`): every model is linear in its coefficients,
 L_i = theta . phi_i, so a walked segment of known length D (between two absolute fixes or marks)
@@ -112,7 +113,7 @@ class BounceHeightLength(LengthModel):
     name = "height"
     relative_sigma = 0.08
 
-    # Default K fitted on ILC site1 (2-fold cross-fit: 0.694 | 0.699); calibrate per device.
+    # Default K fitted on ILC site1 (2-fold cross-fit: 0.697 | 0.704); calibrate per device.
     def __init__(self, K: float = 0.70):
         self.coef = np.array([K])
 
