@@ -271,7 +271,8 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
         raise ValueError(f"{trace.path}: no IMU data to replay")
     pdr = PhonePdr(imu.rate_hz, length_model, pdr_config)
     scans = [s for s in trace.scans if s.technology is Technology.WIFI]
-    marks = list(zip(trace.waypoints.t, trace.waypoints.pos_enu)) if survey else []
+    wps = trace.waypoints
+    marks = [(t, xy, wps.floor_of(i) or "") for i, (t, xy) in enumerate(zip(wps.t, wps.pos_enu))] if survey else []
     t0 = float(imu.t[0])
     wall0 = time.monotonic()
     i_scan = i_mark = 0
@@ -295,16 +296,16 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
             agent.local_fix(*local[i_local])
             i_local += 1
         while i_mark < len(marks) and marks[i_mark][0] <= t_now:
-            tm, xy = marks[i_mark]
-            agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
+            tm, xy, floor = marks[i_mark]
+            agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), floor))
             i_mark += 1
         agent.tick(t_now, lockstep)
         if speed > 0:
             lag = (t_now - t0) / speed - (time.monotonic() - wall0)
             if lag > 0:
                 time.sleep(lag)
-    for tm, xy in marks[i_mark:]:
-        agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), trace.floor or ""))
+    for tm, xy, floor in marks[i_mark:]:
+        agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), floor))
     agent.maybe_flush(ts[-1], force=True)
     return pdr
 

@@ -239,8 +239,9 @@ def true_motion_steps(steps, wp_t, wp_xy, sigma_length: float = 0.05, sigma_head
     return out
 
 
-def _floor_hits(poses, wt, floor) -> list[bool]:
-    return [poses[i][3] == floor for i in _held(poses, wt) if i >= 0]
+def _floor_hits(poses, waypoints) -> list[bool]:
+    """At each waypoint after the first (where an estimate is held): is it on that mark's floor?"""
+    return [poses[i][3] == waypoints.floor_of(k + 1) for k, i in enumerate(_held(poses, waypoints.t)) if i >= 0]
 
 
 def _known_start(r, tr) -> dict | None:
@@ -249,7 +250,7 @@ def _known_start(r, tr) -> dict | None:
     wt, wxy = tr.waypoints.t, tr.waypoints.pos_enu
     if len(r.step_events) < 2 or len(wt) < 2:
         return None
-    return {"init": (float(wxy[0][0]), float(wxy[0][1]), 1.0), "floor": tr.floor,
+    return {"init": (float(wxy[0][0]), float(wxy[0][1]), 1.0), "floor": tr.waypoints.floor_of(0),
             "heading_bias": (_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0))}
 
 
@@ -327,7 +328,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         for k in names[2:]:
             poses = variants.get(k, [])
             errs[k] += _fused_errors(poses, wt, wxy).tolist()
-            floors[k] += _floor_hits(poses, wt, tr.floor)
+            floors[k] += _floor_hits(poses, tr.waypoints)
     print(f"fusion through the real client and server path (Zenoh loopback, SQLite): {len(survey)} survey traces -> radio map; "
           f"{len(results)} phone clients replayed in lock-step (fix lag on the recording's clock: median {np.median(lags) if lags else float('nan'):.1f} s), "
           f"causal, {time.monotonic() - t0:.0f} s")

@@ -610,11 +610,16 @@ class Waypoints:
     pos_enu : ndarray, shape (N, 2)
         Site frame, m.
     floor : str or None
+        The walk's floor (Indoor Location Competition traces: one per trace).
+    floors : tuple of (str or None), or None
+        Each mark's own floor, for a walk that changes floor (the simulator's walks take the stairs);
+        None when every mark is on ``floor``. :meth:`floor_of` answers either way.
     """
 
     t: np.ndarray
     pos_enu: np.ndarray
     floor: str | None = None
+    floors: tuple | None = None
 
     def __post_init__(self) -> None:
         t = _frozen_array(self.t, name="t", ndim=1)
@@ -623,8 +628,18 @@ class Waypoints:
         p = _frozen_array(self.pos_enu, (2,), "pos_enu", ndim=2) if len(t) else _frozen_array(np.zeros((0, 2)), (2,), "pos_enu")
         if p.shape[0] != t.shape[0]:
             raise ValueError("Waypoints: one position per time")
+        if self.floors is not None:
+            if len(self.floors) != t.shape[0]:
+                raise ValueError("Waypoints: one floor per mark")
+            object.__setattr__(self, "floors", tuple(self.floors))
         object.__setattr__(self, "t", t)
         object.__setattr__(self, "pos_enu", p)
+
+    def floor_of(self, i: int) -> str | None:
+        """Mark i's floor: its own where the walk changes floor, else the walk's."""
+        if self.floors is not None and self.floors[i] is not None:
+            return self.floors[i]
+        return self.floor
 
     def __len__(self) -> int:
         return int(self.t.shape[0])

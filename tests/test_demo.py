@@ -74,3 +74,15 @@ def test_clients_on_a_surveyed_route_are_told_apart(tmp_path):
     upstairs = trace("c2", "F2", route)  # the same marks on another floor
     aside = trace("c3", "F1", [(x, y + 4.0) for x, y in route])
     assert _routes_walked_by_surveys(survey + [again, upstairs, aside], survey) == {str(again)}
+
+
+def test_floor_hits_score_each_mark_on_its_own_floor():
+    """A walk up the stairs: the estimate held at each waypoint is scored against that mark's floor,
+    not the trace's start floor."""
+    from hybridloc.demo import _floor_hits
+    from hybridloc.types import Waypoints
+
+    wps = Waypoints(np.array([0.0, 10.0, 20.0, 30.0]), np.zeros((4, 2)), "F1", ("F1", "F1", "F2", "F2"))
+    poses = [(5.0, 0, 0, "F1"), (15.0, 0, 0, "F1"), (25.0, 0, 0, "F2")]  # the switch to F2 seen 5 s late
+    assert _floor_hits(poses, wps) == [True, False, True]
+    assert _floor_hits([(5.0, 0, 0, "F1")], wps) == [True, False, False]

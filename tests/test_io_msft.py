@@ -172,3 +172,14 @@ def test_waypoints_alone_read_as_the_whole_trace_reads_them(tmp_path):
     for path in find_ilc_traces(ILC_SITE1_F1)[:5]:
         a, b = read_ilc_trace(path).waypoints, read_ilc_waypoints(path)
         assert a.floor == b.floor and np.array_equal(a.t, b.t) and np.array_equal(a.pos_enu, b.pos_enu)
+
+
+def test_a_mark_may_carry_its_floor(tmp_path):
+    """Our extension of TYPE_WAYPOINT (the simulator's walks change floor): an optional floor name
+    after x y, read by both readers; marks without one are on the header's floor."""
+    lines = HEADER + "1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\tF2\n1574559496000\tTYPE_WAYPOINT\t5.0\t6.0\tF3\n1574559497000\tTYPE_WAYPOINT\t5.0\t9.0\n"
+    p = _write(tmp_path, lines)
+    for w in (read_ilc_trace(p).waypoints, read_ilc_waypoints(p)):
+        assert w.floor == "F2" and [w.floor_of(i) for i in range(3)] == ["F2", "F3", "F2"]
+    plain = read_ilc_waypoints(_write(tmp_path, HEADER + "1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\n", name="b.txt.gz"))
+    assert plain.floors is None and plain.floor_of(0) == "F2"

@@ -44,6 +44,19 @@ def test_survey_labelling_stretches_and_rotates_pdr_between_marks():
     assert all(ls.floor == "F2" for ls in lab)
 
 
+def test_survey_labelling_takes_each_marks_floor_and_skips_the_stairs():
+    """A walk marked on F1, then F2 (the stairs between the 2nd and 3rd marks): scans take their
+    segment's floor, and the scans between marks on two floors are left unlabelled."""
+    steps = [StepEvent(t=1.0 + i, length=0.7, heading=0.0, sigma_length=0.05, sigma_heading=0.05) for i in range(30)]
+    wp = Waypoints(np.array([0.5, 10.0, 20.0, 30.0]), np.array([[0.0, 0.0], [7.0, 0.0], [14.0, 0.0], [21.0, 0.0]]), "F1", ("F1", "F1", "F2", "F2"))
+    scans = [RfScan(t, "wifi", {"a": -50.0}) for t in (5.0, 15.0, 25.0)]
+    lab = label_scans(scans, steps, wp, t_start=0.0)
+    assert [(ls.scan.t, ls.floor) for ls in lab] == [(5.0, "F1"), (25.0, "F2")]
+    with pytest.raises(ValueError, match="one floor per mark"):
+        Waypoints(np.array([0.0, 1.0]), np.zeros((2, 2)), "F1", ("F1",))
+    assert Waypoints(np.array([0.0]), np.zeros((1, 2)), "F3").floor_of(0) == "F3"
+
+
 @pytest.fixture(scope="module")
 def world():
     rng = np.random.default_rng(11)

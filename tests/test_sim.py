@@ -155,6 +155,13 @@ def test_cli_world_and_walk_write_readable_formats(tmp_path):
     assert tr.report.ok and 49 < tr.imu.rate_hz < 51 and len(tr.waypoints) >= 2 and tr.wifi_scans
     truth = np.loadtxt(tmp_path / "k" / "w0000_truth_steps.csv", delimiter=",", skiprows=1, usecols=(0, 1, 2))
     assert len(truth) > 30
+    # every mark carries its floor (walks take the stairs): the floor of the true step at its time
+    true_floor = np.loadtxt(tmp_path / "k" / "w0000_truth_steps.csv", delimiter=",", skiprows=1, usecols=(4,), dtype=str)
+    wps = tr.waypoints
+    assert wps.floors is not None and wps.floor_of(0) == tr.floor
+    for i in range(1, len(wps)):
+        k = int(np.searchsorted(truth[:, 0], wps.t[i] - 1e-3, side="right")) - 1
+        assert wps.floor_of(i) in set(true_floor[max(k, 0):k + 2]), (i, wps.floor_of(i))
     r = run("pdr", "foot", str(tmp_path / "k" / "w0001_foot.csv"), "--out", str(tmp_path / "o"))
     assert r.returncode == 0, r.stderr
 

@@ -12,7 +12,8 @@ are ``unix_ms  TYPE_*  values...``:
 ``TYPE_WIFI ssid bssid rssi f last`` one line per access point; lines sharing a timestamp form one
                                      scan; ``f`` in MHz; ``last`` = last-seen Unix ms
 ``TYPE_BEACON uuid major minor tx rssi dist mac last``  iBeacon; id = ``uuid_major_minor_mac``
-``TYPE_WAYPOINT x y``                **ground truth**, floor-plan metres; kept apart from sensors
+``TYPE_WAYPOINT x y [floor]``        **ground truth**, floor-plan metres; kept apart from sensors;
+                                     ``floor``: our extension (the simulator's walks change floor)
 =================================  ==========================================================
 
 Header lines ``type:N name:... maximumRange:R`` give each sensor's full scale: the accelerometer's
@@ -304,16 +305,20 @@ def _record_time(lineno: int, f: list[str], report: ReadReport) -> float | None:
 
 
 def _add_waypoint(wps: list, lineno: int, t: float, f: list[str], report: ReadReport) -> None:
-    vals = _floats(f[1:], 2) if len(f) >= 3 else None
+    """``x y`` and, in our extension for walks that change floor (the simulator writes it), the
+    mark's floor name as a third field."""
+    vals = _floats(f[1:3], 2) if len(f) >= 3 else None
     if vals is None or not all(math.isfinite(v) for v in vals):
         report.problem(lineno, "malformed-line", "TYPE_WAYPOINT needs two finite numbers")
         return
-    wps.append((t, vals[0], vals[1]))
+    floor = f[3].strip() if len(f) >= 4 and f[3].strip() else None
+    wps.append((t, vals[0], vals[1], floor))
 
 
 def _waypoints(wps: list, meta: dict) -> Waypoints:
-    wps = sorted(wps)
-    return Waypoints(np.array([w[0] for w in wps]), np.array([[w[1], w[2]] for w in wps]).reshape(-1, 2), meta.get("FloorName") or None)
+    wps = sorted(wps, key=lambda w: w[:3])
+    floors = tuple(w[3] for w in wps) if any(w[3] is not None for w in wps) else None
+    return Waypoints(np.array([w[0] for w in wps]), np.array([[w[1], w[2]] for w in wps]).reshape(-1, 2), meta.get("FloorName") or None, floors)
 
 
 def _interp_rows(t_src: np.ndarray, v_src: np.ndarray, t_dst: np.ndarray) -> np.ndarray:

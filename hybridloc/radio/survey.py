@@ -59,7 +59,8 @@ def label_scans(scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoint
             continue
         tA, tB = wt[k], wt[k + 1]
         A, B = wp[k], wp[k + 1]
-        if tB <= tA:
+        floor = waypoints.floor_of(k)
+        if tB <= tA or waypoints.floor_of(k + 1) != floor:  # between marks on two floors: on the stairs
             continue
         rA, rB = track_at(tA), track_at(tB)
         dr, dw = rB - rA, B - A
@@ -75,7 +76,7 @@ def label_scans(scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoint
             v = track_at(scan.t) - rA
             pos = A + s * np.array([c * v[0] - sn * v[1], sn * v[0] + c * v[1]])
         sigma = sigma0 + rel_sigma * nw * 2.0 * min(u, 1.0 - u)
-        out.append(LabelledScan(scan, pos, float(sigma), waypoints.floor, source))
+        out.append(LabelledScan(scan, pos, float(sigma), floor, source))
     return out
 
 

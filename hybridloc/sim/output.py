@@ -9,8 +9,9 @@ Walk folder (``hybridloc sim walk``), per walker ``w<NNNN>``:
 
 * ``w<NNNN>.txt.gz``: the phone in the Indoor Location Competition trace format (accelerometer,
   gyroscope, magnetometer in uT, WiFi, iBeacon; waypoints = true positions at route corners and
-  pauses, marked like an operator would). The header's FloorName is the start floor (the format has
-  one floor per trace; ``truth_steps.csv`` has the floor of every step);
+  pauses, marked like an operator would, each with its floor name as an extra field). The header's
+  FloorName is the start floor (the format has one floor per trace; ``truth_steps.csv`` has the floor
+  of every step);
 * ``w<NNNN>_foot.csv``: the foot IMU in the plain IMU CSV (when the carrier includes a foot unit);
 * ``w<NNNN>_truth_steps.csv``: ``t,x,y,z,floor,heading,length`` of every true step;
 * ``w<NNNN>_truth_foot.csv``: ``t,x,y,z,stance`` of the foot at every IMU sample;
@@ -81,19 +82,20 @@ def _to_lonlat(geom, origin):
     return shapely.transform(geom, f)
 
 
-def _waypoints(walk: Walk) -> list[tuple[float, float, float]]:
-    """True positions an operator would mark: at the start, at every turn and pause, and at the end."""
-    out = [(walk.t0, walk.start[0], walk.start[1])]
+def _waypoints(walk: Walk) -> list[tuple[float, float, float, int]]:
+    """True positions an operator would mark: at the start, at every turn and pause, and at the end;
+    (t, x, y, floor index) each."""
+    out = [(walk.t0, walk.start[0], walk.start[1], int(walk.start[2]))]
     prev_h = None
     for s in walk.steps:
         if prev_h is not None and abs(math.atan2(math.sin(s.heading - prev_h), math.cos(s.heading - prev_h))) > 20 * DEG:
-            out.append((s.t, s.x, s.y))
+            out.append((s.t, s.x, s.y, int(s.floor)))
         prev_h = s.heading
     for a, _, _ in walk.pauses[1:]:
-        pos, _ = walk.position_at(np.array([a]))
-        out.append((a, float(pos[0, 0]), float(pos[0, 1])))
+        pos, floor = walk.position_at(np.array([a]))
+        out.append((a, float(pos[0, 0]), float(pos[0, 1]), int(floor[0])))
     if walk.steps:
-        out.append((walk.steps[-1].t, walk.steps[-1].x, walk.steps[-1].y))
+        out.append((walk.steps[-1].t, walk.steps[-1].x, walk.steps[-1].y, int(walk.steps[-1].floor)))
     out.sort()
     dedup = [out[0]]
     for w in out[1:]:
@@ -123,8 +125,8 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
         for k, r in s.rssi_dbm.items():
             uuid, major, minor = k.split("_")
             lines.append((tm, 4, f"{tm}\tTYPE_BEACON\t{uuid.upper()}\t{major}\t{minor}\t-59\t{int(r)}\t{10 ** ((-59 - r) / 20):.3f}\tSIM:{major}:{minor}\t{tm}"))
-    for t, x, y in _waypoints(walk):
-        lines.append((ms(t), 5, f"{ms(t)}\tTYPE_WAYPOINT\t{x:.4f}\t{y:.4f}"))
+    for t, x, y, floor in _waypoints(walk):  # each mark with its floor (the format's extension): walks take the stairs
+        lines.append((ms(t), 5, f"{ms(t)}\tTYPE_WAYPOINT\t{x:.4f}\t{y:.4f}\t{world.floor_name(floor)}"))
     lines.sort(key=lambda r: (r[0], r[1]))
     fl = world.floor_name(walk.start[2])
     with gzip.open(path, "wt", encoding="utf-8", compresslevel=3) as f:
