@@ -293,3 +293,24 @@ def test_particle_filter_corridor_heading_pulls_the_bias_cloud_to_the_grid():
     for st in _walk(40, math.radians(45.0)):
         diag.predict(st)
     assert diag.n_corridor == 0
+
+
+def test_walk_prior_learns_an_entrance_from_walks_that_come_in_from_outdoors():
+    """A closed 20 x 10 m building on the ground floor. Nobody walked outdoors: the street is
+    impossible and every outer wall holds. Walks that came in from the street along y = 5 through the
+    west wall: that path outdoors is walkable, the west wall is open where they crossed it and
+    nowhere else, and the rest of the outdoors stays impossible."""
+    box = shapely.MultiPolygon([shapely.box(0.0, 0.0, 20.0, 10.0)])
+    c = np.array([[0, 0], [20, 0], [20, 10], [0, 10], [0, 0]], float)
+    plan = FloorPlan("b", (Floor("F1", 0, 0.0, box, box, np.stack([c[:-1], c[1:]], axis=1)),))
+    inside = np.column_stack([np.linspace(1, 19, 100), np.full(100, 5.0)])
+    closed = WalkPrior.from_points({"F1": inside}, plan)
+    street = np.column_stack([np.linspace(-8, 0, 40), np.full(40, 5.0)])
+    learned = WalkPrior.from_points({"F1": np.vstack([inside, street])}, plan)
+    probe = np.array([[-4.0, 5.0], [-4.0, 1.0], [30.0, 5.0]])  # on the street path, beside it, far away
+    assert closed.at("F1", probe).tolist() == [0.0, 0.0, 0.0]
+    v = learned.at("F1", probe)
+    assert v[0] > 0.5 and v[1] == 0.0 and v[2] == 0.0
+    moves_from, moves_to = np.array([[-2.0, 5.3], [-2.0, 0.6], [22.0, 5.3]]), np.array([[2.0, 5.3], [2.0, 0.6], [18.0, 5.3]])
+    assert closed.crosses_wall("F1", moves_from, moves_to).tolist() == [True, True, True]
+    assert learned.crosses_wall("F1", moves_from, moves_to).tolist() == [False, True, True]

@@ -13,6 +13,15 @@ places walkable but never walked. Outside the floor plan's walkable area pi = 0 
 and the plan's wall segments may not be crossed (:meth:`WalkPrior.crosses_wall`). Without a plan the
 raster covers the data plus a margin and everything beyond it is eps.
 
+Entrances come from the crowd too. Floor plans rarely show the doors in a building's outer wall (the
+Indoor Location Competition's show none), so a walk that starts in the street is impossible for the
+plan alone: its particles are pushed indoors and stay wrong (simulated site, 15 phone clients, 3 of
+them starting 12 m outdoors: particle + map 7.0-7.4 m on those walks, 1.2-1.4 m without the map).
+Where walked positions lie outside a floor's footprint, that ground is walkable with their own density
+where it reaches ``door_share`` of the reference density (no eps: the rest of the outdoors stays
+impossible), and the outer wall is opened, in pieces of ``door_piece`` m, wherever it does so at the
+wall. With no walked position outdoors, nothing changes.
+
 This is the causal, probabilistic form of what the Indoor Location Competition winners did offline by
 snapping positions to the grid of training waypoints (Harle's survey sec. VII: maps from PDR traces,
 particle filters constrained by the building).
@@ -59,8 +68,10 @@ class WalkPrior:
 
     @classmethod
     def from_points(cls, points_by_floor: dict[str, np.ndarray], plan: FloorPlan | None = None, cell: float = 0.5,
-                    bandwidth: float = 1.5, eps: float = 1.0, saturation: float = 0.5, margin: float = 10.0) -> "WalkPrior":
-        """Build from walked positions (per floor name, (N, 2) m) and an optional floor plan."""
+                    bandwidth: float = 1.5, eps: float = 1.0, saturation: float = 0.5, margin: float = 10.0,
+                    door_piece: float = 1.0, door_share: float = 0.1) -> "WalkPrior":
+        """Build from walked positions (per floor name, (N, 2) m) and an optional floor plan
+        (``door_piece``, ``door_share``: the entrances learned from outdoor walks, module docstring)."""
         if not 0.0 <= eps <= 1.0:
             raise ValueError(f"eps must be in [0, 1], got {eps}")
         if cell <= 0 or bandwidth <= 0:
@@ -76,8 +87,14 @@ class WalkPrior:
                     fl = plan.floor(name)
                 except KeyError:
                     fl = None
+            footprint = outdoor_pts = None
             if fl is not None:
                 bx0, by0, bx1, by1 = fl.walkable.bounds
+                footprint = shapely.union_all([shapely.Polygon(p.exterior) for p in fl.outline.geoms])
+                outdoor_pts = pts[~shapely.contains_xy(footprint, pts[:, 0], pts[:, 1])] if len(pts) else pts
+                if len(outdoor_pts):  # people walked outside: that ground is in the raster too
+                    lo, hi = outdoor_pts.min(0) - margin, outdoor_pts.max(0) + margin
+                    bx0, by0, bx1, by1 = min(bx0, lo[0]), min(by0, lo[1]), max(bx1, hi[0]), max(by1, hi[1])
             elif len(pts):
                 (bx0, by0), (bx1, by1) = pts.min(0) - margin, pts.max(0) + margin
             else:
@@ -92,15 +109,25 @@ class WalkPrior:
                 np.add.at(counts, (iy, ix), 1.0)
             dens = ndimage.gaussian_filter(counts, bandwidth / cell, mode="constant")
             pi = np.full((ny, nx), eps)
+            ref = 1.0
             if len(pts):
-                ref = float(np.quantile(dens[counts > 0], saturation))
-                pi = eps + (1.0 - eps) * np.minimum(1.0, dens / max(ref, 1e-12))
+                ref = max(float(np.quantile(dens[counts > 0], saturation)), 1e-12)
+                pi = eps + (1.0 - eps) * np.minimum(1.0, dens / ref)
             if fl is not None:
                 gx = bx0 + (np.arange(nx) + 0.5) * cell
                 gy = by0 + (np.arange(ny) + 0.5) * cell
                 X, Y = np.meshgrid(gx, gy)
-                pi = np.where(shapely.contains_xy(fl.walkable, X, Y), pi, 0.0)
                 walls = np.asarray(fl.walls, float).reshape(-1, 2, 2)
+                walked_outdoors = np.zeros((ny, nx))
+                if len(outdoor_pts):
+                    out_counts = np.zeros((ny, nx))
+                    np.add.at(out_counts, (np.clip(((outdoor_pts[:, 1] - by0) / cell).astype(int), 0, ny - 1),
+                                           np.clip(((outdoor_pts[:, 0] - bx0) / cell).astype(int), 0, nx - 1)), 1.0)
+                    walked_outdoors = np.minimum(1.0, ndimage.gaussian_filter(out_counts, bandwidth / cell, mode="constant") / ref)
+                    walked_outdoors[walked_outdoors < door_share] = 0.0  # the kernel's tail is not a path
+                    walls = _open_doors(walls, footprint, walked_outdoors, bx0, by0, cell, door_piece, door_share)
+                outdoors = ~shapely.contains_xy(footprint, X, Y)
+                pi = np.where(shapely.contains_xy(fl.walkable, X, Y), pi, np.where(outdoors, walked_outdoors, 0.0))
             else:
                 walls = np.zeros((0, 2, 2))
             floors[name] = FloorPrior(name, bx0, by0, cell, pi, 0.0 if fl is not None else eps, walls)
@@ -124,3 +151,24 @@ class WalkPrior:
         if fp is None:
             return np.zeros(len(p), bool)
         return wall_crossings(fp.walls, p, q) > 0
+
+
+def _open_doors(walls: np.ndarray, footprint, walked_outdoors: np.ndarray, x0: float, y0: float, cell: float, piece: float, share: float) -> np.ndarray:
+    """The wall segments with the outer wall cut into ``piece``-m pieces, those where people walked
+    outdoors (``walked_outdoors`` >= ``share`` at the piece's middle) left out: entrances."""
+    outer = footprint.boundary
+    ny, nx = walked_outdoors.shape
+    keep = []
+    for a, b in walls:
+        mid = 0.5 * (a + b)
+        if shapely.distance(outer, shapely.Point(mid)) > 1e-6:  # not on the outer wall (a hole's, an inner wall)
+            keep.append([a, b])
+            continue
+        n = max(1, int(np.ceil(np.hypot(*(b - a)) / piece)))
+        for k in range(n):
+            p, q = a + (b - a) * k / n, a + (b - a) * (k + 1) / n
+            m = 0.5 * (p + q)
+            ix, iy = int((m[0] - x0) / cell), int((m[1] - y0) / cell)
+            if not (0 <= ix < nx and 0 <= iy < ny and walked_outdoors[iy, ix] >= share):
+                keep.append([p, q])
+    return np.asarray(keep, float).reshape(-1, 2, 2)
