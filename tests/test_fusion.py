@@ -314,3 +314,18 @@ def test_walk_prior_learns_an_entrance_from_walks_that_come_in_from_outdoors():
     moves_from, moves_to = np.array([[-2.0, 5.3], [-2.0, 0.6], [22.0, 5.3]]), np.array([[2.0, 5.3], [2.0, 0.6], [18.0, 5.3]])
     assert closed.crosses_wall("F1", moves_from, moves_to).tolist() == [True, True, True]
     assert learned.crosses_wall("F1", moves_from, moves_to).tolist() == [False, True, True]
+
+
+def test_floor_switches_on_a_majority_of_the_fixs_neighbours():
+    """The floor after a fix: the fix's when none is known; another floor once a clear majority of
+    the fix's neighbours (3 of 5: 0.6) say so, not on a split vote; both filters alike."""
+    from hybridloc.fusion.kalman import floor_after_fix
+
+    def fix(floor, prob):
+        return AbsoluteFix(0.0, [0.0, 0.0], np.eye(2), "wifi", floor, prob)
+
+    for cfg in (LocalFusion().cfg, ParticleFusion().cfg):
+        assert floor_after_fix(None, fix("F2", 0.4), cfg.floor_switch) == "F2"
+        assert floor_after_fix("F1", fix("F2", 0.6), cfg.floor_switch) == "F2"
+        assert floor_after_fix("F1", fix("F2", 0.5), cfg.floor_switch) == "F1"
+        assert floor_after_fix("F1", fix(None, 1.0), cfg.floor_switch) == "F1"

@@ -57,7 +57,10 @@ class ParticleConfig:
     outlier_scale: float = 3.0  # their spread, in fix sigmas
     resample_ess: float = 0.5
     reinit_after: int = 5
-    floor_switch: float = 0.8
+    #: another floor is taken from a fix naming it with at least this probability (its kNN vote: 3 of 5
+    #: neighbours). Simulated site with stairs (eval fusion, 15 clients): floor hit 84.3 % at 0.8, 90.4 % at
+    #: 0.6, the raw fixes' floors 93.6 %; ILC site1 (one floor per walk) stays at 100 %.
+    floor_switch: float = 0.6
     history: int = 64  # steps of per-particle history for late fixes
     seed: int = 0
     fix_correlation: dict = field(default_factory=lambda: {"wifi": 0.5, "ble": 0.5})  # as FusionConfig.fix_correlation
