@@ -229,3 +229,29 @@ def test_foot_ins_counts_clipped_readings(world):
     clipped = ImuBlock(imu.t, imu.accel_body, np.clip(imu.gyro_body, -4.0, 4.0), gyro_range=4.0)
     n = run_foot_ins(clipped).stats["saturated_samples"]
     assert n == int((np.abs(imu.gyro_body) >= 0.995 * 4.0).any(axis=1).sum()) and n > 100
+
+
+def test_sim_floor_plan_file_carries_the_walls_and_walks_never_cross_them(tmp_path):
+    """The ILC-format plan of a simulated world lists its walls (our extension), so the particle
+    filter sees the rooms and the doors; no true step of a walk crosses one (the entrance link
+    through the south rooms used to cross the ground floor's corridor wall)."""
+    from hybridloc.fusion import WalkPrior
+    from hybridloc.sim.run import load_world, make_world, simulate_walks
+
+    make_world(7, 2, str(tmp_path / "w"))
+    plan = read_ilc_site(tmp_path / "w")
+    world = load_world(str(tmp_path / "w"))
+    for fl, sim_fl in zip(plan.floors, world.plan.floors):
+        assert len(fl.walls) == len(sim_fl.walls) > 4
+        np.testing.assert_allclose(np.sort(fl.walls.reshape(-1, 4), axis=0), np.sort(sim_fl.walls.reshape(-1, 4), axis=0), atol=1e-3)
+    prior = WalkPrior.from_points({}, plan)
+    simulate_walks(world, 6, 2.0, "phone", str(tmp_path / "k"), seed=11)
+    crossings = 0
+    for f in sorted((tmp_path / "k").glob("w*_truth_steps.csv")):
+        t = np.loadtxt(f, delimiter=",", skiprows=1, usecols=(1, 2))
+        floor = np.loadtxt(f, delimiter=",", skiprows=1, usecols=(4,), dtype=str)
+        same = floor[1:] == floor[:-1]
+        for name in set(floor):
+            m = same & (floor[1:] == name)
+            crossings += int(prior.crosses_wall(name, t[:-1][m], t[1:][m]).sum())
+    assert crossings == 0

@@ -431,7 +431,9 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
 
     The outline is the floor's footprint and also its walkable area (shops are rooms one can enter;
     their doors are not in the data, so shop outlines are kept as ``rooms``, not as walls). Walls are
-    the outline's boundary segments.
+    the outline's boundary segments, unless the file lists its walls: LineString features of category
+    ``"wall"`` (our extension, written by the simulator, with doors and entrances left open) are then
+    the walls, in place of the outline's boundary.
     """
     floor_dir = Path(floor_dir)
     gj_path, info_path = floor_dir / "geojson_map.json", floor_dir / "floor_info.json"
@@ -466,10 +468,16 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         if isinstance(g, Polygon):
             rooms.append((str((f.get("properties") or {}).get("name") or ""), g))
     walls = []
-    for poly in outline.geoms:
-        for ring in [poly.exterior, *poly.interiors]:
-            c = np.asarray(ring.coords)
-            walls.extend(np.stack([c[:-1], c[1:]], axis=1))
+    for f in feats:
+        if (f.get("properties") or {}).get("category") == "wall" and (f.get("geometry") or {}).get("type") == "LineString":
+            c = np.asarray(_map_geometry(shape(f["geometry"]), tf).coords)
+            if len(c) >= 2:
+                walls.extend(np.stack([c[:-1], c[1:]], axis=1))
+    if not walls:
+        for poly in outline.geoms:
+            for ring in [poly.exterior, *poly.interiors]:
+                c = np.asarray(ring.coords)
+                walls.extend(np.stack([c[:-1], c[1:]], axis=1))
     name = str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
     level = floor_level(name)
     return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, outline, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf

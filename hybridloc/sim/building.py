@@ -158,11 +158,14 @@ def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, wid
                 rn = add(centre[0], centre[1], f, "room")
                 edges += [(ci, dn), (dn, rn)]
                 rfid.append((door_x, wall_y, f))
+            if f == 0 and side == "S":  # the entrance link crosses the south rooms to the corridor
+                gaps.append((W / 2 - 1.0, W / 2 + 1.0))
             # the corridor wall on this side, with door gaps
             x = stair_w
-            for g0, g1 in sorted(gaps):
-                walls.append(((x, wall_y), (g0, wall_y)))
-                x = g1
+            for g0, g1 in sorted(gaps):  # overlapping gaps (a door in the entrance's) merge
+                if g0 > x:
+                    walls.append(((x, wall_y), (g0, wall_y)))
+                x = max(x, g1)
             walls.append(((x, wall_y), (W - lift_w, wall_y)))
         # stairwell (west) and lift (east) ends are open to the corridor
         sn = add(stair_w / 2, D / 2, f, "stairs")
@@ -191,7 +194,8 @@ def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, wid
     nearest = min(near, key=lambda i: abs(nodes[i][0] - W / 2) if i != ent_in else 1e9)
     edges += [(ent_in, nearest), (ent_in, ent_door), (ent_door, outdoor)]
     rfid.append((W / 2, 0.0, 0))
-    # the south room under the entrance corridor is now a lobby: no wall crosses the link
+    # the south room under the entrance corridor is now a lobby: the corridor wall is open where the
+    # link meets it (the gap added with the doors above)
     plan = FloorPlan(f"sim-{seed}", tuple(fl_objs), tuple(transitions), origin)
     # WiFi access points: ceiling-mounted along the corridor every ~15 m, alternate floors staggered
     aps, ap_ids, freqs = [], [], []

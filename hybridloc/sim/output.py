@@ -31,7 +31,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from shapely.geometry import mapping
+from shapely.geometry import LineString, mapping
 
 from ..io.imu_files import write_imu_csv
 from ..io.writers import floorplan_features, write_geojson
@@ -67,6 +67,10 @@ def write_world(world: World, out: str | os.PathLike) -> None:
                   "properties": {"category": "floor", "name": fl.name, "floor_num": fl.level + 1, "type": "floor"}}]
         for name, poly in fl.rooms:
             feats.append({"type": "Feature", "geometry": mapping(_to_lonlat(poly, o)), "properties": {"name": name, "category": ["room"]}})
+        # the walls themselves, doors and entrances left open (our extension of the format: the ILC
+        # plans carry only outlines; read_ilc_floor takes these in place of the outline's boundary)
+        for a, b in fl.walls:
+            feats.append({"type": "Feature", "geometry": mapping(_to_lonlat(LineString([a, b]), o)), "properties": {"category": "wall"}})
         (d / "geojson_map.json").write_text(json.dumps({"type": "FeatureCollection", "features": feats}), encoding="utf-8")
         x0, y0, x1, y1 = fl.outline.bounds
         (d / "floor_info.json").write_text(json.dumps({"map_info": {"height": y1 - y0, "width": x1 - x0}}), encoding="utf-8")
