@@ -329,3 +329,23 @@ def test_floor_switches_on_a_majority_of_the_fixs_neighbours():
         assert floor_after_fix("F1", fix("F2", 0.6), cfg.floor_switch) == "F2"
         assert floor_after_fix("F1", fix("F2", 0.5), cfg.floor_switch) == "F1"
         assert floor_after_fix("F1", fix(None, 1.0), cfg.floor_switch) == "F1"
+
+
+def test_a_cloud_behind_a_wall_is_redrawn_around_fixes_beyond_it():
+    """Two rooms split by a wall at y = 5, the door far off at x = 18-20. The cloud starts in the
+    south room, the walker stands in the north one and the fixes say so (2 m sigma, 4 m away: each
+    accepted by the gate, each outside the cloud's 50 % region and beyond the wall). Without resetting,
+    no particle can be where the fixes are and the estimate stays south of the wall; with it, a share
+    is redrawn around the fixes and the estimate crosses."""
+    box = shapely.MultiPolygon([shapely.box(0.0, 0.0, 20.0, 10.0)])
+    c = np.array([[0, 0], [20, 0], [20, 10], [0, 10], [0, 0]], float)
+    walls = np.vstack([np.stack([c[:-1], c[1:]], axis=1), [[[0.0, 5.0], [18.0, 5.0]]]])
+    prior = WalkPrior.from_points({}, FloorPlan("b", (Floor("F1", 1, 3.0, box, box, walls),)))
+    ends = []
+    for share in (0.0, 0.3):
+        pf = ParticleFusion(prior, ParticleConfig(n_particles=500, reset_share=share), init=(5.0, 3.0, 0.3), floor="F1")
+        for k in range(6):
+            ok, e = pf.correct(AbsoluteFix(float(k), [5.0, 7.0], np.eye(2) * 4.0, "rfid", "F1", 1.0))
+            assert ok
+        ends.append(e.pos[1])
+    assert ends[0] < 5.0 < 5.5 < ends[1]

@@ -61,6 +61,11 @@ class ParticleConfig:
     #: neighbours). Simulated site with stairs (eval fusion, 15 clients): floor hit 84.3 % at 0.8, 90.4 % at
     #: 0.6, the raw fixes' floors 93.6 %; ILC site1 (one floor per walk) stays at 100 %.
     floor_switch: float = 0.6
+    #: A cloud born on the wrong side of a wall cannot walk through it to where the fixes are. When a
+    #: fix lies beyond a wall from the cloud's mean and outside its 50 % region, this share of the
+    #: particles is redrawn around the fix (sensor resetting, Lenser & Veloso 2000), where the map
+    #: allows; a fix off on open floor, however far, redraws nothing.
+    reset_share: float = 0.3
     history: int = 64  # steps of per-particle history for late fixes
     seed: int = 0
     fix_correlation: dict = field(default_factory=lambda: {"wifi": 0.5, "ble": 0.5})  # as FusionConfig.fix_correlation
@@ -104,7 +109,9 @@ class ParticleFusion:
         self._recent_headings: list[float] = []
         self.n_corridor = 0
         self._rejected_run = 0
+        self.n_reset = 0  # particles redrawn around fixes beyond a wall
         self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
+        self._half = float(chi2.ppf(0.5, 2))
         H = self.cfg.history
         self._hist_p = np.zeros((H, n, 2))
         self._hist_t = np.full(H, -math.inf)
@@ -255,6 +262,7 @@ class ParticleFusion:
             self.t = max(self.t, fix.t)
             return True, self.estimate("init")
         p_then = self._positions_at(fix.t)
+        beyond_wall = self._beyond_wall(z, p_then, R)
         if not self._gated(z, p_then, R):
             self.n_rejected += 1
             self._rejected_run += 1
@@ -263,12 +271,52 @@ class ParticleFusion:
                 self._start(z, R, fix.floor)
                 self.t = max(self.t, fix.t)
                 return True, self.estimate("init")
+            if beyond_wall:
+                self._reset_around(z, R, p_then)
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
         self._weigh(self._likelihood(z, p_then, R))
+        if beyond_wall:
+            self._reset_around(z, R, p_then)
         self.t = max(self.t, fix.t)
         self.floor = floor_after_fix(self.floor, fix, self.cfg.floor_switch)
         return True, self.estimate("fix")
+
+    def _beyond_wall(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
+        """Is the fix outside the cloud's 50 % region AND behind a wall from the cloud's mean?"""
+        if self.cfg.reset_share <= 0.0:
+            return False
+        m, C = self._mean_cov(h)
+        y = z - m
+        if float(y @ np.linalg.solve(C + R, y)) <= self._half:
+            return False
+        return bool(self.prior.crosses_wall(self.floor, m[None, :], z[None, :])[0])
+
+    def _reset_around(self, z: np.ndarray, R: np.ndarray, p_then: np.ndarray) -> None:
+        """Redraw ``reset_share`` of the particles around the fix z (drawn at the fix's time, moved to
+        now as their donors moved since), where the map allows; each keeps its donor's bias, scale
+        and, shifted, history, and the mean weight."""
+        n = len(self.w)
+        m = int(self.cfg.reset_share * n)
+        if m == 0:
+            return
+        c = np.cumsum(self.w)
+        c[-1] = 1.0
+        donors = np.searchsorted(c, self.rng.random(m))
+        L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
+        q_now = z + self.rng.standard_normal((m, 2)) @ L.T + (self.p[donors] - p_then[donors])
+        pi = self.prior.at(self.floor, q_now)
+        ok = pi > 0.0
+        if not ok.any():
+            return
+        donors, q_now, pi = donors[ok], q_now[ok], pi[ok]
+        slots = self.rng.choice(n, size=len(donors), replace=False)
+        self._hist_p[:, slots] = self._hist_p[:, donors] + (q_now - self.p[donors])[None, :, :]
+        self.b[slots], self.s[slots] = self.b[donors], self.s[donors]
+        self.p[slots], self._pi[slots] = q_now, pi
+        self.w[slots] = 1.0 / n
+        self.w /= self.w.sum()
+        self.n_reset += len(slots)
 
     def _gated(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
         """Chi-square gate on the cloud's predicted measurements h (N, 2): is z inside their 95 % region?"""
