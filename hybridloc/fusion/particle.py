@@ -165,11 +165,15 @@ class ParticleFusion:
             self._resample()
         return True
 
-    def _resample(self) -> None:
-        n = len(self.w)
+    def _pick(self, u: np.ndarray) -> np.ndarray:
+        """Particle indices at cumulative-weight positions ``u`` in [0, 1): each index as often as its weight says."""
         c = np.cumsum(self.w)
         c[-1] = 1.0
-        idx = np.searchsorted(c, (self.rng.random() + np.arange(n)) / n)
+        return np.searchsorted(c, u)
+
+    def _resample(self) -> None:
+        n = len(self.w)
+        idx = self._pick((self.rng.random() + np.arange(n)) / n)  # systematic
         self.p, self.b, self.s, self._pi = self.p[idx], self.b[idx], self.s[idx], self._pi[idx]
         self._hist_p = self._hist_p[:, idx]
         self.w = np.full(n, 1.0 / n)
@@ -262,8 +266,10 @@ class ParticleFusion:
             self.t = max(self.t, fix.t)
             return True, self.estimate("init")
         p_then = self._positions_at(fix.t)
-        beyond_wall = self._beyond_wall(z, p_then, R)
-        if not self._gated(z, p_then, R):
+        m, nis = self._nis(z, p_then, R)
+        # outside the cloud's 50 % region and behind a wall from its mean: sensor resetting (reset_share)
+        beyond_wall = self.cfg.reset_share > 0.0 and nis > self._half and bool(self.prior.crosses_wall(self.floor, m[None, :], z[None, :])[0])
+        if nis > self._gate:
             self.n_rejected += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
@@ -282,16 +288,6 @@ class ParticleFusion:
         self.floor = floor_after_fix(self.floor, fix, self.cfg.floor_switch)
         return True, self.estimate("fix")
 
-    def _beyond_wall(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
-        """Is the fix outside the cloud's 50 % region AND behind a wall from the cloud's mean?"""
-        if self.cfg.reset_share <= 0.0:
-            return False
-        m, C = self._mean_cov(h)
-        y = z - m
-        if float(y @ np.linalg.solve(C + R, y)) <= self._half:
-            return False
-        return bool(self.prior.crosses_wall(self.floor, m[None, :], z[None, :])[0])
-
     def _reset_around(self, z: np.ndarray, R: np.ndarray, p_then: np.ndarray) -> None:
         """Redraw ``reset_share`` of the particles around the fix z (drawn at the fix's time, moved to
         now as their donors moved since), where the map allows; each keeps its donor's bias, scale
@@ -300,9 +296,7 @@ class ParticleFusion:
         m = int(self.cfg.reset_share * n)
         if m == 0:
             return
-        c = np.cumsum(self.w)
-        c[-1] = 1.0
-        donors = np.searchsorted(c, self.rng.random(m))
+        donors = self._pick(self.rng.random(m))
         L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
         q_now = z + self.rng.standard_normal((m, 2)) @ L.T + (self.p[donors] - p_then[donors])
         pi = self.prior.at(self.floor, q_now)
@@ -318,11 +312,16 @@ class ParticleFusion:
         self.w /= self.w.sum()
         self.n_reset += len(slots)
 
-    def _gated(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
-        """Chi-square gate on the cloud's predicted measurements h (N, 2): is z inside their 95 % region?"""
+    def _nis(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, float]:
+        """The cloud's predicted measurements h (N, 2): their mean, and z's normalised innovation
+        squared against their spread plus R."""
         m, C = self._mean_cov(h)
         y = z - m
-        return float(y @ np.linalg.solve(C + R, y)) <= self._gate
+        return m, float(y @ np.linalg.solve(C + R, y))
+
+    def _gated(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> bool:
+        """Chi-square gate on the cloud's predicted measurements h (N, 2): is z inside their 95 % region?"""
+        return self._nis(z, h, R)[1] <= self._gate
 
     def _likelihood(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Heavy-tailed (1 - eps) N(z; h, R) + eps N(z; h, k^2 R) per particle."""

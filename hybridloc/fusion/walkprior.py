@@ -102,11 +102,13 @@ class WalkPrior:
             nx, ny = int(np.ceil((bx1 - bx0) / cell)) + 1, int(np.ceil((by1 - by0) / cell)) + 1
             if nx * ny > 50_000_000:
                 raise ValueError(f"floor {name}: a {nx} x {ny} raster at {cell} m is too large; use a coarser cell")
-            counts = np.zeros((ny, nx))
-            if len(pts):
-                ix = np.clip(((pts[:, 0] - bx0) / cell).astype(int), 0, nx - 1)
-                iy = np.clip(((pts[:, 1] - by0) / cell).astype(int), 0, ny - 1)
-                np.add.at(counts, (iy, ix), 1.0)
+            def binned(p: np.ndarray) -> np.ndarray:  # points per raster cell (those beyond it in the edge cells)
+                c = np.zeros((ny, nx))
+                if len(p):
+                    np.add.at(c, (np.clip(((p[:, 1] - by0) / cell).astype(int), 0, ny - 1), np.clip(((p[:, 0] - bx0) / cell).astype(int), 0, nx - 1)), 1.0)
+                return c
+
+            counts = binned(pts)
             dens = ndimage.gaussian_filter(counts, bandwidth / cell, mode="constant")
             pi = np.full((ny, nx), eps)
             ref = 1.0
@@ -120,10 +122,7 @@ class WalkPrior:
                 walls = np.asarray(fl.walls, float).reshape(-1, 2, 2)
                 walked_outdoors = np.zeros((ny, nx))
                 if len(outdoor_pts):
-                    out_counts = np.zeros((ny, nx))
-                    np.add.at(out_counts, (np.clip(((outdoor_pts[:, 1] - by0) / cell).astype(int), 0, ny - 1),
-                                           np.clip(((outdoor_pts[:, 0] - bx0) / cell).astype(int), 0, nx - 1)), 1.0)
-                    walked_outdoors = np.minimum(1.0, ndimage.gaussian_filter(out_counts, bandwidth / cell, mode="constant") / ref)
+                    walked_outdoors = np.minimum(1.0, ndimage.gaussian_filter(binned(outdoor_pts), bandwidth / cell, mode="constant") / ref)
                     walked_outdoors[walked_outdoors < door_share] = 0.0  # the kernel's tail is not a path
                     walls = _open_doors(walls, footprint, walked_outdoors, bx0, by0, cell, door_piece, door_share)
                 outdoors = ~shapely.contains_xy(footprint, X, Y)

@@ -147,13 +147,14 @@ def _floats(fields: list[str], n: int) -> list[float] | None:
     return vals
 
 
-def iter_ilc_records(path: str | os.PathLike, report: ReadReport) -> Iterator[tuple[int, str, list[str]]]:
+def iter_ilc_records(path: str | os.PathLike, report: ReadReport, keep=None) -> Iterator[tuple[int, str, list[str]]]:
     """Stream ``(line_number, type, fields)`` from a trace; fields[0] is the Unix ms timestamp.
 
     Header lines are yielded with type ``"#"`` and their tab-separated ``key:value`` parts as fields.
     Blank lines are skipped; a line without a timestamp and type is a ``malformed-line`` problem.
+    ``keep`` (raw bytes -> bool) skips the other lines undecoded (:func:`~.common.iter_lines`).
     """
-    for lineno, line in iter_lines(path, report):
+    for lineno, line in iter_lines(path, report, keep=keep):
         if not line.strip():
             continue
         parts = line.split("\t")
@@ -175,7 +176,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
     sensors: dict[str, list[list[float]]] = {k: [] for k in SENSOR_TYPES.values()}
     wifi: dict[float, dict[str, tuple[float, float, float]]] = {}
     ble: list[tuple[float, str, float]] = []  # (t, beacon id, rssi) per advert
-    wps: list[tuple[float, float, float]] = []
+    wps: list[tuple[float, float, float, str | None]] = []  # (t, x, y, the mark's own floor)
     for lineno, rtype, f in iter_ilc_records(path, report):
         if rtype == "#":
             line_meta = _header_fields(f)
@@ -268,13 +269,11 @@ def read_ilc_waypoints(path: str | os.PathLike, on_error: OnError = "skip") -> W
     of walks needs). Same checks on what it reads."""
     report = ReadReport(str(path), on_error)
     meta: dict[str, str] = {}
-    wps: list[tuple[float, float, float]] = []
-    for lineno, line in iter_lines(path, report, keep=lambda raw: raw.startswith(b"#") or b"\tTYPE_WAYPOINT\t" in raw):
-        if line.startswith("#"):
-            meta.update(_header_fields([p for p in line.split("\t")[1:] if p]))
+    wps: list[tuple[float, float, float, str | None]] = []
+    for lineno, rtype, f in iter_ilc_records(path, report, keep=lambda raw: raw.startswith(b"#") or b"\tTYPE_WAYPOINT\t" in raw):
+        if rtype == "#":
+            meta.update(_header_fields(f))
         else:
-            parts = line.split("\t")
-            f = [parts[0]] + parts[2:]
             t = _record_time(lineno, f, report)
             if t is not None:
                 _add_waypoint(wps, lineno, t, f, report)
@@ -467,17 +466,18 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         g = _map_geometry(shape(f["geometry"]), tf)
         if isinstance(g, Polygon):
             rooms.append((str((f.get("properties") or {}).get("name") or ""), g))
+    def segments(line) -> list:  # a polyline's consecutive point pairs
+        c = np.asarray(line.coords)
+        return list(np.stack([c[:-1], c[1:]], axis=1)) if len(c) >= 2 else []
+
     walls = []
     for f in feats:
         if (f.get("properties") or {}).get("category") == "wall" and (f.get("geometry") or {}).get("type") == "LineString":
-            c = np.asarray(_map_geometry(shape(f["geometry"]), tf).coords)
-            if len(c) >= 2:
-                walls.extend(np.stack([c[:-1], c[1:]], axis=1))
+            walls.extend(segments(_map_geometry(shape(f["geometry"]), tf)))
     if not walls:
         for poly in outline.geoms:
             for ring in [poly.exterior, *poly.interiors]:
-                c = np.asarray(ring.coords)
-                walls.extend(np.stack([c[:-1], c[1:]], axis=1))
+                walls.extend(segments(ring))
     name = str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
     level = floor_level(name)
     return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, outline, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf
