@@ -473,12 +473,11 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
     from .server.store import Store
 
     st = Store(args.db)
-    bars: list[Progress] = []
+    bar = Progress("[rebuild] devices", 0, bar_width=30)  # the device count comes with each update
 
     def progress(i, n, dev):
-        if not bars:
-            bars.append(Progress("[rebuild] devices", n, bar_width=30))
-        bars[0].update(i, f"({dev})")
+        bar.total = n
+        bar.update(i, f"({dev})")
 
     try:
         v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)
