@@ -643,3 +643,98 @@ class Waypoints:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# Survey marks and walks
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SurveyMark:
+    """A survey mark: the operator says "I am at (x, y) on ``floor``" at time ``t``.
+
+    Attributes
+    ----------
+    t : float
+        s.
+    x, y : float
+        Site frame (ENU), m.
+    floor : str
+        The mark's floor; empty when unknown.
+    """
+
+    t: float
+    x: float
+    y: float
+    floor: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("t", "x", "y"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"SurveyMark.{name} must be a finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        object.__setattr__(self, "floor", str(self.floor or ""))
+
+    @property
+    def pos_enu(self) -> np.ndarray:
+        """(x, y), m."""
+        return np.array([self.x, self.y])
+
+
+class WalkEnd(str, enum.Enum):
+    """How a stored walk ended."""
+
+    OPEN = "open"  # still receiving (no end marker, not idle long enough)
+    MARKER = "marker"  # the device sent an end-of-walk marker
+    IDLE = "idle"  # the device fell silent for longer than the idle gap
+
+
+@dataclass(frozen=True, eq=False)
+class Walk:
+    """One device's walk: its run of batches between a start and an end (an end-of-walk marker or
+    an idle gap), as the server stores it and the SLAM work reads it.
+
+    Attributes
+    ----------
+    site, device : str
+        Ids as on the wire.
+    walk_id : int or None
+        The store's id of the walk; None for a walk not (yet) stored.
+    t_start, t_end : float
+        Time of the first and last record of the walk, s (the recording's clock).
+    device_model : str
+        Phone or IMU model; empty when unknown.
+    floors : tuple of str
+        Floors the walk's scans, marks or fixes named, in order of first appearance.
+    steps : tuple of StepEvent
+        Sorted by time.
+    scans : tuple of RfScan
+        Sorted by time.
+    marks : tuple of SurveyMark
+        Sorted by time (survey walks; empty for a phone client).
+    end : WalkEnd
+    """
+
+    site: str
+    device: str
+    walk_id: int | None
+    t_start: float
+    t_end: float
+    device_model: str = ""
+    floors: tuple[str, ...] = ()
+    steps: tuple[StepEvent, ...] = ()
+    scans: tuple[RfScan, ...] = ()
+    marks: tuple[SurveyMark, ...] = ()
+    end: WalkEnd = WalkEnd.OPEN
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.t_start) and math.isfinite(self.t_end)) or self.t_end < self.t_start:
+            raise ValueError(f"Walk: need finite t_start <= t_end, got {self.t_start!r}, {self.t_end!r}")
+        object.__setattr__(self, "end", WalkEnd(self.end))
+        for name in ("floors", "steps", "scans", "marks"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+
+    @property
+    def duration(self) -> float:
+        """s."""
+        return self.t_end - self.t_start
