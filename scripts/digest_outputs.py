@@ -13,6 +13,7 @@ receive times) are listed with their size only.
 from __future__ import annotations
 
 import argparse
+import gzip
 import hashlib
 import json
 import re
@@ -36,6 +37,7 @@ _MASKS = [
     (re.compile(r"\b\d+(\.\d+)?\s?(s|ms|min)\b(?!\w)"), "<t>"),
     (re.compile(r"\b\d+(\.\d+)?x real time"), "<t>x real time"),
     (re.compile(r"\b\d[\d,]*(\.\d+)?\s*(steps|scans|samples)/s\b"), "<rate>"),
+    (re.compile(r"(tcp|udp|tls)/([\d.]+|\[[\d:a-f]*\]|localhost):\d+"), r"\1/\2:<port>"),  # free ports differ run to run
 ]
 _STATE_SUFFIXES = (".db", ".sqlite", ".sqlite3", ".spool", ".db-wal", ".db-shm", ".log")
 
@@ -51,11 +53,21 @@ def mask(text: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def file_digest(f: Path) -> str:
+    """sha256 of a file's content; of the decompressed content for .gz (gzip stamps its header with
+    the wall-clock time)."""
+    data = f.read_bytes()
+    if f.suffix == ".gz":
+        data = gzip.decompress(data)
+    return hashlib.sha256(data).hexdigest()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out")
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--hybridloc", default=str(Path(sys.executable).with_name("hybridloc")))
+    ap.add_argument("--rescan", action="store_true", help="run nothing: re-mask and re-hash what OUT already holds")
     a = ap.parse_args()
     root = Path(a.out).resolve()
     root.mkdir(parents=True, exist_ok=True)
@@ -64,13 +76,20 @@ def main() -> int:
         if a.only and name not in a.only:
             continue
         out = root / "files" / name
-        shutil.rmtree(out, ignore_errors=True)
-        out.mkdir(parents=True)
-        cmd = [a.hybridloc] + [x.replace("{out}", str(out)) for x in argv]
-        p = subprocess.run(cmd, capture_output=True, text=True)
-        text = mask(p.stdout.replace(str(out), "<out>")) + f"exit {p.returncode}\n"
+        if a.rescan:
+            if not (root / f"{name}.txt").exists():
+                continue
+            text = mask((root / f"{name}.txt").read_text())
+            rc = text.rstrip().rsplit(" ", 1)[-1]
+        else:
+            shutil.rmtree(out, ignore_errors=True)
+            out.mkdir(parents=True)
+            cmd = [a.hybridloc] + [x.replace("{out}", str(out)) for x in argv]
+            p = subprocess.run(cmd, capture_output=True, text=True)
+            text = mask(p.stdout.replace(str(out), "<out>")) + f"exit {p.returncode}\n"
+            (root / f"{name}.stderr").write_text(p.stderr)
+            rc = str(p.returncode)
         (root / f"{name}.txt").write_text(text)
-        (root / f"{name}.stderr").write_text(p.stderr)
         rows = []
         for f in sorted(out.rglob("*")):
             if f.is_file():
@@ -78,11 +97,11 @@ def main() -> int:
                 if f.name.endswith(_STATE_SUFFIXES) or "spool" in rel.parts:
                     rows.append(f"{rel} (state, {f.stat().st_size} bytes)")
                 else:
-                    rows.append(f"{rel} {hashlib.sha256(f.read_bytes()).hexdigest()}")
+                    rows.append(f"{rel} {file_digest(f)}")
         (root / f"{name}.files").write_text("\n".join(rows) + "\n")
         h = hashlib.sha256((text + "\n".join(r for r in rows if "(state" not in r)).encode()).hexdigest()
         digests[name] = h
-        print(f"{name}: {h[:16]} (exit {p.returncode})", flush=True)
+        print(f"{name}: {h[:16]} (exit {rc})", flush=True)
     print(json.dumps(digests))
     return 0
 
