@@ -54,7 +54,7 @@ def test_particle_filter_keeps_a_biased_walk_inside_the_corridor():
         # each living particle carries the prior of its own place, through every resampling (the
         # step's likelihood divides by it: a stale 0 from another particle would weigh it by 1e12)
         alive = pf.w > 0
-        assert np.array_equal(pf._pi[alive], prior.at("F1", pf.p[alive]))
+        assert np.array_equal(pf._logpi[alive], np.log(prior.at("F1", pf.p[alive])))
     assert abs(e_kf.pos[1]) > 5.0
     assert abs(e_pf.pos[1]) < 1.0 and abs(e_pf.pos[0] - 39.9) < 3 * 0.03 * 39.9 + 0.5
     assert np.all(np.abs(pf.p[pf.w > 0, 1]) <= 1.0)  # no living particle beyond the walls (the dead go at the next resampling)
