@@ -234,6 +234,8 @@ def test_kourogi_filter_fix_pause_and_gps_velocity():
     # (the projection through the 10 s pause leaves the velocity prior loose - q dt ~ 10 (m/s)^2 - so
     # the step's own l / T dominates; 25 % allows the pull of that prior towards the zero it observed)
     assert abs(f.x[2]) < 0.3 and f.x[3] == pytest.approx(0.7 / f.cfg.step_period, rel=0.25)
+    # every observation went through the one core, counted by kind: 11 steps, 1 pause, 1 fix in, 1 out
+    assert f.stats.accepted == {"step": 11, "still": 1, "position": 1} and f.stats.rejected == {"position": 1}
     # eqs 17-18: two GPS positions 1 s apart give the present velocity
     from hybridloc.types import DisplacementFix
 

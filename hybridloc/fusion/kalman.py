@@ -231,8 +231,8 @@ class LocalFusion:
     def update(self, meas: Measurement, gate: ChiSquareGate | bool | None = True) -> UpdateInfo:
         """The one gated update of this filter: :func:`hybridloc.estimation.correct` with the
         measurement's own model; ``gate`` True is the filter's (Kourogi sec. 3.3: reject outside the
-        95 % region), None none. An accepted correction is added to the state, then constrained."""
-        g = self._gate if gate is True else gate
+        95 % region), False or None none. An accepted correction is added to the state, then constrained."""
+        g = self._gate if gate is True else (gate or None)
         dx, P, info = gated_update(self.x, self.P, meas.value, meas.model, g, self.stats)
         if info.accepted:
             self.x, self.P = self.x + dx, P
