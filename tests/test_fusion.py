@@ -54,7 +54,7 @@ def test_particle_filter_keeps_a_biased_walk_inside_the_corridor():
         # each living particle carries the prior of its own place, through every resampling (the
         # step's likelihood divides by it: a stale 0 from another particle would weigh it by 1e12)
         alive = pf.w > 0
-        assert np.array_equal(pf._pi[alive], prior.at("F1", pf.p[alive]))
+        assert np.array_equal(pf._logpi[alive], np.log(prior.at("F1", pf.p[alive])))
     assert abs(e_kf.pos[1]) > 5.0
     assert abs(e_pf.pos[1]) < 1.0 and abs(e_pf.pos[0] - 39.9) < 3 * 0.03 * 39.9 + 0.5
     assert np.all(np.abs(pf.p[pf.w > 0, 1]) <= 1.0)  # no living particle beyond the walls (the dead go at the next resampling)
@@ -234,6 +234,8 @@ def test_kourogi_filter_fix_pause_and_gps_velocity():
     # (the projection through the 10 s pause leaves the velocity prior loose - q dt ~ 10 (m/s)^2 - so
     # the step's own l / T dominates; 25 % allows the pull of that prior towards the zero it observed)
     assert abs(f.x[2]) < 0.3 and f.x[3] == pytest.approx(0.7 / f.cfg.step_period, rel=0.25)
+    # every observation went through the one core, counted by kind: 11 steps, 1 pause, 1 fix in, 1 out
+    assert f.stats.accepted == {"step": 11, "still": 1, "position": 1} and f.stats.rejected == {"position": 1}
     # eqs 17-18: two GPS positions 1 s apart give the present velocity
     from hybridloc.types import DisplacementFix
 

@@ -66,6 +66,9 @@ def test_correct_rejects_outliers_through_the_gate_and_stays_spd():
     assert not c.accepted and c.nis > 1e4 and kf.n_rejected == 1
     c = kf.correct(PositionFix(np.eye(2) * 0.01), np.array([0.01, 0.0]))
     assert c.accepted
+    # the one core counted both, by kind; an ungated ZUPT goes in whatever its NIS
+    assert kf.stats.rejected == {"position": 1} and kf.stats.accepted == {"position": 1}
+    assert kf.correct(ZeroVelocity(), np.array([5.0, 0.0, 0.0]), gate=False).accepted
     assert np.allclose(kf.P, kf.P.T) and np.linalg.eigvalsh(kf.P).min() > 0
 
 

@@ -35,8 +35,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..estimation import Measurement, correct as gated_update
 from ..types import DisplacementFix, StepEvent
-from .kalman import Estimate, FusionConfig, LocalFusion, joseph_update
+from .kalman import Estimate, FusionConfig, LocalFusion
+from .measurements import CloneStep, Velocity
 
 
 @dataclass
@@ -93,16 +96,15 @@ class KourogiFusion(LocalFusion):
         self.P = 0.5 * (self.P + self.P.T)
         self._tp = t
 
-    def _observe_velocity(self, v: np.ndarray, R: np.ndarray, gate: float | None = math.inf) -> bool:
-        H = np.zeros((2, 4))
-        H[0, 2] = H[1, 3] = 1.0
-        return self._update(np.asarray(v, float) - self.x[2:], H, R, gate)
+    def _observe_velocity(self, v: np.ndarray, R: np.ndarray, kind: str, gate: bool | None = None) -> bool:
+        """An observation of the velocity through the filter's one update; ``gate`` True: its 95 % gate."""
+        return self.update(Measurement(np.asarray(v, float), Velocity(R, kind)), gate).accepted
 
     def predict(self, step: StepEvent) -> Estimate:
         cfg = self.cfg
         if self._last_step_t is not None and step.t - self._last_step_t > cfg.still_after:
             self._project(self._last_step_t + cfg.still_after)  # eq 10: no movement observed
-            self._observe_velocity(np.zeros(2), np.eye(2) * cfg.sigma_still**2)
+            self._observe_velocity(np.zeros(2), np.eye(2) * cfg.sigma_still**2, "still")
         # the step's duration: since the previous step, or - for a first step and the first after a
         # pause, whose start is unknown - a typical step period
         gap = step.t - self._last_step_t if self._last_step_t is not None else math.inf
@@ -128,16 +130,13 @@ class KourogiFusion(LocalFusion):
         theta = step.heading + self.heading_offset
         d = np.array([math.cos(theta), math.sin(theta)])
         z = np.concatenate([step.length * d, step.length * d / T])
-        H = np.zeros((4, n + 2))
-        H[0, 0] = H[1, 1] = 1.0
-        H[0, n] = H[1, n + 1] = -1.0
-        H[2, 2] = H[3, 3] = 1.0
         moved = StepEvent(step.t, step.length, theta, step.sigma_length, step.sigma_heading)
         R = np.zeros((4, 4))
         R[:2, :2] = moved.displacement_covariance()  # eqs 11-14 without C_i (the clone carries it)
         R[2:, 2:] = np.diag((cfg.sigma_v * d) ** 2 + cfg.sigma_v_floor**2)  # eq 15
-        y = z - H @ xa
-        xa, Pa = joseph_update(xa, Pa, y, H, R)
+        # the same one update, on the augmented state (never gated: a step is what the filter runs on)
+        dx, Pa, _ = gated_update(xa, Pa, z, CloneStep(R), None, self.stats)
+        xa = xa + dx
         self.x, self.P = xa[:n].copy(), Pa[:n, :n].copy()
         return self._stepped(step)
 
@@ -149,7 +148,7 @@ class KourogiFusion(LocalFusion):
             return False, self.estimate("displacement-rejected")
         v = np.asarray(fix.delta_enu, float)[:2] / dt
         R = self.cfg.time_c * np.asarray(fix.cov, float)[:2, :2] / dt**2
-        if not self._observe_velocity(v, R, None):  # None: the filter's own 95 % gate
+        if not self._observe_velocity(v, R, "gps-velocity", True):  # the filter's own 95 % gate
             self.n_rejected += 1
             return False, self.estimate("displacement-rejected")
         return True, self.estimate("displacement")

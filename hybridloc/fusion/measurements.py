@@ -1,8 +1,11 @@
-"""Measurement models of the client fusion filter, state x = (p_x, p_y, b_psi, s) (see :mod:`.kalman`).
+"""Measurement models of the client fusion filters (see :mod:`.kalman` and :mod:`.kourogi`).
 
-Each is a small class: ``evaluate(x)`` the predicted measurement, ``jacobian(x)`` its derivative
-with respect to the state (tested against finite differences), ``covariance()`` the measurement noise.
-Every one of them reaches the filter through the same gated ``correct`` path.
+State of :class:`~.kalman.LocalFusion`: x = (p_x, p_y, b_psi, s); of :class:`~.kourogi.KourogiFusion`:
+x = (p_x, p_y, v_x, v_y). Each model is a small class after :class:`hybridloc.estimation.MeasurementModel`:
+``evaluate(x)`` the predicted measurement, ``jacobian(x)`` its derivative with respect to the state
+(tested against finite differences), ``covariance()`` the measurement noise, ``kind`` its name in the
+rejection counts. Every one of them reaches its filter through the one gated update,
+:func:`hybridloc.estimation.correct`.
 """
 
 from __future__ import annotations
@@ -11,26 +14,37 @@ import math
 
 import numpy as np
 
+from ..estimation import MeasurementModel
 
-class PositionFix:
-    """z = p + v, v ~ N(0, R): a WiFi / RFID / GPS position (Kourogi eqs 16 and 19-20)."""
 
-    def __init__(self, R: np.ndarray):
+class PositionFix(MeasurementModel):
+    """z = p + v, v ~ N(0, R): a WiFi / RFID / GPS position (Kourogi eqs 16 and 19-20).
+
+    ``offset`` serves a fix that arrives late: it is compared with where the walker was at the scan's
+    time, p_then = p + offset (offset = the track's displacement since then, taken as known), so
+    h(x) = p + offset and the Jacobian is the same.
+    """
+
+    kind = "position"
+
+    def __init__(self, R: np.ndarray, offset: np.ndarray | None = None):
         self.R = np.asarray(R, float)
+        self.offset = None if offset is None else np.asarray(offset, float)
 
     def evaluate(self, x: np.ndarray) -> np.ndarray:
-        return np.asarray(x[:2], float)
+        p = np.asarray(x[:2], float)
+        return p if self.offset is None else p + self.offset
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
         H = np.zeros((2, len(x)))
         H[0, 0] = H[1, 1] = 1.0
         return H
 
-    def covariance(self) -> np.ndarray:
+    def covariance(self, x=None) -> np.ndarray:
         return self.R
 
 
-class StepDisplacement:
+class StepDisplacement(MeasurementModel):
     """z = s R(b) d + v: the displacement over a time window (Kourogi eq 17, GPS differential mode).
 
     ``d`` is the PDR's own displacement over the window, sum of L_i (cos psi_i, sin psi_i) as the steps
@@ -38,6 +52,8 @@ class StepDisplacement:
     scale s (the bias and scale are taken constant over a window of a few seconds). The measurement
     says nothing of the position: H has zeros there, so it teaches b and s only.
     """
+
+    kind = "displacement"
 
     def __init__(self, d_pdr: np.ndarray, R: np.ndarray):
         self.d = np.asarray(d_pdr, float)
@@ -58,18 +74,21 @@ class StepDisplacement:
         H[:, 3] = rd
         return H
 
-    def covariance(self) -> np.ndarray:
+    def covariance(self, x=None) -> np.ndarray:
         return self.R
 
 
-class CorridorHeading:
+class CorridorHeading(MeasurementModel):
     """z = psi_pdr + b + v: the walking direction along a corridor of the floor's dominant grid.
 
     Heuristic drift elimination (Borenstein et al.): while a walker goes straight, the true direction
     is most likely one of the building's grid directions, so the one nearest to the corrected heading
     psi_pdr + b is taken as a measurement of it. ``psi_pdr`` is the step's own heading; the
-    measurement teaches the heading bias b only (the residual must be wrapped to (-pi, pi]).
+    measurement teaches the heading bias b only (the residual is wrapped to (-pi, pi]).
     """
+
+    kind = "corridor"
+    angles = (0,)
 
     def __init__(self, psi_pdr: float, sigma: float):
         self.psi = float(psi_pdr)
@@ -83,5 +102,53 @@ class CorridorHeading:
         H[0, 2] = 1.0
         return H
 
-    def covariance(self) -> np.ndarray:
+    def covariance(self, x=None) -> np.ndarray:
+        return self.R
+
+
+class Velocity(MeasurementModel):
+    """z = v + n: the walker's velocity (Kourogi's state (p, v)): eq 10's zero velocity when no step
+    came for a while (kind ``"still"``), eqs 17-18's velocity of two GPS positions (``"gps-velocity"``)."""
+
+    def __init__(self, R: np.ndarray, kind: str = "velocity"):
+        self.R = np.asarray(R, float)
+        self.kind = kind
+
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x[2:4], float)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        H = np.zeros((2, len(x)))
+        H[0, 2] = H[1, 3] = 1.0
+        return H
+
+    def covariance(self, x=None) -> np.ndarray:
+        return self.R
+
+
+class CloneStep(MeasurementModel):
+    """Kourogi eq 9 on a stochastic clone: z = (l d, l d / T), h = (p - p_prev, v).
+
+    State (p_x, p_y, v_x, v_y, p_prev_x, p_prev_y): the filter's state augmented by the position
+    before the step, so the step is an observation of the displacement since then (see
+    :mod:`.kourogi`), and of the velocity it implies.
+    """
+
+    kind = "step"
+
+    def __init__(self, R: np.ndarray):
+        self.R = np.asarray(R, float)
+        H = np.zeros((4, 6))
+        H[0, 0] = H[1, 1] = 1.0
+        H[0, 4] = H[1, 5] = -1.0
+        H[2, 2] = H[3, 3] = 1.0
+        self.H = H
+
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        return self.H @ np.asarray(x, float)
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        return self.H
+
+    def covariance(self, x=None) -> np.ndarray:
         return self.R

@@ -9,15 +9,21 @@ filters answer alike; what the particles add is the map, which no Gaussian can c
   n_psi ~ N(0, sigma_dpsi^2) the direction error of this step; b and s random-walk slowly. A particle
   whose move crosses a wall dies; the others are weighted by the walk prior at their new place
   (:mod:`.walkprior`): the motion model is the PDR's Gaussian times "where people walk", which pulls
-  the cloud into corridors and through doors the way walkers go.
+  the cloud into corridors and through doors the way walkers go. The map enters through a
+  constraint hook (:class:`MapConstraint`, default :class:`WalkPriorConstraint`): a log-likelihood per
+  particle, -inf for a move through a wall or a place off the walkable area.
 * **Correct with a fix**: one gated ``correct``. The gate is Kourogi sec. 3.3's, on the cloud's mean and
   covariance (a fix outside the 95 % region of the dead-reckoned estimate is rejected); accepted fixes
   weight particles by a heavy-tailed likelihood - (1 - eps) N(z; p, R) + eps N(z; p, k^2 R) - because
   WiFi fixes now and then land on a look-alike place. A fix that arrives after later steps (network and
   server latency) is compared with each particle's position at the scan's time, kept in a short
   per-particle history.
-* **Resampling**: systematic, when the effective sample size falls below ``resample_ess`` N. Every
-  per-particle array (position, bias, scale, prior at the particle, history) is reordered together.
+* **Weights** are kept as log-weights, normalised with logsumexp (a product of many small likelihoods
+  never underflows to an all-zero cloud); ``w`` gives the normalised weights.
+* **Resampling**: when the effective sample size 1 / sum w^2 falls below ``resample_ess`` N, with a
+  pluggable scheme (``resampler``: systematic by default, or stratified, residual, multinomial, or any
+  callable of :mod:`hybridloc.estimation.resampling`'s signature). Every per-particle array (position,
+  bias, scale, prior at the particle, history) is reordered together.
 * **Start**: from the first fix (or ``init``): positions drawn from the fix's Gaussian where the map
   allows, bias and scale from their priors. After ``reinit_after`` consecutive rejected fixes the
   track is considered lost and restarts from the fix (as LocalFusion does).
@@ -30,14 +36,46 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
-from scipy.stats import chi2
 
+from ..estimation import UpdateStats, chi2_threshold, log_normalise, resampler as make_resampler
+from ..estimation.resampling import Resampler
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
-from .kalman import Estimate, _shift_floor, correlated_fix_cov, floor_after_fix, nearest_grid_direction, straight_along
+from .kalman import Estimate, _shift_floor, correlated_fix_cov, fix_handler, floor_after_fix, nearest_grid_direction, straight_along
 from .walkprior import WalkPrior
+
+#: log of the smallest prior a particle's old place counts with (the step's likelihood divides by it)
+LOG_PRIOR_FLOOR = math.log(1e-12)
+
+
+class MapConstraint(Protocol):
+    """The constraint hook of :class:`ParticleFusion`: what the site's map says, as log-likelihoods.
+
+    ``log_density(floor, p)`` (N,): log of how likely a walker is at each place p (N, 2), -inf where
+    no one can be (off the walkable area); ``log_transition(floor, p, q)`` (N,): 0 for a move p -> q
+    the map allows, -inf for one through a wall.
+    """
+
+    def log_density(self, floor: str | None, p: np.ndarray) -> np.ndarray: ...
+
+    def log_transition(self, floor: str | None, p: np.ndarray, q: np.ndarray) -> np.ndarray: ...
+
+
+class WalkPriorConstraint:
+    """:class:`MapConstraint` of a :class:`~.walkprior.WalkPrior`: log pi(p), and -inf across walls."""
+
+    def __init__(self, prior: WalkPrior):
+        self.prior = prior
+
+    def log_density(self, floor: str | None, p: np.ndarray) -> np.ndarray:
+        with np.errstate(divide="ignore"):
+            return np.log(self.prior.at(floor, p))
+
+    def log_transition(self, floor: str | None, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return np.where(self.prior.crosses_wall(floor, p, q), -np.inf, 0.0)
 
 
 @dataclass
@@ -84,34 +122,39 @@ class ParticleFusion:
 
     def __init__(self, prior: WalkPrior | None = None, config: ParticleConfig | None = None, init: tuple[float, float, float] | None = None,
                  floor: str | None = None, rng: np.random.Generator | None = None, heading_bias: tuple[float, float] | None = None,
-                 corridor_axes: dict[str, float] | None = None):
+                 corridor_axes: dict[str, float] | None = None, constraint: MapConstraint | None = None,
+                 resampler: str | Resampler = "systematic"):
         """``init`` = (x, y, sigma) of a known start; ``heading_bias`` = (mean, sigma) rad of the PDR's
         heading bias when known, else 0 +- ``config.sigma_bias0``; ``corridor_axes`` as for
-        :class:`~.kalman.LocalFusion` (heuristic drift elimination)."""
+        :class:`~.kalman.LocalFusion` (heuristic drift elimination); ``constraint`` the map's hook
+        (default: the walk prior's walls and walkable area); ``resampler`` a scheme's name or callable."""
         self.cfg = config or ParticleConfig()
         if self.cfg.n_particles < 10:
             raise ValueError("a particle filter needs at least 10 particles")
         self.prior = prior or WalkPrior({})
+        self.constraint: MapConstraint = constraint if constraint is not None else WalkPriorConstraint(self.prior)
+        self.resampler = make_resampler(resampler)
         self.rng = rng if rng is not None else np.random.default_rng(self.cfg.seed)
         n = self.cfg.n_particles
         self.p = np.zeros((n, 2))
         self.b = np.zeros(n)
         self.s = np.ones(n)
-        self.w = np.full(n, 1.0 / n)
-        self._pi = np.ones(n)  # walk prior at each particle's place
+        self.logw = np.full(n, -math.log(n))  # normalised log-weights
+        self._logpi = np.zeros(n)  # log of the walk prior at each particle's place
         self.floor = floor
         self._bias0 = heading_bias if heading_bias is not None else (0.0, self.cfg.sigma_bias0)
         self.t = -math.inf
         self.initialised = False
         self.n_rejected = 0
+        self.stats = UpdateStats()  # fixes and displacements accepted / rejected, per kind
         self.n_map_conflicts = 0  # steps after which no particle was left where the map allows
         self.corridor_axes = dict(corridor_axes or {})
         self._recent_headings: list[float] = []
         self.n_corridor = 0
         self._rejected_run = 0
         self.n_reset = 0  # particles redrawn around fixes beyond a wall
-        self._gate = float(chi2.ppf(self.cfg.gate_probability, 2))
-        self._half = float(chi2.ppf(0.5, 2))
+        self._gate = chi2_threshold(self.cfg.gate_probability, 2)
+        self._half = chi2_threshold(0.5, 2)
         H = self.cfg.history
         self._hist_p = np.zeros((H, n, 2))
         self._hist_t = np.full(H, -math.inf)
@@ -120,10 +163,16 @@ class ParticleFusion:
             self._start(np.asarray(init[:2], float), np.eye(2) * init[2] ** 2, None)
 
     # ------------------------------------------------------------------ state summaries
+    @property
+    def w(self) -> np.ndarray:
+        """The normalised weights, exp(log w) (read-only view of the log-weights)."""
+        return np.exp(self.logw)
+
     def _mean_cov(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        m = self.w @ p
+        w = self.w
+        m = w @ p
         d = p - m
-        cov = (d * self.w[:, None]).T @ d
+        cov = (d * w[:, None]).T @ d
         return m, 0.5 * (cov + cov.T) + np.eye(2) * 1e-9
 
     def estimate(self, kind: str) -> Estimate:
@@ -139,30 +188,31 @@ class ParticleFusion:
         # draw where the map allows (a few rounds of rejection; what is left stays where it fell)
         p = z + self.rng.standard_normal((n, 2)) @ L.T
         for _ in range(10):
-            bad = self.prior.at(self.floor, p) <= 0.0
+            bad = self.constraint.log_density(self.floor, p) == -np.inf
             if not bad.any():
                 break
             p[bad] = z + self.rng.standard_normal((int(bad.sum()), 2)) @ L.T
         self.p = p
         self.b = self.rng.normal(self._bias0[0], self._bias0[1], n)
         self.s = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
-        self.w = np.full(n, 1.0 / n)
-        self._pi = self.prior.at(self.floor, self.p)
-        self._weigh(self._pi.copy())
+        self.logw = np.full(n, -math.log(n))
+        self._logpi = self.constraint.log_density(self.floor, self.p)
+        self._weigh(self._logpi.copy())
         self._hist_t[:] = -math.inf
         self._hist_k = 0
         self.initialised = True
 
     # ------------------------------------------------------------------ weights
-    def _weigh(self, like: np.ndarray) -> bool:
-        """Multiply the weights by ``like``; False (weights untouched) if that leaves nothing."""
-        w = self.w * like
-        tot = float(w.sum())
-        if not np.isfinite(tot) or tot <= 0.0:
+    def _weigh(self, loglike: np.ndarray) -> bool:
+        """Add ``loglike`` to the log-weights and normalise (logsumexp); False (weights untouched) if
+        that leaves nothing (every particle at -inf)."""
+        logw, total = log_normalise(self.logw + loglike)
+        if not np.isfinite(total):
             return False
-        self.w = w / tot
-        if 1.0 / float(self.w @ self.w) < self.cfg.resample_ess * len(self.w):
-            self._resample()
+        self.logw = logw
+        w = np.exp(logw)
+        if 1.0 / float(w @ w) < self.cfg.resample_ess * len(w):
+            self._resample(w)
         return True
 
     def _pick(self, u: np.ndarray) -> np.ndarray:
@@ -171,12 +221,12 @@ class ParticleFusion:
         c[-1] = 1.0
         return np.searchsorted(c, u)
 
-    def _resample(self) -> None:
-        n = len(self.w)
-        idx = self._pick((self.rng.random() + np.arange(n)) / n)  # systematic
-        self.p, self.b, self.s, self._pi = self.p[idx], self.b[idx], self.s[idx], self._pi[idx]
+    def _resample(self, w: np.ndarray) -> None:
+        n = len(w)
+        idx = self.resampler(w, self.rng)
+        self.p, self.b, self.s, self._logpi = self.p[idx], self.b[idx], self.s[idx], self._logpi[idx]
         self._hist_p = self._hist_p[:, idx]
-        self.w = np.full(n, 1.0 / n)
+        self.logw = np.full(n, -math.log(n))
 
     # ------------------------------------------------------------------ predict
     def predict(self, step: StepEvent) -> Estimate:
@@ -195,19 +245,19 @@ class ParticleFusion:
         L = self.s * np.maximum(step.length + self.rng.normal(0.0, sig_l, n), 0.0)
         psi = step.heading + self.b + self.rng.normal(0.0, sig_psi, n)
         q = self.p + np.column_stack([L * np.cos(psi), L * np.sin(psi)])
-        pi_new = self.prior.at(self.floor, q)
-        pi_new[self.prior.crosses_wall(self.floor, self.p, q)] = 0.0
+        # the map's constraint hook: log pi(new), -inf off the walkable area or through a wall
+        logpi_new = self.constraint.log_density(self.floor, q) + self.constraint.log_transition(self.floor, self.p, q)
         # the prior enters once, at the particle's present place: weight by pi(new) / pi(old), so a
         # particle that stays in a sparsely walked spot is not penalised again at every step
-        like = pi_new / np.maximum(self._pi, 1e-12)
+        loglike = logpi_new - np.maximum(self._logpi, LOG_PRIOR_FLOOR)
         # the new places and their prior go in before weighing: a resampling inside _weigh reorders
         # both together (assigning pi_new after it once paired resampled particles with other
         # particles' prior, and a dead one's 0 then weighed its new owner by 1e12 at the next step)
-        prev_pi = self._pi
-        self.p, self._pi = q, pi_new
-        if not self._weigh(like):
+        prev_logpi = self._logpi
+        self.p, self._logpi = q, logpi_new
+        if not self._weigh(loglike):
             # nobody is where the map allows: the map or the track is wrong here - keep dead reckoning
-            self._pi = prev_pi
+            self._logpi = prev_logpi
             self.n_map_conflicts += 1
         self._corridor(step)
         k = self._hist_k % cfg.history
@@ -227,14 +277,14 @@ class ParticleFusion:
         axis = self.corridor_axes.get(self.floor) if self.floor is not None else None
         if not straight_along(self._recent_headings, step.heading, axis, cfg.straight_steps, cfg.straight_tol):
             return
-        b_mean = math.atan2(float(self.w @ np.sin(self.b)), float(self.w @ np.cos(self.b)))
+        w = self.w
+        b_mean = math.atan2(float(w @ np.sin(self.b)), float(w @ np.cos(self.b)))
         psi = step.heading + b_mean
         target = nearest_grid_direction(psi, axis)  # the grid direction nearest the cloud's heading
         if abs(wrap_angle(target - psi)) >= cfg.corridor_capture:
             return
         y = wrap_angle(target - (step.heading + self.b))  # each particle's offset
-        like = np.exp(-0.5 * (y / cfg.corridor_sigma) ** 2)
-        if self._weigh(like):
+        if self._weigh(-0.5 * (y / cfg.corridor_sigma) ** 2):
             self.n_corridor += 1
 
     def _positions_at(self, t: float) -> np.ndarray:
@@ -255,8 +305,9 @@ class ParticleFusion:
     # ------------------------------------------------------------------ correct
     def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
         """One gated update with a position fix or a displacement; returns (accepted, estimate)."""
-        if isinstance(fix, DisplacementFix):
-            return self._correct_displacement(fix)
+        return getattr(self, fix_handler(self, fix))(fix)
+
+    def _correct_position(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
         z = np.asarray(fix.pos_enu, float)[:2]
         R = correlated_fix_cov(np.asarray(fix.cov, float)[:2, :2], fix, self.cfg.fix_correlation)
         if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
@@ -268,9 +319,10 @@ class ParticleFusion:
         p_then = self._positions_at(fix.t)
         m, nis = self._nis(z, p_then, R)
         # outside the cloud's 50 % region and behind a wall from its mean: sensor resetting (reset_share)
-        beyond_wall = self.cfg.reset_share > 0.0 and nis > self._half and bool(self.prior.crosses_wall(self.floor, m[None, :], z[None, :])[0])
+        beyond_wall = self.cfg.reset_share > 0.0 and nis > self._half and bool(self.constraint.log_transition(self.floor, m[None, :], z[None, :])[0] == -np.inf)
         if nis > self._gate:
             self.n_rejected += 1
+            self.stats.rejected["position"] += 1
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
                 self._rejected_run = 0
@@ -281,7 +333,8 @@ class ParticleFusion:
                 self._reset_around(z, R, p_then)
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
-        self._weigh(self._likelihood(z, p_then, R))
+        self.stats.accepted["position"] += 1
+        self._weigh(self._log_likelihood(z, p_then, R))
         if beyond_wall:
             self._reset_around(z, R, p_then)
         self.t = max(self.t, fix.t)
@@ -299,17 +352,18 @@ class ParticleFusion:
         donors = self._pick(self.rng.random(m))
         L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
         q_now = z + self.rng.standard_normal((m, 2)) @ L.T + (self.p[donors] - p_then[donors])
-        pi = self.prior.at(self.floor, q_now)
-        ok = pi > 0.0
+        logpi = self.constraint.log_density(self.floor, q_now)
+        ok = logpi > -np.inf
         if not ok.any():
             return
-        donors, q_now, pi = donors[ok], q_now[ok], pi[ok]
+        donors, q_now, logpi = donors[ok], q_now[ok], logpi[ok]
         slots = self.rng.choice(n, size=len(donors), replace=False)
         self._hist_p[:, slots] = self._hist_p[:, donors] + (q_now - self.p[donors])[None, :, :]
         self.b[slots], self.s[slots] = self.b[donors], self.s[donors]
-        self.p[slots], self._pi[slots] = q_now, pi
-        self.w[slots] = 1.0 / n
-        self.w /= self.w.sum()
+        self.p[slots], self._logpi[slots] = q_now, logpi
+        logw = self.logw.copy()
+        logw[slots] = -math.log(n)  # the mean weight
+        self.logw = log_normalise(logw)[0]
         self.n_reset += len(slots)
 
     def _nis(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, float]:
@@ -323,14 +377,15 @@ class ParticleFusion:
         """Chi-square gate on the cloud's predicted measurements h (N, 2): is z inside their 95 % region?"""
         return self._nis(z, h, R)[1] <= self._gate
 
-    def _likelihood(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Heavy-tailed (1 - eps) N(z; h, R) + eps N(z; h, k^2 R) per particle."""
+    def _log_likelihood(self, z: np.ndarray, h: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Heavy-tailed log((1 - eps) N(z; h, R) + eps N(z; h, k^2 R)) per particle (up to a constant)."""
         d = z - h
         Ri = np.linalg.inv(R)
         e = np.einsum("ni,ij,nj->n", d, Ri, d)
         k2 = self.cfg.outlier_scale**2
         eps = self.cfg.outlier_prob
-        return (1.0 - eps) * np.exp(-0.5 * e) + eps / k2 * np.exp(-0.5 * e / k2)
+        with np.errstate(divide="ignore"):
+            return np.logaddexp(math.log(1.0 - eps) - 0.5 * e if eps < 1.0 else -np.inf, (math.log(eps / k2) if eps > 0.0 else -np.inf) - 0.5 * e / k2)
 
     def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
         """Kourogi eq 17 (GPS differential mode): each particle's own displacement between t0 and t1,
@@ -346,6 +401,8 @@ class ParticleFusion:
         z, R = np.asarray(fix.delta_enu, float), np.asarray(fix.cov, float)
         if not self._gated(z, d, R):
             self.n_rejected += 1
+            self.stats.rejected["displacement"] += 1
             return False, self.estimate("displacement-rejected")
-        self._weigh(self._likelihood(z, d, R))
+        self.stats.accepted["displacement"] += 1
+        self._weigh(self._log_likelihood(z, d, R))
         return True, self.estimate("displacement")

@@ -9,9 +9,10 @@ Continuous error dynamics (Earth rate neglected, as in the strapdown):
     db_a'   = w_a,   db_g' = w_g                         (bias random walks)
 
 discretised as Phi = I + F dt and Q_d = G Q_c G^T dt. Corrections (:meth:`ErrorStateEkf.correct`)
-use the Joseph form, gate the innovation with a chi-square test on its normalised square, inject the
-estimated error into the nominal state (closed loop) and reset the error to zero, with the reset
-Jacobian G_theta = I - [dtheta/2]x applied to the covariance.
+go through the one gated update of :func:`hybridloc.estimation.correct` (Joseph form, chi-square
+gate on the normalised innovation squared, rejections counted per kind), which returns the error
+state dx; the filter injects it into the nominal state (closed loop, ``x.plus(dx)``) and resets the
+error to zero, with the reset Jacobian G_theta = I - [dtheta/2]x applied to the covariance.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
+from ..estimation import ChiSquareGate, UpdateInfo, UpdateStats, correct
 from .measurements import DP, DTH, MeasurementModel
 from .strapdown import NominalState, quat_to_dcm
 
@@ -70,32 +71,8 @@ class ImuNoise:
     gyro_bias_sigma0: float = 0.02 * math.pi / 180  # rad/s
 
 
-@dataclass
-class Correction:
-    accepted: bool
-    innovation: np.ndarray
-    S: np.ndarray
-    nis: float  # normalised innovation squared
-    dx: np.ndarray | None = None  # the error state injected (accepted corrections only)
-
-
-def _inv_spd_small(S: np.ndarray) -> np.ndarray:
-    """Inverse of a small symmetric innovation covariance: closed form for 1-3 dimensions (the ZUPT,
-    ZARU and heading updates run at every stance sample, where numpy's general inverse is most of
-    the cost), numpy's for larger ones."""
-    m = S.shape[0]
-    if m == 1:
-        return np.array([[1.0 / S[0, 0]]])
-    if m == 3:
-        a, b, c = S[0]
-        _, e, f = S[1]
-        i = S[2, 2]
-        A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
-        det = a * A + b * B + c * C
-        if det > 0.0:
-            E, F, I_ = a * i - c * c, b * c - a * f, a * e - b * b
-            return np.array([[A, B, C], [B, E, F], [C, F, I_]]) / det
-    return np.linalg.inv(S)
+#: What :meth:`ErrorStateEkf.correct` returns (``accepted``, ``innovation``, ``S``, ``nis``, ``dx``).
+Correction = UpdateInfo
 
 
 class ErrorStateEkf:
@@ -106,14 +83,21 @@ class ErrorStateEkf:
         self.P = np.array(P0, dtype=float)
         self.noise = noise
         self.g = g
-        self.gate_probability = gate_probability
-        self._gates: dict[int, float] = {}
-        self._I = np.eye(15)
+        self.gate = ChiSquareGate(gate_probability)
+        self.stats = UpdateStats()
         self._Phi = np.eye(15)
         self._dt = -1.0
         self._qd = np.zeros(15)
         self._qd_rate: np.ndarray | None = None
-        self.n_rejected = 0
+
+    @property
+    def gate_probability(self) -> float:
+        return self.gate.probability
+
+    @property
+    def n_rejected(self) -> int:
+        """Corrections the chi-square gate turned away (per kind: ``stats.rejected``)."""
+        return self.stats.n_rejected
 
     def predict(self, f_body: np.ndarray, w_body: np.ndarray, dt: float) -> None:
         """Strapdown step of the nominal state (same equations as :func:`.strapdown.mechanise`, done
@@ -161,29 +145,11 @@ class ErrorStateEkf:
         self._Phi[0, 3] = self._Phi[1, 4] = self._Phi[2, 5] = dt
         np.multiply(self._qd_rate, dt, out=self._qd)
 
-    def _gate(self, m: int) -> float:
-        if m not in self._gates:
-            self._gates[m] = float(chi2.ppf(self.gate_probability, m))
-        return self._gates[m]
-
     def correct(self, model: MeasurementModel, z, gate: bool = True) -> Correction:
-        """The one correction path: ZUPT, ZARU, heading and position fixes all come through here."""
-        z_pred = model.evaluate(self.x)
-        H = model.jacobian(self.x)
-        R = model.covariance()
-        y = model.residual(z, z_pred)
-        PHt = self.P @ H.T
-        S = H @ PHt + R
-        S = 0.5 * (S + S.T)
-        Sinv = _inv_spd_small(S)
-        nis = float(y @ Sinv @ y)
-        if gate and nis > self._gate(len(y)):
-            self.n_rejected += 1
-            return Correction(False, y, S, nis)
-        K = PHt @ Sinv
-        IKH = self._I - K @ H
-        P = IKH @ self.P @ IKH.T + K @ R @ K.T  # Joseph form: stays symmetric positive definite
-        dx = K @ y
+        """ZUPT, ZARU, heading and position fixes: the one gated update, then injection and reset."""
+        dx, P, info = correct(self.x, self.P, z, model, self.gate if gate else None, self.stats)
+        if not info.accepted:
+            return info
         self.x = self.x.plus(dx)
         # Reset: the attitude error's covariance seen through the injected rotation.
         hx, hy, hz = 0.5 * dx[DTH]
@@ -191,7 +157,7 @@ class ErrorStateEkf:
         P[DTH, :] = Gt @ P[DTH, :]
         P[:, DTH] = P[:, DTH] @ Gt.T
         self.P = 0.5 * (P + P.T)
-        return Correction(True, y, S, nis, dx)
+        return info
 
     def position_sigma(self) -> np.ndarray:
         return np.sqrt(np.clip(np.diag(self.P)[DP], 0.0, None))

@@ -5,10 +5,11 @@ Every model answers for a :class:`~.strapdown.NominalState` x:
 * ``evaluate(x)`` -> predicted measurement h(x), shape (m,);
 * ``jacobian(x)`` -> H = dh/d(dx), shape (m, 15), w.r.t. the error state injected by ``x.plus(dx)``
   (order dp, dv, dtheta, db_a, db_g); tested against finite differences;
-* ``covariance()`` -> R, shape (m, m);
+* ``covariance(x=None)`` -> R, shape (m, m);
 * ``residual(z, z_pred)`` -> z - z_pred (angles wrapped).
 
-All of them go through the one :meth:`~.eskf.ErrorStateEkf.correct` path with its chi-square gate.
+They follow the protocol of :class:`hybridloc.estimation.MeasurementModel` and all go through the one
+gated update, :func:`hybridloc.estimation.correct`, via :meth:`~.eskf.ErrorStateEkf.correct`.
 """
 
 from __future__ import annotations
@@ -17,32 +18,25 @@ import math
 
 import numpy as np
 
-from ..units import wrap_angle
+from ..estimation import jacobian_check
+from ..estimation.models import MeasurementModel as _CoreModel
 from .strapdown import NominalState, skew
 
 DP, DV, DTH, DBA, DBG = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 
 
-class MeasurementModel:
+class MeasurementModel(_CoreModel):
+    """A model of the foot INS: its Jacobians are with respect to the 15-dimensional error state."""
+
     dim = 0
-
-    def evaluate(self, x: NominalState) -> np.ndarray:
-        raise NotImplementedError
-
-    def jacobian(self, x: NominalState) -> np.ndarray:
-        raise NotImplementedError
-
-    def covariance(self) -> np.ndarray:
-        raise NotImplementedError
-
-    def residual(self, z: np.ndarray, z_pred: np.ndarray) -> np.ndarray:
-        return np.asarray(z, dtype=float) - z_pred
+    state_dof = 15
 
 
 class ZeroVelocity(MeasurementModel):
     """ZUPT: the foot's velocity is zero during stance, z = 0, h = v (Foxlin; Godha sec. 3)."""
 
     dim = 3
+    kind = "zupt"
 
     def __init__(self, sigma: float = 0.01):
         self.R = np.eye(3) * sigma**2
@@ -55,7 +49,7 @@ class ZeroVelocity(MeasurementModel):
     def jacobian(self, x):
         return self.H
 
-    def covariance(self):
+    def covariance(self, x=None):
         return self.R
 
 
@@ -63,6 +57,7 @@ class ZeroAngularRate(MeasurementModel):
     """ZARU: during stance the true rate is ~0, so the gyro reading is its bias: h = omega_m - b_g."""
 
     dim = 3
+    kind = "zaru"
 
     def __init__(self, omega_body: np.ndarray, sigma: float = 0.5 * math.pi / 180):
         self.omega = np.asarray(omega_body, dtype=float)
@@ -76,7 +71,7 @@ class ZeroAngularRate(MeasurementModel):
     def jacobian(self, x):
         return self.H
 
-    def covariance(self):
+    def covariance(self, x=None):
         return self.R
 
 
@@ -89,6 +84,8 @@ class Heading(MeasurementModel):
     """
 
     dim = 1
+    kind = "heading"
+    angles = (0,)
 
     def __init__(self, axis_body=(1.0, 0.0, 0.0), sigma: float = 5 * math.pi / 180):
         self.axis = np.asarray(axis_body, dtype=float)
@@ -106,15 +103,14 @@ class Heading(MeasurementModel):
         H[0, DTH] = dpsi_df @ (-skew(f))
         return H
 
-    def covariance(self):
+    def covariance(self, x=None):
         return self.R
-
-    def residual(self, z, z_pred):
-        return np.array([wrap_angle(float(np.asarray(z).ravel()[0]) - float(z_pred[0]))])
 
 
 class PositionFix(MeasurementModel):
     """An absolute position (2-D or 3-D) with its covariance, h = p[:dim]."""
+
+    kind = "position"
 
     def __init__(self, cov: np.ndarray):
         self.R = np.atleast_2d(np.asarray(cov, dtype=float))
@@ -128,16 +124,11 @@ class PositionFix(MeasurementModel):
     def jacobian(self, x):
         return self.H
 
-    def covariance(self):
+    def covariance(self, x=None):
         return self.R
 
 
 def jacobian_fd(model: MeasurementModel, x: NominalState, eps: float = 1e-6) -> np.ndarray:
-    """dh/d(dx) by central differences through ``x.plus`` (the test oracle for analytic Jacobians)."""
-    z0 = model.evaluate(x)
-    H = np.zeros((len(z0), 15))
-    for i in range(15):
-        d = np.zeros(15)
-        d[i] = eps
-        H[:, i] = (model.residual(model.evaluate(x.plus(d)), z0) - model.residual(model.evaluate(x.plus(-d)), z0)) / (2 * eps)
-    return H
+    """dh/d(dx) by central differences through ``x.plus`` (the test oracle for analytic Jacobians);
+    :func:`hybridloc.estimation.jacobian_fd`, kept here under its old name."""
+    return jacobian_check.jacobian_fd(model, x, eps)

@@ -1,0 +1,166 @@
+"""The one gated Kalman update of hybridloc: every fix, zero-velocity update and pseudo-measurement
+of the foot error-state filter and of the phone filters comes through :func:`correct`.
+
+For a state x with covariance P and a measurement z with model h (Jacobian H, noise R):
+
+    y = z (-) h(x)                         innovation (angle components wrapped)
+    S = H P H^T + R                        innovation covariance
+    NIS = y^T S^-1 y                       normalised innovation squared, ~ chi2(m) when consistent
+    reject when NIS > chi2.ppf(p, m)       the gate (Bar-Shalom, Li & Kirubarajan 2001, sec. 5.4.2)
+    K = P H^T S^-1                         gain
+    dx = K y                               the correction, in the error state
+    P+ = (I - K H) P (I - K H)^T + K R K^T Joseph form: symmetric positive definite whatever the rounding
+
+``correct`` returns dx rather than x + dx: a plain-vector filter adds it, an error-state filter
+injects it into its nominal state with its own ``plus`` and resets (:mod:`hybridloc.ins.eskf`).
+It never mutates its inputs.
+
+A robust kernel on the model (:class:`.models.Huber`, :class:`.models.Cauchy`) is applied after
+the gate as one reweighting step: R -> R / w(sqrt(NIS)).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from .models import MeasurementModel, normalised_residual
+
+
+@functools.lru_cache(maxsize=256)
+def chi2_threshold(probability: float, dim: int) -> float:
+    """The chi-square gate: NIS beyond ``chi2.ppf(probability, dim)`` is rejected."""
+    return float(chi2.ppf(probability, dim))
+
+
+@dataclass(frozen=True)
+class ChiSquareGate:
+    """Accept an innovation whose NIS lies inside the ``probability`` region of chi2(m).
+
+    ``dim`` fixes the degrees of freedom of the threshold instead of the measurement's own m (a gate
+    tuned on another dimension is kept this way where its figures depend on it).
+    """
+
+    probability: float
+    dim: int | None = None
+
+    def threshold(self, m: int) -> float:
+        return chi2_threshold(self.probability, self.dim or m)
+
+
+@dataclass(slots=True)
+class UpdateInfo:
+    """What one update did. ``innovation`` y, ``S`` its covariance, ``nis`` y^T S^-1 y, ``threshold`` the
+    gate (inf when ungated), ``dx`` the correction (None when rejected), ``weight`` the robust kernel's."""
+
+    kind: str
+    accepted: bool
+    innovation: np.ndarray
+    S: np.ndarray
+    nis: float
+    threshold: float
+    dx: np.ndarray | None = None
+    weight: float = 1.0
+
+
+class UpdateStats:
+    """Accepted and rejected updates, counted per measurement kind."""
+
+    def __init__(self) -> None:
+        self.accepted: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+
+    def record(self, info: UpdateInfo) -> None:
+        (self.accepted if info.accepted else self.rejected)[info.kind] += 1
+
+    @property
+    def n_rejected(self) -> int:
+        return sum(self.rejected.values())
+
+    def as_dict(self) -> dict[str, dict[str, int]]:
+        return {"accepted": dict(self.accepted), "rejected": dict(self.rejected)}
+
+
+def inv_spd_small(S: np.ndarray) -> np.ndarray:
+    """Inverse of a small symmetric positive definite matrix: closed form (adjugate over determinant)
+    for 1-3 dimensions, where numpy's general inverse costs more than the rest of an update (the
+    foot filter's ZUPT and ZARU run at every stance sample); numpy's for larger ones."""
+    m = S.shape[0]
+    if m == 1:
+        return np.array([[1.0 / S[0, 0]]])
+    if m == 2:
+        a, b, d = S[0, 0], S[0, 1], S[1, 1]
+        det = a * d - b * b
+        if det > 0.0:
+            return np.array([[d, -b], [-b, a]]) / det
+    if m == 3:
+        a, b, c = S[0]
+        _, e, f = S[1]
+        i = S[2, 2]
+        A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
+        det = a * A + b * B + c * C
+        if det > 0.0:
+            E, F, I_ = a * i - c * c, b * c - a * f, a * e - b * b
+            return np.array([[A, B, C], [B, E, F], [C, F, I_]]) / det
+    return np.linalg.inv(S)
+
+
+@functools.lru_cache(maxsize=32)
+def _identity(n: int) -> np.ndarray:
+    eye = np.eye(n)
+    eye.flags.writeable = False
+    return eye
+
+
+def _as_gate(gate: ChiSquareGate | float | None) -> ChiSquareGate | None:
+    if gate is None or isinstance(gate, ChiSquareGate):
+        return gate
+    return ChiSquareGate(float(gate))
+
+
+def correct(x, P: np.ndarray, z, model: MeasurementModel, gate: ChiSquareGate | float | None = None,
+            stats: UpdateStats | None = None) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
+    """One gated Kalman update (module docstring); returns (dx, P+, info).
+
+    ``gate``: a :class:`ChiSquareGate`, a probability (shorthand for ``ChiSquareGate(p)``), or None
+    for no gate. A rejected measurement returns dx = 0 and P unchanged. ``stats`` counts the outcome
+    under ``model.kind``.
+    """
+    z_pred = model.evaluate(x)
+    H = model.jacobian(x)
+    R = model.covariance(x)
+    y = model.residual(z, z_pred)
+    PHt = P @ H.T
+    S = H @ PHt + R
+    S = 0.5 * (S + S.T)
+    Sinv = inv_spd_small(S)
+    nis = float(y @ Sinv @ y)
+    g = _as_gate(gate)
+    threshold = g.threshold(len(y)) if g is not None else float("inf")
+    kind = getattr(model, "kind", "measurement")
+    if nis > threshold:
+        info = UpdateInfo(kind, False, y, S, nis, threshold)
+        if stats is not None:
+            stats.record(info)
+        return np.zeros(P.shape[0]), P, info
+    weight = 1.0
+    kernel = getattr(model, "kernel", None)
+    if kernel is not None:
+        weight = float(kernel.weight(normalised_residual(nis)))
+        if weight < 1.0:
+            R = R / weight
+            S = H @ PHt + R
+            S = 0.5 * (S + S.T)
+            Sinv = inv_spd_small(S)
+    K = PHt @ Sinv
+    IKH = _identity(P.shape[0]) - K @ H
+    P_new = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
+    dx = K @ y
+    info = UpdateInfo(kind, True, y, S, nis, threshold, dx, weight)
+    if stats is not None:
+        stats.record(info)
+    return dx, 0.5 * (P_new + P_new.T), info
