@@ -71,7 +71,7 @@ def _load(payload: bytes, schema: str | None, max_bytes: int | None = None) -> d
         msg = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)  # NaN, Infinity, -Infinity
     except Rejected:
         raise
-    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+    except (ValueError, RecursionError) as exc:  # bad UTF-8 or JSON, an integer past Python's digit limit, nesting too deep
         raise Rejected("malformed-json", str(exc)[:80]) from None
     if not isinstance(msg, dict):
         raise Rejected("malformed-json", "not an object")
