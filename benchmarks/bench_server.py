@@ -36,12 +36,11 @@ def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
     import zenoh
 
     from hybridloc.clients.uplink import Uplink
-    from hybridloc.types import StepEvent
-    from hybridloc.wire import protocol as P
+    from hybridloc.types import RfScan, StepEvent
     from hybridloc.wire.zconfig import client_config
 
     steps = [StepEvent(float(i) * 0.5, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(100)]
-    scans = [P.ScanRecord(float(i), "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(10)]
+    scans = [RfScan(float(i), "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(10)]
     with zenoh.open(client_config(ep)) as s:
         up = Uplink(s, "bench", device, spool, resend_after=5.0)
         up.wait_connected(20)

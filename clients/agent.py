@@ -27,8 +27,9 @@ from hybridloc.fusion import Estimate, GpsDifferencer, LocalFusion
 from hybridloc.geo import GeodeticOrigin
 from hybridloc.io.writers import gga_sentence
 from hybridloc.pdr.phone import PhonePdr, PhonePdrConfig
-from hybridloc.types import Technology
+from hybridloc.types import RSSI_MAX_DBM, RSSI_MIN_DBM, AbsoluteFix, DisplacementFix, Pose, RfScan, StepEvent, SurveyMark, Technology, rssi_in_range
 from hybridloc.units import DEG
+from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 
 from .uplink import Uplink
@@ -109,7 +110,19 @@ class AgentResult:
 
 
 class Agent:
-    """Shared machinery: uplink, fix subscription, fusion, pose output, liveliness."""
+    """A client's core: uplink, fix subscription, fusion, pose output, liveliness.
+
+    Its drivers (:func:`replay_phone`, :func:`live_phone`, :func:`replay_foot`, or your own) use only
+    this public API:
+
+    * :meth:`add_step`, :meth:`add_scan`, :meth:`add_mark`: the device's records as they happen (a step
+      is fused at once; scans and marks wait for the next batch);
+    * :meth:`add_fix`: a fix from the device's own sensors (GPS, RFID), fused at once;
+    * :meth:`tick` (recording time has reached t: send what is due, hear the server), :meth:`flush`
+      (send everything now), :meth:`drain_fixes` (fuse the server's answers that arrived),
+      :meth:`wait_answers` (lock-step);
+    * :attr:`estimate` (the newest pose), :meth:`close` (-> :class:`AgentResult`).
+    """
 
     def __init__(self, session: zenoh.Session, site: str, device: str, spool: str | Path, pose: PoseWriter, device_model: str = "",
                  batch_period: float = 1.0, init: tuple[float, float, float] | None = None, fusion=None,
@@ -134,17 +147,43 @@ class Agent:
         self._scans: list = []
         self._marks: list = []
         self._last_flush = -math.inf
+        self._estimate: Pose | None = None
         self.all_steps: list = []
         self.fix_lags: list = []  # how late each fix was used: newest step time - scan time, s
         self.fix_log: list = []  # (steps processed when the fix arrived, fix)
 
-    def on_step(self, step) -> None:
+    # ------------------------------------------------------------ public API
+    def add_step(self, step: StepEvent) -> None:
+        """A step (or stride): fused at once, the new pose written and published, and queued for the next batch."""
         self._steps.append(step)
         self.all_steps.append(step)
         e = self.fusion.predict(step)
         if self.fusion.initialised:
-            self.pose.write(e)
-            self.session.put(P.key_pose(self.site, self.device), json.dumps({"schema": P.POSE_SCHEMA, "t": e.t, "x": float(e.pos[0]), "y": float(e.pos[1]), "floor": e.floor}))
+            self._write(e)
+            self.session.put(P.key_pose(self.site, self.device), C.POSE.encode(self._estimate), encoding=C.POSE.encoding)
+
+    on_step = add_step  # the name drivers used before
+
+    def add_scan(self, scan: RfScan) -> None:
+        """A radio scan, sent with the next batch (the server answers the newest WiFi scan of each batch)."""
+        self._scans.append(scan)
+
+    def add_mark(self, mark: SurveyMark) -> None:
+        """A survey mark ("I am here"), sent with the next batch."""
+        self._marks.append(mark)
+
+    @property
+    def estimate(self) -> Pose | None:
+        """The newest pose (after the latest step or accepted fix); None before the filter is initialised."""
+        return self._estimate
+
+    def flush(self, t: float) -> None:
+        """Send everything queued now (recording time ``t``)."""
+        self.maybe_flush(t, force=True)
+
+    def _write(self, e) -> None:
+        self.pose.write(e)
+        self._estimate = Pose(e.t, float(e.pos[0]), float(e.pos[1]), e.floor, np.asarray(e.cov)[:2, :2])
 
     def drain_fixes(self) -> None:
         while True:
@@ -157,8 +196,8 @@ class Agent:
     def _handle(self, raw: bytes) -> None:
         """One server answer: a fix is fused; "no fix" is only counted."""
         try:
-            fix, _, _ = P.fix_from_dict(json.loads(raw))
-        except (ValueError, KeyError, TypeError):
+            fix = C.FIX.decode(raw).fix
+        except P.Rejected:
             return
         self.n_answers += 1
         self._answers_flowing = True
@@ -169,9 +208,9 @@ class Agent:
         ok, e = self.fusion.correct(fix)
         if ok:
             self.n_accepted += 1
-            self.pose.write(e)
+            self._write(e)
 
-    def local_fix(self, fix, sigma_random: float | None = None) -> bool:
+    def add_fix(self, fix: AbsoluteFix, sigma_random: float | None = None) -> bool:
         """A fix from the device's own sensors (GPS receiver, an RFID reader's detection): fused at once;
         pairs of accepted GPS fixes a few seconds apart also give a displacement (Kourogi's GPS
         differential mode, :class:`hybridloc.fusion.GpsDifferencer`)."""
@@ -179,16 +218,19 @@ class Agent:
         ok, e = self.fusion.correct(fix)
         if ok:
             self.n_local_accepted += 1
-            self.pose.write(e)
-        disp = self._gps_diff.push(fix, sigma_random, ok)
+            self._write(e)
+        disp: DisplacementFix | None = self._gps_diff.push(fix, sigma_random, ok)
         if disp is not None:
             ok_d, e = self.fusion.correct(disp)
             if ok_d:
                 self.n_displacements += 1
-                self.pose.write(e)
+                self._write(e)
         return ok
 
+    local_fix = add_fix  # the name drivers used before
+
     def maybe_flush(self, t: float, force: bool = False) -> None:
+        """Send what is queued when a batch period has passed since the last batch (``force``: now)."""
         if not force and t - self._last_flush < self.batch_period:
             return
         # keep batches under the protocol size limit: scans are the big items
@@ -197,7 +239,7 @@ class Agent:
             steps, self._steps = self._steps, []
             marks, self._marks = self._marks, []
             self.uplink.send(steps=steps, scans=scans, marks=marks)
-            self.n_asked += any(sc.technology == "wifi" for sc in scans)
+            self.n_asked += any(sc.technology is Technology.WIFI for sc in scans)
         self._last_flush = t
 
     def tick(self, t: float, lockstep: bool = False) -> None:
@@ -285,19 +327,20 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
         t_chunk_end = ts[k] + chunk
         while k < n and ts[k] < t_chunk_end:
             for st in pdr.update(ts[k], acc[k], gyr[k], mag[k] if mag is not None else None):
-                agent.on_step(st)
+                agent.add_step(st)
             k += 1
         t_now = ts[k - 1]
         while i_scan < len(scans) and scans[i_scan].t <= t_now:
             s = scans[i_scan]
-            agent._scans.append(P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm), age=dict(s.age_s)))
+            # readings and their ages, as the phone client has always sent them (no frequencies)
+            agent.add_scan(RfScan(s.t, Technology.WIFI, s.rssi_dbm, age_s=s.age_s))
             i_scan += 1
         while i_local < len(local) and local[i_local][0].t <= t_now:
-            agent.local_fix(*local[i_local])
+            agent.add_fix(*local[i_local])
             i_local += 1
         while i_mark < len(marks) and marks[i_mark][0] <= t_now:
             tm, xy, floor = marks[i_mark]
-            agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), floor))
+            agent.add_mark(SurveyMark(float(tm), float(xy[0]), float(xy[1]), floor))
             i_mark += 1
         agent.tick(t_now, lockstep)
         if speed > 0:
@@ -305,8 +348,8 @@ def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, 
             if lag > 0:
                 time.sleep(lag)
     for tm, xy, floor in marks[i_mark:]:
-        agent._marks.append(P.MarkRecord(float(tm), float(xy[0]), float(xy[1]), floor))
-    agent.maybe_flush(ts[-1], force=True)
+        agent.add_mark(SurveyMark(float(tm), float(xy[0]), float(xy[1]), floor))
+    agent.flush(ts[-1])
     return pdr
 
 
@@ -349,9 +392,9 @@ def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, leng
                     k, v = item.split("=")
                     rssi[k.strip().lower()] = float(v)
                 t = float(t_txt)
-                if not (math.isfinite(t) and rssi and all(-130.0 <= v <= 0.0 for v in rssi.values())):
-                    raise ValueError("a scan needs a finite time and readings in [-130, 0] dBm")
-                agent._scans.append(P.ScanRecord(t, "wifi", rssi))
+                if not (math.isfinite(t) and rssi and all(rssi_in_range(v) for v in rssi.values())):
+                    raise ValueError(f"a scan needs a finite time and readings in [{RSSI_MIN_DBM:g}, {RSSI_MAX_DBM:g}] dBm")
+                agent.add_scan(RfScan(t, Technology.WIFI, rssi))
                 st.scans += 1
             else:
                 v = [float(x) for x in line.split(",")]
@@ -364,7 +407,7 @@ def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, leng
                         break
                 t = v[0]
                 for step in pdr.update(t, v[1:4], v[4:7], v[7:10] if len(v) == 10 else None):
-                    agent.on_step(step)
+                    agent.add_step(step)
                 st.samples += 1
         except ValueError as exc:
             st.bad_lines += 1
@@ -376,7 +419,7 @@ def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, leng
     if units_error:
         raise ValueError(units_error)
     if math.isfinite(t_now):
-        agent.maybe_flush(t_now, force=True)
+        agent.flush(t_now)
     agent.drain_fixes()
     return st
 
@@ -393,7 +436,6 @@ def replay_foot(agent: Agent, imu, speed: float = 1.0) -> None:
             lag = (st.t - t0) / speed - (time.monotonic() - wall0)
             if lag > 0:
                 time.sleep(lag)
-        agent.on_step(st)
-        agent.maybe_flush(st.t)
-        agent.drain_fixes()
-    agent.maybe_flush(float(imu.t[-1]), force=True)
+        agent.add_step(st)
+        agent.tick(st.t)
+    agent.flush(float(imu.t[-1]))

@@ -19,7 +19,9 @@ from pathlib import Path
 
 import zenoh
 
+from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import Batch
 
 
 class Uplink:
@@ -62,11 +64,11 @@ class Uplink:
 
     # ------------------------------------------------------------ sending
     def send(self, steps=(), scans=(), marks=()) -> int:
-        """Spool and publish one batch; returns its sequence number."""
+        """Spool and publish one batch of StepEvent, RfScan and SurveyMark records; returns its sequence number."""
         with self._lock:
             seq = self.next_seq
             self.next_seq += 1
-            payload = P.encode_batch(self.site, self.device, seq, steps, scans, marks, self.device_model, time.time())
+            payload = C.BATCH.encode(Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time()))
             if len(payload) > P.MAX_BATCH_BYTES:
                 raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
             path = self.spool / f"{seq:012d}.json"
@@ -80,12 +82,12 @@ class Uplink:
         # session.put rather than a declared publisher: under the server's access control a device
         # does not see the server's (wildcard) subscriber declaration, and a publisher that sees no
         # subscriber would not send at all.
-        self.session.put(self._key, payload, encoding=P.encoding(P.BATCH_SCHEMA), congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(self._key, payload, encoding=C.BATCH.encoding, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
         try:
-            seq = P.decode_ack(sample.payload.to_bytes())
-        except (ValueError, KeyError):
+            seq = C.ACK.decode(sample.payload.to_bytes()).acked_seq
+        except P.Rejected:
             return
         with self._lock:
             if seq > self.acked:

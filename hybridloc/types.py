@@ -28,6 +28,16 @@ RSSI_MIN_DBM = -130.0
 RSSI_MAX_DBM = 0.0
 
 
+def rssi_in_range(rssi_dbm):
+    """True where ``rssi_dbm`` is a plausible reading, in [RSSI_MIN_DBM, RSSI_MAX_DBM] dBm.
+
+    The one range check of the code base: the readers (:mod:`hybridloc.io.msft`, :mod:`hybridloc.io.uji`),
+    :class:`RfScan` and the wire's decoder all call it. A float gives a bool, an array an array of them;
+    NaN compares false both ways, so it is out of range (and so is an infinity).
+    """
+    return (rssi_dbm >= RSSI_MIN_DBM) & (rssi_dbm <= RSSI_MAX_DBM)
+
+
 def _frozen_array(a, shape_tail: tuple[int, ...] | None = None, name: str = "array", ndim: int | None = None):
     arr = np.array(a, dtype=float, copy=True)
     if ndim is not None and arr.ndim != ndim:
@@ -291,7 +301,7 @@ class RfScan:
         rssi = {}
         for k, v in dict(self.rssi_dbm).items():
             v = float(v)
-            if not (RSSI_MIN_DBM <= v <= RSSI_MAX_DBM):
+            if not rssi_in_range(v):
                 raise ValueError(f"RfScan: RSSI {v!r} dBm of {k!r} outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}]")
             rssi[str(k)] = v
         object.__setattr__(self, "rssi_dbm", MappingProxyType(rssi))
@@ -451,6 +461,90 @@ class ContainmentRegion:
     @property
     def area_m2(self) -> float:
         return float(self.area.area)
+
+
+@dataclass(frozen=True, eq=False)
+class Fix:
+    """The answer to one radio scan: an absolute fix with its containment region and floor
+    probabilities, or "no fix" and why (what the server pushes and the ``locate`` queryable returns).
+
+    Attributes
+    ----------
+    fix : AbsoluteFix or None
+        The position; None for a "no fix" answer.
+    region : ContainmentRegion or None
+        Where the walker is with probability ``region.mass`` (usually 0.95), on ``region.floor``; None
+        when not computed (and always with no fix).
+    floor_probs : Mapping[str, float]
+        Floor name -> probability that the walker is on it, each in [0, 1]; empty when unknown (and
+        always with no fix).
+    reason : str
+        Why there is no fix (no radio map for the site, no known transmitter in the scan ...); empty
+        with a fix.
+    t : float or None
+        Time the answer is about, s: the fix's own time, or for "no fix" the scan's (None when the
+        sender did not say).
+    """
+
+    fix: AbsoluteFix | None
+    region: ContainmentRegion | None = None
+    floor_probs: Mapping[str, float] = field(default_factory=dict)
+    reason: str = ""
+    t: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "floor_probs", MappingProxyType({str(k): float(v) for k, v in dict(self.floor_probs).items()}))
+        if self.fix is None:
+            if self.region is not None or self.floor_probs:
+                raise ValueError("Fix: a region or floor probabilities need a fix")
+        else:
+            if self.t is not None and self.t != self.fix.t:
+                raise ValueError(f"Fix: t {self.t!r} differs from the fix's time {self.fix.t!r}")
+            if self.reason:
+                raise ValueError("Fix: a reason is only for 'no fix' answers")
+            object.__setattr__(self, "t", float(self.fix.t))
+        if self.t is not None:
+            object.__setattr__(self, "t", float(self.t))
+
+    def __bool__(self) -> bool:
+        return self.fix is not None
+
+    def __reduce__(self):  # picklable despite the read-only mapping view
+        return (Fix, (self.fix, self.region, dict(self.floor_probs), self.reason, self.t))
+
+
+@dataclass(frozen=True, eq=False)
+class Pose:
+    """A walker's estimated position at one moment, as a client publishes it (for monitoring).
+
+    Attributes
+    ----------
+    t : float
+        s.
+    x, y : float
+        Site frame (ENU), m.
+    floor : str or None
+        Floor name; None when unknown.
+    cov : ndarray, shape (2, 2), or None
+        Covariance of (x, y), m^2; None when the sender did not give it (clients before it was sent).
+    """
+
+    t: float
+    x: float
+    y: float
+    floor: str | None = None
+    cov: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("t", "x", "y"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        if self.cov is not None:
+            object.__setattr__(self, "cov", _frozen_array(self.cov, (2, 2), "cov", ndim=2))
+
+    @property
+    def pos_enu(self) -> np.ndarray:
+        """(x, y), m."""
+        return np.array([self.x, self.y])
 
 
 # ----------------------------------------------------------------------------------------------

@@ -15,7 +15,6 @@ batches, which clients resend.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -26,8 +25,10 @@ import zenoh
 
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
-from hybridloc.types import RfScan
+from hybridloc.types import Fix, RfScan, Technology
+from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
 from .store import Store
@@ -112,6 +113,18 @@ class Server:
             self.locators[site] = (version, loc, blob)
         return version
 
+    def answer(self, site: str, scan: RfScan) -> Fix:
+        """The answer to one scan, pushed after a batch and replied to a locate query alike: a fix with
+        its containment region and floor probabilities, or "no fix" with the reason (no map for the
+        site, no known transmitter ...) and the scan's time."""
+        loc = self.locators.get(site)
+        if loc is None:
+            return Fix(None, reason=f"no radio map for site {site!r}", t=scan.t)
+        res = loc[1].locate(scan)
+        if res.fix is None:
+            return Fix(None, reason=res.reason, t=scan.t)
+        return Fix(res.fix, res.region, res.floor_probs)
+
     # ------------------------------------------------------------ ingest
     def _run(self) -> None:
         try:
@@ -152,7 +165,7 @@ class Server:
                 bad[("?", "bad-key")] += 1
                 continue
             try:
-                batches.append(P.decode_batch(smp.payload.to_bytes(), site, device))
+                batches.append(C.BATCH.decode(smp.payload.to_bytes(), site, device))
                 self.counts["batches-received"] += 1
             except P.Rejected as rej:
                 bad[(device, rej.reason)] += 1
@@ -162,54 +175,34 @@ class Server:
         self.counts["batches-persisted"] += written
         by_dev = {b.device: b for b in batches}
         for device, seq in acked.items():
-            self.session.put(P.key_ack(by_dev[device].site, device), P.encode_ack(device, seq), encoding=P.encoding(P.ACK_SCHEMA),
+            self.session.put(P.key_ack(by_dev[device].site, device), C.ACK.encode(Ack(device, seq)), encoding=C.ACK.encoding,
                              congestion_control=zenoh.CongestionControl.BLOCK)
         # answer the newest WiFi scan of each batch that brought one: a fix, or "no fix" with the
         # reason (no map for the site, no known transmitter...), so a client always hears back.
         # The fixes are stored in one transaction before any is pushed.
-        answers, found = [], []
+        answers = []
         for b in batches:
-            scans = [sc for sc in b.scans if sc.technology == "wifi"]
+            scans = [sc for sc in b.scans if sc.technology is Technology.WIFI]
             if not scans:
                 continue
-            sc = scans[-1]
-            loc = self.locators.get(b.site)
-            if loc is None:
-                body = P.fix_to_dict(None, reason=f"no radio map for site {b.site!r}", t=sc.t)
-                self.counts["no-fix-pushed"] += 1
-            else:
-                res = loc[1].locate(RfScan(sc.t, "wifi", sc.rssi, age_s=sc.age, device_model=b.device_model))
-                if res.fix is not None:
-                    found.append((b.device, res.fix))
-                    body = P.fix_to_dict(res.fix, res.region)
-                    self.counts["fixes-pushed"] += 1
-                else:
-                    body = P.fix_to_dict(None, reason=res.reason, t=sc.t)
-                    self.counts["no-fix-pushed"] += 1
-            answers.append((P.key_fix(b.site, b.device), json.dumps(body)))
-        self.store.add_fixes(found)
-        for key, body in answers:
-            self.session.put(key, body, encoding=P.encoding(P.FIX_SCHEMA))
+            # the decoded scan carries the batch's device model (the locators' per-device RSSI offset)
+            a = self.answer(b.site, scans[-1])
+            self.counts["fixes-pushed" if a.fix is not None else "no-fix-pushed"] += 1
+            answers.append((b, a))
+        self.store.add_fixes([(b.device, a.fix) for b, a in answers if a.fix is not None])
+        for b, a in answers:
+            self.session.put(P.key_fix(b.site, b.device), C.FIX.encode(a), encoding=C.FIX.encoding)
 
     # ------------------------------------------------------------ queryables
     def _on_locate(self, q: zenoh.Query) -> None:
         try:
             site, device, _ = P.parse_key(str(q.key_expr))
-            msg = json.loads(q.payload.to_bytes()) if q.payload else {}
-            if msg.get("schema") != P.LOCATE_SCHEMA:
-                raise P.Rejected("schema-version", "locate/1 expected")
-            sc = msg["scan"]
-            scan = RfScan(float(sc["t"]), sc.get("tech", "wifi"), {str(k): float(v) for k, v in sc["rssi"].items()},
-                          age_s={str(k): float(v) for k, v in (sc.get("age") or {}).items()}, device_model=str(msg.get("device_model", "")))
-            loc = self.locators.get(site)
-            if loc is None:
-                body = P.fix_to_dict(None, reason=f"no radio map for site {site!r}")
-            else:
-                res = loc[1].locate(scan)
-                body = P.fix_to_dict(res.fix, res.region, res.reason)
+            request = C.LOCATE.decode(q.payload.to_bytes() if q.payload else b"")
+            a = self.answer(site, request.scan)
             self.counts["locate-queries"] += 1
-            q.reply(str(q.key_expr), json.dumps(body), encoding=P.encoding(P.FIX_SCHEMA))
+            q.reply(str(q.key_expr), C.FIX.encode(a), encoding=C.FIX.encoding)
         except Exception as exc:  # noqa: BLE001 - a bad query gets an error reply, never a crash
+            # every refusal counts as bad-locate (the decoder's own reason is in the reply)
             self.counts["rejected:bad-locate"] += 1
             q.reply_err(f"bad locate request: {exc}".encode())
 
@@ -220,15 +213,14 @@ class Server:
             if loc is None:
                 q.reply_err(f"no radio map for site {site!r}".encode())
                 return
-            q.reply(str(q.key_expr), loc[2], encoding="application/octet-stream", attachment=json.dumps({"site": site, "version": loc[0]}).encode())
+            q.reply(str(q.key_expr), loc[2], encoding="application/octet-stream", attachment=C.MAP_INFO.encode(MapInfo(site, loc[0])))
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())
 
     def _on_status(self, q: zenoh.Query) -> None:
         try:
-            st = {"schema": P.STATUS_SCHEMA, "online": sorted(self.online), "counts": dict(self.counts), "db": self.store.status(),
-                  "maps_loaded": {k: v[0] for k, v in self.locators.items()}}
-            q.reply(P.KEY_STATUS, json.dumps(st), encoding=P.encoding(P.STATUS_SCHEMA))
+            st = Status(sorted(self.online), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()})
+            q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())
 

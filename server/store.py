@@ -75,8 +75,9 @@ class Store:
                          "floor_change": st.floor_change} for st in b.steps])
                 if b.scans:
                     s.execute(insert(m.Scan), [
-                        {"batch_id": row.id, "device_id": b.device, "t": sc.t, "technology": sc.technology,
-                         "readings": {"rssi": sc.rssi, **({"freq": sc.frequency} if sc.frequency else {}), **({"age": sc.age} if sc.age else {})}}
+                        {"batch_id": row.id, "device_id": b.device, "t": sc.t, "technology": sc.technology.value,
+                         "readings": {"rssi": dict(sc.rssi_dbm), **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
+                                      **({"age": dict(sc.age_s)} if sc.age_s else {})}}
                         for sc in b.scans])
                 if b.marks:
                     s.execute(insert(m.SurveyMark), [{"batch_id": row.id, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for mk in b.marks])

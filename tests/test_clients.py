@@ -104,7 +104,6 @@ def test_lockstep_agent_gets_an_answer_per_scan_and_run_fusion_replays_it_exactl
     from hybridloc.radio.survey import LabelledScan
     from hybridloc.server.service import Server
     from hybridloc.types import RfScan
-    from hybridloc.wire import protocol as P
     from hybridloc.wire.zconfig import client_config, free_port
 
     rng = np.random.default_rng(0)
@@ -124,11 +123,12 @@ def test_lockstep_agent_gets_an_answer_per_scan_and_run_fusion_replays_it_exactl
             assert ag.uplink.wait_connected()
             steps = _walk(60, 0.0, t0=0.0)  # 0.7 m every 0.5 s along +x from (2, 10)
             for i, st in enumerate(steps):
-                ag.on_step(st)
+                ag.add_step(st)
+                assert ag.estimate.t == st.t and ag.estimate.cov.shape == (2, 2)
                 if i % 4 == 3:  # a scan every 2 s; one of unknown transmitters only
                     rssi = {"zz:zz": -60.0} if i == 31 else reading((2.0 + 0.7 * (i + 1), 10.0))
-                    ag._scans.append(P.ScanRecord(st.t, "wifi", rssi))
-                    ag.maybe_flush(st.t, force=True)
+                    ag.add_scan(RfScan(st.t, "wifi", rssi))
+                    ag.flush(st.t)
                     assert ag.wait_answers(timeout=10.0)
             r = ag.close(wait=10)
     finally:

@@ -17,8 +17,10 @@ from hybridloc.clients.uplink import Uplink
 from hybridloc.server import db as m
 from hybridloc.server.migrate import upgrade
 from hybridloc.server.service import Server
-from hybridloc.types import StepEvent
+from hybridloc.types import RfScan, StepEvent, SurveyMark
+from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import Batch, LocateRequest
 from hybridloc.wire.zconfig import Security, client_config, free_port
 
 SITE = "site1"
@@ -29,7 +31,11 @@ def _steps(n, t0=0.0):
 
 
 def _scans(n, t0=0.0):
-    return [P.ScanRecord(t0 + i, "wifi", {"aa:bb": -50.0 - i, "cc:dd": -70.0}) for i in range(n)]
+    return [RfScan(t0 + i, "wifi", {"aa:bb": -50.0 - i, "cc:dd": -70.0}) for i in range(n)]
+
+
+def _batch(site, device, seq, steps=(), scans=(), marks=()):
+    return C.BATCH.encode(Batch(site, device, seq, "", steps, scans, marks))
 
 
 def _count(db, model):
@@ -85,13 +91,13 @@ def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
             assert up.wait_acked(timeout=10)
             assert up.acked == 5 and not list((tmp / "spool").glob("0*.json"))  # spool emptied by acks
             raw = s.declare_publisher(P.key_batch(SITE, "dev01"), congestion_control=zenoh.CongestionControl.BLOCK)
-            raw.put(P.encode_batch(SITE, "dev01", 3, _steps(2)))  # duplicate
-            raw.put(P.encode_batch(SITE, "dev01", 9, _steps(2)))  # gap
+            raw.put(_batch(SITE, "dev01", 3, _steps(2)))  # duplicate
+            raw.put(_batch(SITE, "dev01", 9, _steps(2)))  # gap
             raw.put(b"{not json")
             raw.put(json.dumps({"schema": "hybridloc.batch/99", "site": SITE, "device": "dev01", "seq": 6}).encode())
             raw.put(b'{"schema":"hybridloc.batch/1","site":"site1","device":"dev01","seq":6,"steps":[{"t":NaN}]}')
             raw.put(b"x" * (P.MAX_BATCH_BYTES + 1))
-            raw.put(P.encode_batch(SITE, "dev02", 1, _steps(1)))  # payload device != key device
+            raw.put(_batch(SITE, "dev02", 1, _steps(1)))  # payload device != key device
             assert _wait(lambda: sum(v for k, v in srv.counts.items() if k.startswith("rejected:")) >= 7)
             c = srv.counts
             for reason in ("duplicate", "out-of-order", "malformed-json", "schema-version", "non-finite", "too-large", "key-mismatch"):
@@ -101,9 +107,9 @@ def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
             assert up.wait_acked(timeout=10) and up.acked == 6
             raw.undeclare()
             replies = [r for r in s.get(P.KEY_STATUS, timeout=5.0) if r.ok]
-            st = json.loads(replies[0].ok.payload.to_bytes())
-            assert st["db"]["batches"] == 6 and st["db"]["steps"] == 53 and st["db"]["scans"] == 10
-            assert st["db"]["rejections"]["duplicate"] == 1
+            st = C.STATUS.decode(replies[0].ok.payload.to_bytes())
+            assert st.db["batches"] == 6 and st.db["steps"] == 53 and st.db["scans"] == 10
+            assert st.db["rejections"]["duplicate"] == 1
         finally:
             up.close()
     db = tmp / "srv.db"
@@ -127,18 +133,23 @@ def test_locate_queryable_and_pushed_fix(server):
     rmap.save(tmp / "m.npz")
     assert srv.load_map(SITE, (tmp / "m.npz").read_bytes()) == 1
     with zenoh.open(client_config(ep)) as s:
-        q = {"schema": P.LOCATE_SCHEMA, "scan": {"t": 1.0, "tech": "wifi", "rssi": reading((5.0, 5.0))}}
-        rep = [r for r in s.get(P.key_locate(SITE, "dev05"), payload=json.dumps(q), timeout=5.0) if r.ok]
-        fix, region, _ = P.fix_from_dict(json.loads(rep[0].ok.payload.to_bytes()))
-        assert np.hypot(fix.pos_enu[0] - 5, fix.pos_enu[1] - 5) < 4.0 and region["floor"] == "F1"
-        rep = [r for r in s.get(P.key_locate("othersite", "dev05"), payload=json.dumps(q), timeout=5.0) if r.ok]
-        assert P.fix_from_dict(json.loads(rep[0].ok.payload.to_bytes()))[0] is None  # no map: a reason, no made-up fix
+        q = C.LOCATE.encode(LocateRequest(RfScan(1.0, "wifi", reading((5.0, 5.0)))))
+        rep = [r for r in s.get(P.key_locate(SITE, "dev05"), payload=q, timeout=5.0) if r.ok]
+        a = C.FIX.decode(rep[0].ok.payload.to_bytes())
+        assert np.hypot(a.fix.pos_enu[0] - 5, a.fix.pos_enu[1] - 5) < 4.0 and a.region.floor == "F1" and a.region.contains(a.fix.pos_enu)
+        assert a.floor_probs == {"F1": 1.0}  # one floor in the map
+        rep = [r for r in s.get(P.key_locate("othersite", "dev05"), payload=q, timeout=5.0) if r.ok]
+        a = C.FIX.decode(rep[0].ok.payload.to_bytes())
+        assert a.fix is None and a.reason == "no radio map for site 'othersite'" and a.t == 1.0  # no map: a reason, no made-up fix
+        bad = C.LOCATE.encode(LocateRequest(RfScan(1.0, "wifi", {}))).replace(b"{}", b'{"a1": 5.0}')  # a reading above 0 dBm
+        errs = [r.err.payload.to_bytes() for r in s.get(P.key_locate(SITE, "dev05"), payload=bad, timeout=5.0) if not r.ok]
+        assert errs and b"rssi-out-of-range" in errs[0] and srv.counts["rejected:bad-locate"] == 1
         got = threading.Event()
         sub = s.declare_subscriber(P.key_fix(SITE, "dev05"), lambda smp: got.set())
         up = Uplink(s, SITE, "dev05", tmp / "spool5")
         try:
             assert up.wait_connected()
-            up.send(scans=[P.ScanRecord(2.0, "wifi", reading((10.0, 12.0)))])
+            up.send(scans=[RfScan(2.0, "wifi", reading((10.0, 12.0)))])
             assert got.wait(10.0)  # the server pushed a fix for the new scan
         finally:
             up.close()
@@ -201,7 +212,7 @@ def test_wrong_password_refused_and_devices_confined(tmp_path):
             seen = []
             sub = s2.declare_subscriber(P.key_fix(SITE, "dev01"), lambda smp: seen.append(smp))  # dev02 spying on dev01
             # dev01 writes under dev02's key: refused by the ACL, never stored
-            s1.put(P.key_batch(SITE, "dev02"), P.encode_batch(SITE, "dev02", 1, _steps(2)))
+            s1.put(P.key_batch(SITE, "dev02"), _batch(SITE, "dev02", 1, _steps(2)))
             up = Uplink(s1, SITE, "dev01", tmp_path / "sp1", resend_after=0.5)
             try:
                 assert up.wait_connected()
@@ -259,11 +270,11 @@ def test_map_rebuild_from_stored_surveys_is_incremental(tmp_path):
     for i, p in enumerate(find_ilc_traces(ILC_SITE1_F1)[:6]):
         tr = read_ilc_trace(p)
         steps, _ = run_phone_pdr(tr.imu)
-        scans = [P.ScanRecord(s.t, "wifi", dict(s.rssi_dbm)) for s in tr.wifi_scans]
-        marks = [P.MarkRecord(float(t), float(x), float(y), "F1") for t, (x, y) in zip(tr.waypoints.t, tr.waypoints.pos_enu)]
+        scans = [RfScan(s.t, "wifi", s.rssi_dbm) for s in tr.wifi_scans]
+        marks = [SurveyMark(float(t), float(x), float(y), "F1") for t, (x, y) in zip(tr.waypoints.t, tr.waypoints.pos_enu)]
         chunks = [dict(steps=steps, marks=marks)] + [dict(scans=scans[k : k + 8]) for k in range(0, len(scans), 8)]
         for seq, c in enumerate(chunks, 1):  # batches stay under the protocol's size limit
-            batches.append(P.decode_batch(P.encode_batch("mall", f"surveyor{i}", seq, **c)))
+            batches.append(C.BATCH.decode(_batch("mall", f"surveyor{i}", seq, **c)))
     st.persist(batches)
     v, n, relabelled = rebuild(st, "mall", tmp_path / "cache")
     assert v == 1 and n > 50 and relabelled == 6

@@ -4,7 +4,22 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
-from hybridloc.types import AbsoluteFix, ContainmentRegion, FixSource, ImuBlock, RfScan, StepEvent, Technology, Trajectory, Waypoints
+from hybridloc.types import (
+    RSSI_MAX_DBM,
+    RSSI_MIN_DBM,
+    AbsoluteFix,
+    ContainmentRegion,
+    Fix,
+    FixSource,
+    ImuBlock,
+    Pose,
+    RfScan,
+    StepEvent,
+    Technology,
+    Trajectory,
+    Waypoints,
+    rssi_in_range,
+)
 from hybridloc.units import bearing_deg_to_heading, heading_to_bearing_deg, wrap_angle
 
 
@@ -65,6 +80,43 @@ def test_rf_scan_range_and_immutability():
         s.rssi_dbm["cc"] = -50  # type: ignore[index]
     with pytest.raises(ValueError, match="outside"):
         RfScan(1.0, "wifi", {"aa": 100})  # UJIIndoorLoc's "not detected" must never pass as dBm
+
+
+def test_rssi_range_is_one_check_for_floats_and_arrays():
+    assert rssi_in_range(RSSI_MIN_DBM) and rssi_in_range(RSSI_MAX_DBM) and rssi_in_range(-61.5)
+    for bad in (RSSI_MIN_DBM - 1e-9, 1e-9, 100.0, math.nan, math.inf, -math.inf):
+        assert not rssi_in_range(bad), bad
+    np.testing.assert_array_equal(rssi_in_range(np.array([-130.0, 0.5, np.nan, -40.0])), [True, False, False, True])
+
+
+def test_fix_record_keeps_its_parts_consistent():
+    f = AbsoluteFix(2.0, [1.0, 2.0], np.diag([4.0, 9.0]), "wifi", "F1", 0.9)
+    region = ContainmentRegion("F1", Polygon([(0, 0), (4, 0), (4, 3), (0, 3)]), 0.95, 2.0)
+    a = Fix(f, region, {"F1": 0.9, "F2": 0.1})
+    assert a and a.t == 2.0 and a.floor_probs == {"F1": 0.9, "F2": 0.1} and a.reason == ""
+    with pytest.raises(TypeError):
+        a.floor_probs["F3"] = 0.0  # type: ignore[index]
+    none = Fix(None, reason="no known transmitter in the scan", t=3.0)
+    assert not none and none.t == 3.0
+    with pytest.raises(ValueError):
+        Fix(None, region)  # a region needs a fix
+    with pytest.raises(ValueError):
+        Fix(f, t=5.0)  # the answer's time is the fix's
+    with pytest.raises(ValueError):
+        Fix(f, reason="why")  # a reason is for "no fix"
+    import pickle
+
+    back = pickle.loads(pickle.dumps(a))
+    assert back.floor_probs == a.floor_probs and back.region.area.equals(region.area)
+
+
+def test_pose_covariance_is_optional_and_read_only():
+    p = Pose(1.0, 2.0, 3.0, "F1")
+    assert p.cov is None and p.pos_enu.tolist() == [2.0, 3.0]
+    q = Pose(1.0, 2.0, 3.0, None, [[1.0, 0.0], [0.0, 2.0]])
+    assert not q.cov.flags.writeable
+    with pytest.raises(ValueError):
+        Pose(1.0, 2.0, 3.0, None, np.eye(3))
 
 
 def test_absolute_fix_checks_covariance():

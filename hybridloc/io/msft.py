@@ -57,14 +57,13 @@ from shapely.geometry import MultiPolygon, Polygon, shape
 
 from ..geo import GeodeticOrigin
 from ..types import (
-    RSSI_MAX_DBM,
-    RSSI_MIN_DBM,
     Floor,
     FloorPlan,
     ImuBlock,
     RfScan,
     Technology,
     Waypoints,
+    rssi_in_range,
 )
 from ..units import DEG, MHZ_TO_HZ, MS_TO_S, UT_TO_T
 from .common import DataFormatError, OnError, ReadReport, iter_lines, sort_unique
@@ -210,7 +209,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
             except ValueError:
                 report.problem(lineno, "malformed-line", "TYPE_WIFI numbers")
                 continue
-            if not (math.isfinite(rssi) and RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM):
+            if not rssi_in_range(rssi):
                 report.problem(lineno, "rssi-out-of-range", f"{rssi_s} dBm")
                 continue
             bssid = bssid.strip().lower()
@@ -232,7 +231,7 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
             except ValueError:
                 report.problem(lineno, "malformed-line", "TYPE_BEACON rssi")
                 continue
-            if not (math.isfinite(rssi) and RSSI_MIN_DBM <= rssi <= RSSI_MAX_DBM):
+            if not rssi_in_range(rssi):
                 report.problem(lineno, "rssi-out-of-range", f"{f[5]} dBm")
                 continue
             ble.append((t, f"{f[1]}_{f[2]}_{f[3]}_{f[7].strip()}".lower().rstrip("_"), rssi))

@@ -18,7 +18,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ..types import RSSI_MAX_DBM, RSSI_MIN_DBM, RfScan, Technology
+from ..types import RSSI_MAX_DBM, RSSI_MIN_DBM, RfScan, Technology, rssi_in_range
 from .common import DataFormatError, OnError, ReadReport, iter_lines
 
 NOT_DETECTED = 100.0
@@ -93,7 +93,7 @@ def iter_uji_rows(path: str | os.PathLike, report: ReadReport) -> Iterator[tuple
             report.problem(lineno, "non-finite", "NaN or infinity")
             continue
         rssi = vals[:n_wap]
-        bad = (rssi != NOT_DETECTED) & ((rssi < RSSI_MIN_DBM) | (rssi > RSSI_MAX_DBM))
+        bad = (rssi != NOT_DETECTED) & ~rssi_in_range(rssi)
         if bad.any():
             report.problem(lineno, "rssi-out-of-range", f"{int(bad.sum())} values outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}] dBm and not {NOT_DETECTED:g}")
             continue

@@ -22,16 +22,18 @@ Batches carry a per-device sequence number starting at 1. The server persists ba
 ``n - 1`` is persisted (go-back-N): a lower or equal number is a ``duplicate`` (acknowledged again), a
 higher one is ``out-of-order`` (rejected; the ack tells the client where to resume). After persisting,
 the server publishes the highest persisted sequence number on the device's ``ack`` key.
+
+Every message's bytes come from one symmetric codec in :mod:`.codecs` (``encode(record) -> bytes``,
+``decode(bytes) -> record``; validation in the decoders, refusals as :class:`Rejected`); the records
+are in :mod:`hybridloc.types` and :mod:`.messages`.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import re
-from dataclasses import dataclass, field
+import warnings
 
-from ..types import RSSI_MAX_DBM, RSSI_MIN_DBM, StepEvent
+from .messages import Batch  # noqa: F401 - the batch record, importable from here as it always was
 
 PREFIX = "hl/v1"
 BATCH_SCHEMA = "hybridloc.batch/1"
@@ -110,178 +112,74 @@ class Rejected(ValueError):
         super().__init__(f"{reason}: {detail}" if detail else reason)
 
 
-@dataclass(frozen=True)
-class ScanRecord:
-    t: float
-    technology: str
-    rssi: dict
-    frequency: dict = field(default_factory=dict)
-    age: dict = field(default_factory=dict)  # transmitter -> seconds since the reading was taken (Android's cache)
+# ---------------------------------------------------------------------------------------------- deprecated
+def _encode_batch(site: str, device: str, seq: int, steps=(), scans=(), marks=(), device_model: str = "", sent_at: float = 0.0) -> bytes:
+    from .codecs import BATCH
+
+    return BATCH.encode(Batch(site, device, seq, device_model, steps, scans, marks, sent_at))
 
 
-@dataclass(frozen=True)
-class MarkRecord:
-    """A survey mark: the operator says "I am at (x, y) on floor" at time t."""
+def _decode_batch(payload: bytes, key_site: str | None = None, key_device: str | None = None) -> Batch:
+    from .codecs import BATCH
 
-    t: float
-    x: float
-    y: float
-    floor: str
+    return BATCH.decode(payload, key_site, key_device)
 
 
-@dataclass(frozen=True)
-class Batch:
-    site: str
-    device: str
-    seq: int
-    device_model: str
-    steps: tuple[StepEvent, ...]
-    scans: tuple[ScanRecord, ...]
-    marks: tuple[MarkRecord, ...]
-    sent_at: float
+def _encode_ack(device: str, seq: int) -> bytes:
+    from .codecs import ACK
+    from .messages import Ack
 
-    def to_json(self) -> bytes:
-        return encode_batch(self.site, self.device, self.seq, self.steps, self.scans, self.marks, self.device_model, self.sent_at)
+    return ACK.encode(Ack(device, seq))
 
 
-def _finite(v, what: str) -> float:
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        raise Rejected("bad-value", f"{what} is not a number") from None
-    if not math.isfinite(x):
-        raise Rejected("non-finite", what)
-    return x
+def _decode_ack(payload: bytes) -> int:
+    from .codecs import ACK
+
+    return ACK.decode(payload).acked_seq
 
 
-def step_to_dict(s: StepEvent) -> dict:
-    d = {"t": s.t, "length": s.length, "heading": s.heading, "sigma_length": s.sigma_length, "sigma_heading": s.sigma_heading}
-    if s.heading_change is not None:
-        d["heading_change"] = s.heading_change
-        d["sigma_heading_change"] = s.sigma_heading_change
-    if s.height_change:
-        d["height_change"] = s.height_change
-        d["sigma_height_change"] = s.sigma_height_change
-    if s.floor_change:
-        d["floor_change"] = s.floor_change
-    if s.degraded:
-        d["degraded"] = s.degraded
-    return d
+def _fix_to_dict(fix, region=None, reason: str = "", t: float | None = None) -> dict:
+    import json
+
+    from ..types import Fix
+    from .codecs import FIX
+
+    return json.loads(FIX.encode(Fix(None, reason=reason, t=t) if fix is None else Fix(fix, region)))
 
 
-def encode_batch(site: str, device: str, seq: int, steps=(), scans=(), marks=(), device_model: str = "", sent_at: float = 0.0) -> bytes:
-    msg = {
-        "schema": BATCH_SCHEMA, "site": site, "device": device, "seq": int(seq), "device_model": device_model, "sent_at": sent_at,
-        "steps": [step_to_dict(s) for s in steps],
-        "scans": [{"t": s.t, "tech": s.technology, "rssi": dict(s.rssi), **({"freq": dict(s.frequency)} if s.frequency else {}),
-                   **({"age": dict(s.age)} if s.age else {})} for s in scans],
-        "marks": [{"t": m.t, "x": m.x, "y": m.y, "floor": m.floor} for m in marks],
+def _fix_from_dict(d: dict):
+    import json
+
+    from .codecs import FIX
+
+    a = FIX.decode(json.dumps(d).encode())
+    return a.fix, (d.get("region") if a.fix is not None else None), a.reason
+
+
+def _deprecated():
+    from ..types import RfScan, SurveyMark
+    from .codecs import step_to_dict
+
+    return {
+        "ScanRecord": (RfScan, "hybridloc.types.RfScan (rssi_dbm, frequency_hz, age_s)"),
+        "MarkRecord": (SurveyMark, "hybridloc.types.SurveyMark"),
+        "encode_batch": (_encode_batch, "hybridloc.wire.codecs.BATCH.encode(Batch(...))"),
+        "decode_batch": (_decode_batch, "hybridloc.wire.codecs.BATCH.decode(payload, site, device)"),
+        "encode_ack": (_encode_ack, "hybridloc.wire.codecs.ACK.encode(Ack(device, seq))"),
+        "decode_ack": (_decode_ack, "hybridloc.wire.codecs.ACK.decode(payload).acked_seq"),
+        "fix_to_dict": (_fix_to_dict, "hybridloc.wire.codecs.FIX.encode(Fix(...))"),
+        "fix_from_dict": (_fix_from_dict, "hybridloc.wire.codecs.FIX.decode(payload)"),
+        "step_to_dict": (step_to_dict, "hybridloc.wire.codecs.step_to_dict"),
     }
-    return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
-def decode_batch(payload: bytes, key_site: str | None = None, key_device: str | None = None) -> Batch:
-    """Validate a batch payload; raise :class:`Rejected` with a countable reason otherwise."""
-    if len(payload) > MAX_BATCH_BYTES:
-        raise Rejected("too-large", f"{len(payload)} bytes > {MAX_BATCH_BYTES}")
-    try:
-        msg = json.loads(payload.decode("utf-8"), parse_constant=lambda c: (_ for _ in ()).throw(Rejected("non-finite", c)))
-    except Rejected:
-        raise
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise Rejected("malformed-json", str(exc)[:80]) from None
-    if not isinstance(msg, dict):
-        raise Rejected("malformed-json", "not an object")
-    if msg.get("schema") != BATCH_SCHEMA:
-        raise Rejected("schema-version", f"expected {BATCH_SCHEMA}, got {msg.get('schema')!r}")
-    try:
-        site, device = check_id(msg.get("site"), "site"), check_id(msg.get("device"), "device")
-    except ValueError as exc:
-        raise Rejected("bad-id", str(exc)) from None
-    if (key_site is not None and site != key_site) or (key_device is not None and device != key_device):
-        raise Rejected("key-mismatch", f"payload says {site}/{device}, key says {key_site}/{key_device}")
-    seq = msg.get("seq")
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1:
-        raise Rejected("bad-seq", repr(seq))
-    steps_in, scans_in, marks_in = msg.get("steps") or [], msg.get("scans") or [], msg.get("marks") or []
-    if not all(isinstance(x, list) for x in (steps_in, scans_in, marks_in)):
-        raise Rejected("malformed-json", "steps, scans and marks must be lists")
-    if len(steps_in) + len(scans_in) + len(marks_in) > MAX_BATCH_ITEMS:
-        raise Rejected("too-large", f"more than {MAX_BATCH_ITEMS} items")
-    steps = []
-    try:
-        for s in steps_in:
-            hc = s.get("heading_change")
-            steps.append(StepEvent(
-                _finite(s["t"], "step t"), _finite(s["length"], "length"), _finite(s["heading"], "heading"),
-                _finite(s["sigma_length"], "sigma_length"), _finite(s["sigma_heading"], "sigma_heading"),
-                None if hc is None else _finite(hc, "heading_change"),
-                None if s.get("sigma_heading_change") is None else _finite(s["sigma_heading_change"], "sigma_heading_change"),
-                _finite(s.get("height_change", 0.0), "height_change"), _finite(s.get("sigma_height_change", 0.0), "sigma_height_change"),
-                int(s.get("floor_change", 0)), str(s.get("degraded", ""))[:32],
-            ))
-        scans = []
-        for s in scans_in:
-            rssi = s["rssi"]
-            if not isinstance(rssi, dict) or not rssi:
-                raise Rejected("bad-scan", "rssi must be a non-empty object")
-            clean = {}
-            for k, v in rssi.items():
-                r = _finite(v, "rssi")
-                if not RSSI_MIN_DBM <= r <= RSSI_MAX_DBM:
-                    raise Rejected("rssi-out-of-range", f"{r} dBm")
-                clean[str(k)[:64]] = r
-            tech = s.get("tech", "wifi")
-            if tech not in ("wifi", "ble", "rfid"):
-                raise Rejected("bad-scan", f"technology {tech!r}")
-            freq = {str(k)[:64]: _finite(v, "freq") for k, v in (s.get("freq") or {}).items()}
-            age = {str(k)[:64]: _finite(v, "age") for k, v in (s.get("age") or {}).items()}
-            scans.append(ScanRecord(_finite(s["t"], "scan t"), tech, clean, freq, age))
-        marks = [MarkRecord(_finite(m["t"], "mark t"), _finite(m["x"], "x"), _finite(m["y"], "y"), str(m.get("floor", ""))[:32]) for m in marks_in]
-    except Rejected:
-        raise
-    except (KeyError, TypeError, AttributeError) as exc:
-        raise Rejected("malformed-json", f"missing or wrong field {exc}") from None
-    except ValueError as exc:  # StepEvent's own checks (negative sigma ...)
-        raise Rejected("bad-value", str(exc)) from None
-    return Batch(site, device, seq, str(msg.get("device_model", ""))[:64], tuple(steps), tuple(scans), tuple(marks), float(msg.get("sent_at") or 0.0))
+_DEPRECATED = ("ScanRecord", "MarkRecord", "encode_batch", "decode_batch", "encode_ack", "decode_ack", "fix_to_dict", "fix_from_dict", "step_to_dict")
 
 
-def encode_ack(device: str, seq: int) -> bytes:
-    return json.dumps({"schema": ACK_SCHEMA, "device": device, "acked_seq": int(seq)}).encode()
-
-
-def decode_ack(payload: bytes) -> int:
-    msg = json.loads(payload)
-    if msg.get("schema") != ACK_SCHEMA:
-        raise ValueError("not an ack")
-    return int(msg["acked_seq"])
-
-
-def fix_to_dict(fix, region=None, reason: str = "", t: float | None = None) -> dict:
-    """A fix message; with ``fix`` None a "no fix" answer giving ``reason`` (and the scan time ``t``)."""
-    if fix is None:
-        d = {"schema": FIX_SCHEMA, "fix": None, "reason": reason}
-        if t is not None:
-            d["t"] = float(t)
-        return d
-    d = {"schema": FIX_SCHEMA, "fix": {"t": fix.t, "x": float(fix.pos_enu[0]), "y": float(fix.pos_enu[1]), "cov": fix.cov[:2, :2].tolist(),
-                                       "floor": fix.floor, "floor_prob": fix.floor_prob, "source": fix.source.value}}
-    if region is not None:
-        from shapely.geometry import mapping
-
-        d["region"] = {"floor": region.floor, "mass": region.mass, "geometry": mapping(region.area)}
-    return d
-
-
-def fix_from_dict(d: dict):
-    """(AbsoluteFix or None, region geometry dict or None, reason)."""
-    from ..types import AbsoluteFix
-
-    if d.get("schema") != FIX_SCHEMA:
-        raise ValueError("not a fix message")
-    f = d.get("fix")
-    if f is None:
-        return None, None, d.get("reason", "")
-    fix = AbsoluteFix(float(f["t"]), [f["x"], f["y"]], f["cov"], f["source"], f.get("floor"), float(f.get("floor_prob", 1.0)))
-    return fix, d.get("region"), ""
+def __getattr__(name: str):
+    """The names this module had before the codecs, still importable (with a DeprecationWarning)."""
+    if name not in _DEPRECATED:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    obj, use = _deprecated()[name]
+    warnings.warn(f"hybridloc.wire.protocol.{name} is deprecated: use {use}", DeprecationWarning, stacklevel=2)
+    return obj

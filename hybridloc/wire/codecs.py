@@ -1,0 +1,423 @@
+"""One symmetric codec per wire message: ``encode(record) -> bytes``, ``decode(bytes) -> record``.
+
+=====================  ===========================  =====================================================
+codec                  record                       message
+=====================  ===========================  =====================================================
+:data:`BATCH`          :class:`.messages.Batch`     ``hybridloc.batch/1``, client -> server
+:data:`ACK`            :class:`.messages.Ack`       ``hybridloc.ack/1``, server -> client
+:data:`FIX`            :class:`~hybridloc.types.Fix`  ``hybridloc.fix/1``, server -> client (push, locate reply)
+:data:`POSE`           :class:`~hybridloc.types.Pose`  ``hybridloc.pose/1``, client -> anyone
+:data:`LOCATE`         :class:`.messages.LocateRequest`  ``hybridloc.locate/1``, client -> server (get)
+:data:`STATUS`         :class:`.messages.Status`    ``hybridloc.status/1``, server reply
+:data:`MAP_INFO`       :class:`.messages.MapInfo`   the attachment of a ``map`` reply (its payload is npz bytes)
+=====================  ===========================  =====================================================
+
+Validation lives in the decoders, and only there: a refused payload raises
+:class:`~.protocol.Rejected` with a stable, countable reason (listed in docs/protocol.md); nothing else
+escapes a decoder, whatever the bytes. Encoders trust their records.
+
+The bytes are the ones hybridloc has always sent, so old clients and spooled batches keep working:
+JSON in UTF-8, a batch with compact separators (``","``, ``":"``), every other message with
+``json.dumps``' defaults (``", "``, ``": "``), keys in the order below. Optional keys are left out
+when empty. A few records cannot say everything their types can: a step's ``sigma_height_change``
+travels only with a non-zero ``height_change`` and ``sigma_heading_change`` only with a
+``heading_change``; transmitter ids and the device model are cut at 64 characters, a mark's floor and ``degraded``
+at 32; a fix is 2-D; a region's time is its fix's.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Generic, Mapping, TypeVar
+
+import numpy as np
+
+from ..types import AbsoluteFix, ContainmentRegion, Fix, Pose, RfScan, StepEvent, SurveyMark, Technology, rssi_in_range
+from .messages import Ack, Batch, LocateRequest, MapInfo, Status
+from .protocol import (
+    ACK_SCHEMA,
+    BATCH_SCHEMA,
+    FIX_SCHEMA,
+    LOCATE_SCHEMA,
+    MAX_BATCH_BYTES,
+    MAX_BATCH_ITEMS,
+    POSE_SCHEMA,
+    STATUS_SCHEMA,
+    Rejected,
+    check_id,
+    encoding,
+)
+
+R = TypeVar("R")
+
+#: Largest accepted locate or pose payload, bytes (what a batch may be).
+MAX_MESSAGE_BYTES = MAX_BATCH_BYTES
+
+
+# ---------------------------------------------------------------------------------------------- decoding helpers
+def _reject_constant(name: str):
+    raise Rejected("non-finite", name)
+
+
+def _load(payload: bytes, schema: str | None, max_bytes: int | None = None) -> dict:
+    """The JSON object of ``payload`` whose ``schema`` is ``schema`` (None: no schema key)."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise Rejected("malformed-json", f"payload is {type(payload).__name__}, not bytes")
+    payload = bytes(payload)
+    if max_bytes is not None and len(payload) > max_bytes:
+        raise Rejected("too-large", f"{len(payload)} bytes > {max_bytes}")
+    try:
+        msg = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)  # NaN, Infinity, -Infinity
+    except Rejected:
+        raise
+    except (ValueError, RecursionError) as exc:  # bad UTF-8 or JSON, an integer past Python's digit limit, nesting too deep
+        raise Rejected("malformed-json", str(exc)[:80]) from None
+    if not isinstance(msg, dict):
+        raise Rejected("malformed-json", "not an object")
+    if schema is not None and msg.get("schema") != schema:
+        raise Rejected("schema-version", f"expected {schema}, got {msg.get('schema')!r}")
+    return msg
+
+
+def _finite(v: Any, what: str) -> float:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise Rejected("bad-value", f"{what} is not a number") from None
+    except OverflowError:  # an integer too large for a float
+        raise Rejected("non-finite", what) from None
+    if not math.isfinite(x):
+        raise Rejected("non-finite", what)
+    return x
+
+
+def _integer(v: Any, what: str) -> int:
+    x = _finite(v, what)
+    if x != int(x):
+        raise Rejected("bad-value", f"{what} {v!r} is not an integer")
+    return int(x)
+
+
+def _object(v: Any, what: str) -> dict:
+    if not isinstance(v, dict):
+        raise Rejected("malformed-json", f"{what} must be an object")
+    return v
+
+
+def _text(v: Any, n: int) -> str:
+    return "" if v is None else str(v)[:n]
+
+
+def _floor(v: Any) -> str | None:
+    return None if v is None else str(v)
+
+
+def _matrix2(v: Any, what: str) -> np.ndarray:
+    if not (isinstance(v, list) and len(v) == 2 and all(isinstance(r, list) and len(r) == 2 for r in v)):
+        raise Rejected("bad-value", f"{what} must be 2x2")
+    return np.array([[_finite(x, what) for x in r] for r in v])
+
+
+def _dumps(msg: dict, compact: bool = False) -> bytes:
+    if compact:
+        return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    return json.dumps(msg).encode()
+
+
+# ---------------------------------------------------------------------------------------------- shared parts
+def step_to_dict(s: StepEvent) -> dict:
+    """A step as the wire writes it (optional fields only when set)."""
+    d = {"t": s.t, "length": s.length, "heading": s.heading, "sigma_length": s.sigma_length, "sigma_heading": s.sigma_heading}
+    if s.heading_change is not None:
+        d["heading_change"] = s.heading_change
+        d["sigma_heading_change"] = s.sigma_heading_change
+    if s.height_change:
+        d["height_change"] = s.height_change
+        d["sigma_height_change"] = s.sigma_height_change
+    if s.floor_change:
+        d["floor_change"] = s.floor_change
+    if s.degraded:
+        d["degraded"] = s.degraded
+    return d
+
+
+def _step_from(s: dict) -> StepEvent:
+    hc, shc = s.get("heading_change"), s.get("sigma_heading_change")
+    return StepEvent(
+        _finite(s["t"], "step t"), _finite(s["length"], "length"), _finite(s["heading"], "heading"),
+        _finite(s["sigma_length"], "sigma_length"), _finite(s["sigma_heading"], "sigma_heading"),
+        None if hc is None else _finite(hc, "heading_change"), None if shc is None else _finite(shc, "sigma_heading_change"),
+        _finite(s.get("height_change", 0.0), "height_change"), _finite(s.get("sigma_height_change", 0.0), "sigma_height_change"),
+        _integer(s.get("floor_change", 0), "floor_change"), _text(s.get("degraded", ""), 32),
+    )  # fmt: skip
+
+
+def scan_to_dict(s: RfScan) -> dict:
+    """A scan as the wire writes it: readings by transmitter id; frequencies and ages only when known."""
+    d = {"t": s.t, "tech": s.technology.value, "rssi": dict(s.rssi_dbm)}
+    if s.frequency_hz:
+        d["freq"] = dict(s.frequency_hz)
+    if s.age_s:
+        d["age"] = dict(s.age_s)
+    return d
+
+
+def _readings(v: Any, what: str) -> dict[str, float]:
+    return {str(k)[:64]: _finite(x, what) for k, x in _object(v or {}, what).items()}
+
+
+def _scan_from(s: dict, device_model: str, allow_empty: bool = False) -> RfScan:
+    rssi = s["rssi"]
+    if not isinstance(rssi, dict) or not (rssi or allow_empty):
+        raise Rejected("bad-scan", "rssi must be a non-empty object")
+    clean = {}
+    for k, v in rssi.items():
+        r = _finite(v, "rssi")
+        if not rssi_in_range(r):
+            raise Rejected("rssi-out-of-range", f"{r} dBm")
+        clean[str(k)[:64]] = r
+    tech = s.get("tech", "wifi")
+    if tech not in ("wifi", "ble", "rfid"):
+        raise Rejected("bad-scan", f"technology {tech!r}")
+    freq, age = _readings(s.get("freq"), "freq"), _readings(s.get("age"), "age")
+    return RfScan(_finite(s["t"], "scan t"), Technology(tech), clean, freq, age, device_model)
+
+
+def _structure(fn, *args):
+    """``fn(*args)``, its missing or mistyped fields turned into ``malformed-json`` and its records'
+    own checks (a negative sigma, a covariance not positive definite ...) into ``bad-value``."""
+    try:
+        return fn(*args)
+    except Rejected:
+        raise
+    except (KeyError, TypeError, AttributeError, IndexError) as exc:
+        raise Rejected("malformed-json", f"missing or wrong field {exc}") from None
+    except ValueError as exc:
+        raise Rejected("bad-value", str(exc)[:120]) from None
+
+
+# ---------------------------------------------------------------------------------------------- codecs
+class Codec(Generic[R]):
+    """``encode(record) -> bytes``, ``decode(bytes) -> record``; ``decode(encode(r))`` equals ``r``."""
+
+    schema: str = ""
+
+    @property
+    def encoding(self) -> str:
+        """The Zenoh encoding of the payload."""
+        return encoding(self.schema)
+
+    def encode(self, record: R) -> bytes:
+        raise NotImplementedError
+
+    def decode(self, payload: bytes) -> R:
+        raise NotImplementedError
+
+
+class BatchCodec(Codec[Batch]):
+    schema = BATCH_SCHEMA
+
+    def encode(self, b: Batch) -> bytes:
+        msg = {
+            "schema": BATCH_SCHEMA, "site": b.site, "device": b.device, "seq": int(b.seq), "device_model": b.device_model, "sent_at": b.sent_at,
+            "steps": [step_to_dict(s) for s in b.steps],
+            "scans": [scan_to_dict(s) for s in b.scans],
+            "marks": [{"t": m.t, "x": m.x, "y": m.y, "floor": m.floor} for m in b.marks],
+        }  # fmt: skip
+        return _dumps(msg, compact=True)
+
+    def decode(self, payload: bytes, site: str | None = None, device: str | None = None) -> Batch:
+        """The batch in ``payload``; ``site``/``device``: the ids its key names (``key-mismatch`` otherwise)."""
+        msg = _load(payload, BATCH_SCHEMA, MAX_BATCH_BYTES)
+        try:
+            b_site, b_device = check_id(msg.get("site"), "site"), check_id(msg.get("device"), "device")
+        except ValueError as exc:
+            raise Rejected("bad-id", str(exc)) from None
+        if (site is not None and b_site != site) or (device is not None and b_device != device):
+            raise Rejected("key-mismatch", f"payload says {b_site}/{b_device}, key says {site}/{device}")
+        seq = msg.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1:
+            raise Rejected("bad-seq", repr(seq))
+        steps_in, scans_in, marks_in = msg.get("steps") or [], msg.get("scans") or [], msg.get("marks") or []
+        if not all(isinstance(x, list) for x in (steps_in, scans_in, marks_in)):
+            raise Rejected("malformed-json", "steps, scans and marks must be lists")
+        if len(steps_in) + len(scans_in) + len(marks_in) > MAX_BATCH_ITEMS:
+            raise Rejected("too-large", f"more than {MAX_BATCH_ITEMS} items")
+        model = _text(msg.get("device_model", ""), 64)
+
+        def items():
+            steps = tuple(_step_from(s) for s in steps_in)
+            scans = tuple(_scan_from(s, model) for s in scans_in)
+            marks = tuple(SurveyMark(_finite(m["t"], "mark t"), _finite(m["x"], "x"), _finite(m["y"], "y"), _text(m.get("floor", ""), 32))
+                          for m in marks_in)
+            return steps, scans, marks
+
+        steps, scans, marks = _structure(items)
+        return Batch(b_site, b_device, seq, model, steps, scans, marks, _finite(msg.get("sent_at") or 0.0, "sent_at"))
+
+
+class AckCodec(Codec[Ack]):
+    schema = ACK_SCHEMA
+
+    def encode(self, a: Ack) -> bytes:
+        return _dumps({"schema": ACK_SCHEMA, "device": a.device, "acked_seq": int(a.acked_seq)})
+
+    def decode(self, payload: bytes) -> Ack:
+        msg = _load(payload, ACK_SCHEMA)
+        try:
+            device = check_id(msg.get("device"), "device")
+        except ValueError as exc:
+            raise Rejected("bad-id", str(exc)) from None
+        seq = msg.get("acked_seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+            raise Rejected("bad-seq", repr(seq))
+        return Ack(device, seq)
+
+
+class FixCodec(Codec[Fix]):
+    schema = FIX_SCHEMA
+
+    def encode(self, a: Fix) -> bytes:
+        fix = a.fix
+        if fix is None:
+            d = {"schema": FIX_SCHEMA, "fix": None, "reason": a.reason}
+            if a.t is not None:
+                d["t"] = float(a.t)
+            return _dumps(d)
+        d = {"schema": FIX_SCHEMA, "fix": {"t": fix.t, "x": float(fix.pos_enu[0]), "y": float(fix.pos_enu[1]), "cov": fix.cov[:2, :2].tolist(),
+                                           "floor": fix.floor, "floor_prob": fix.floor_prob, "source": fix.source.value}}
+        if a.region is not None:
+            from shapely.geometry import mapping
+
+            d["region"] = {"floor": a.region.floor, "mass": a.region.mass, "geometry": mapping(a.region.area)}
+        if a.floor_probs:
+            d["floor_probs"] = dict(a.floor_probs)
+        return _dumps(d)
+
+    def decode(self, payload: bytes) -> Fix:
+        msg = _load(payload, FIX_SCHEMA)
+        f = msg.get("fix")
+        if f is None:
+            t = msg.get("t")
+            return Fix(None, reason=_text(msg.get("reason", ""), 1000), t=None if t is None else _finite(t, "t"))
+        return _structure(self._fix, _object(f, "fix"), msg)
+
+    @staticmethod
+    def _fix(f: dict, msg: dict) -> Fix:
+        t = _finite(f["t"], "fix t")
+        fix = AbsoluteFix(t, [_finite(f["x"], "x"), _finite(f["y"], "y")], _matrix2(f["cov"], "cov"), f["source"], _floor(f.get("floor")),
+                          _finite(f.get("floor_prob", 1.0), "floor_prob"))
+        region = None
+        if msg.get("region") is not None:
+            r = _object(msg["region"], "region")
+            region = ContainmentRegion(_floor(r.get("floor")), _geometry(r["geometry"]), _finite(r["mass"], "mass"), t)
+        probs = {}
+        for k, v in _object(msg.get("floor_probs") or {}, "floor_probs").items():
+            p = _finite(v, "floor_probs")
+            if not 0.0 <= p <= 1.0:
+                raise Rejected("bad-value", f"floor probability {p} outside [0, 1]")
+            probs[str(k)[:32]] = p
+        return Fix(fix, region, probs)
+
+
+def _geometry(g: Any):
+    """A (Multi)Polygon from its GeoJSON mapping."""
+    import shapely
+    from shapely.geometry import shape
+
+    if not isinstance(g, dict) or g.get("type") not in ("Polygon", "MultiPolygon"):
+        raise Rejected("bad-value", "region geometry must be a GeoJSON Polygon or MultiPolygon")
+    try:
+        area = shape(g)
+        coords = shapely.get_coordinates(area)
+    except Exception as exc:  # noqa: BLE001 - shapely raises several kinds on bad coordinates
+        raise Rejected("bad-value", f"region geometry: {str(exc)[:80]}") from None
+    if not np.all(np.isfinite(coords)):
+        raise Rejected("non-finite", "region geometry")
+    return area
+
+
+class PoseCodec(Codec[Pose]):
+    schema = POSE_SCHEMA
+
+    def encode(self, p: Pose) -> bytes:
+        d = {"schema": POSE_SCHEMA, "t": p.t, "x": p.x, "y": p.y, "floor": p.floor}
+        if p.cov is not None:
+            d["cov"] = p.cov.tolist()
+        return _dumps(d)
+
+    def decode(self, payload: bytes) -> Pose:
+        msg = _load(payload, POSE_SCHEMA, MAX_MESSAGE_BYTES)
+
+        def pose():
+            cov = None
+            if msg.get("cov") is not None:
+                cov = _matrix2(msg["cov"], "cov")
+                if cov[0, 0] < 0 or cov[1, 1] < 0:
+                    raise Rejected("bad-value", "cov: negative variance")
+            return Pose(_finite(msg["t"], "t"), _finite(msg["x"], "x"), _finite(msg["y"], "y"), _floor(msg.get("floor")), cov)
+
+        return _structure(pose)
+
+
+class LocateCodec(Codec[LocateRequest]):
+    schema = LOCATE_SCHEMA
+
+    def encode(self, q: LocateRequest) -> bytes:
+        d = {"schema": LOCATE_SCHEMA, "scan": scan_to_dict(q.scan)}
+        if q.scan.device_model:
+            d["device_model"] = q.scan.device_model
+        return _dumps(d)
+
+    def decode(self, payload: bytes) -> LocateRequest:
+        """A scan without readings is taken (its answer is "no fix")."""
+        msg = _load(payload, LOCATE_SCHEMA, MAX_MESSAGE_BYTES)
+        return LocateRequest(_structure(_scan_from, _object(msg.get("scan"), "scan"), _text(msg.get("device_model", ""), 64), True))
+
+
+class StatusCodec(Codec[Status]):
+    schema = STATUS_SCHEMA
+
+    def encode(self, s: Status) -> bytes:
+        return _dumps({"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)})
+
+    def decode(self, payload: bytes) -> Status:
+        msg = _load(payload, STATUS_SCHEMA)
+        online = msg.get("online", [])
+        if not (isinstance(online, list) and all(isinstance(d, str) for d in online)):
+            raise Rejected("malformed-json", "online must be a list of device ids")
+        counts, maps = _object(msg.get("counts", {}), "counts"), _object(msg.get("maps_loaded", {}), "maps_loaded")
+        for what, m in (("counts", counts), ("maps_loaded", maps)):
+            if not all(isinstance(v, int) and not isinstance(v, bool) for v in m.values()):
+                raise Rejected("bad-value", f"{what} must be integers")
+        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps)
+
+
+class MapInfoCodec(Codec[MapInfo]):
+    """The ``map`` reply's attachment (no schema key: ``{"site", "version"}``)."""
+
+    def encode(self, m: MapInfo) -> bytes:
+        return _dumps({"site": m.site, "version": int(m.version)})
+
+    def decode(self, payload: bytes) -> MapInfo:
+        msg = _load(payload, None)
+        try:
+            site = check_id(msg.get("site"), "site")
+        except ValueError as exc:
+            raise Rejected("bad-id", str(exc)) from None
+        v = msg.get("version")
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise Rejected("bad-value", f"map version {v!r}")
+        return MapInfo(site, v)
+
+
+BATCH = BatchCodec()
+ACK = AckCodec()
+FIX = FixCodec()
+POSE = PoseCodec()
+LOCATE = LocateCodec()
+STATUS = StatusCodec()
+MAP_INFO = MapInfoCodec()
+#: Every codec, by message name.
+CODECS: Mapping[str, Codec] = {"batch": BATCH, "ack": ACK, "fix": FIX, "pose": POSE, "locate": LOCATE, "status": STATUS, "map-info": MAP_INFO}

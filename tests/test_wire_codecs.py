@@ -1,0 +1,447 @@
+"""The wire codecs: round trips of every message (hypothesis), every rejection reason named by the
+decoder, nothing but ``Rejected`` escaping a decoder, and today's bytes (golden) so the wire cannot drift."""
+
+import json
+import math
+import re
+import warnings
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from hybridloc.types import (
+    RSSI_MAX_DBM,
+    RSSI_MIN_DBM,
+    AbsoluteFix,
+    ContainmentRegion,
+    Fix,
+    FixSource,
+    Pose,
+    RfScan,
+    StepEvent,
+    SurveyMark,
+    Technology,
+)
+from hybridloc.wire import codecs as C
+from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import Ack, Batch, LocateRequest, MapInfo, Status
+
+# derandomize: a fixed sequence of examples (seeded), the same on every run and machine; no example database in the tree
+SETTINGS = settings(derandomize=True, deadline=None, max_examples=60, database=None, suppress_health_check=[HealthCheck.too_slow])
+
+#: Reasons a decoder may give (docs/protocol.md; duplicate, out-of-order, bad-key and bad-locate are the server's).
+REASONS = {"malformed-json", "schema-version", "too-large", "non-finite", "bad-value", "bad-id", "bad-seq", "bad-scan", "rssi-out-of-range", "key-mismatch"}
+
+# ---------------------------------------------------------------------------------------------- strategies
+ids = st.from_regex(r"[A-Za-z0-9_.\-]{1,64}", fullmatch=True)
+finite = st.floats(allow_nan=False, allow_infinity=False)
+coord = st.floats(-1e6, 1e6, allow_nan=False)
+nonneg = st.floats(0.0, 1e3, allow_nan=False)
+prob = st.floats(0.0, 1.0, allow_nan=False)
+rssi = st.floats(RSSI_MIN_DBM, RSSI_MAX_DBM, allow_nan=False)
+tx = st.text(min_size=1, max_size=64)
+floor_names = st.text(max_size=32)
+
+
+@st.composite
+def steps(draw):
+    hc = draw(st.none() | st.floats(-10.0, 10.0))
+    height = draw(st.floats(-5.0, 5.0))
+    return StepEvent(draw(finite), draw(nonneg), draw(st.floats(-10.0, 10.0)), draw(nonneg), draw(nonneg),
+                     hc, None if hc is None else draw(st.none() | nonneg),
+                     # the wire sends a sigma only with its value (docs/protocol.md)
+                     height, draw(nonneg) if height else 0.0, draw(st.integers(-5, 5)), draw(st.text(max_size=32)))
+
+
+@st.composite
+def scans(draw, device_model=None, min_readings=1):
+    keys = draw(st.lists(tx, min_size=min_readings, max_size=6, unique=True))
+    some = st.lists(st.sampled_from(keys), unique=True) if keys else st.just([])
+    return RfScan(draw(finite), draw(st.sampled_from(list(Technology))), {k: draw(rssi) for k in keys},
+                  {k: draw(st.floats(1e8, 1e10)) for k in draw(some)}, {k: draw(finite) for k in draw(some)},
+                  draw(st.text(max_size=64)) if device_model is None else device_model)
+
+
+marks = st.builds(SurveyMark, finite, finite, finite, floor_names)
+
+
+@st.composite
+def batches(draw):
+    model = draw(st.text(max_size=64))
+    return Batch(draw(ids), draw(ids), draw(st.integers(1, 2**62)), model, draw(st.lists(steps(), max_size=4)),
+                 draw(st.lists(scans(model), max_size=4)), draw(st.lists(marks, max_size=3)), draw(finite))
+
+
+@st.composite
+def covariances(draw):
+    """2x2 symmetric positive definite: variances a, b and a correlation |r| <= 0.9."""
+    a, b, r = draw(st.floats(1e-2, 1e4)), draw(st.floats(1e-2, 1e4)), draw(st.floats(-0.9, 0.9))
+    c = r * math.sqrt(a * b)
+    return np.array([[a, c], [c, b]])
+
+
+@st.composite
+def regions(draw, t):
+    boxes = [shapely.box(x, y, x + w, y + h) for x, y, w, h in draw(st.lists(st.tuples(coord, coord, st.floats(0.5, 50), st.floats(0.5, 50)), min_size=1, max_size=3))]
+    return ContainmentRegion(draw(st.none() | floor_names), shapely.union_all(boxes), draw(st.floats(0.01, 1.0)), t)
+
+
+@st.composite
+def fixes(draw):
+    if draw(st.booleans()):
+        return Fix(None, reason=draw(st.text(max_size=100)), t=draw(st.none() | finite))
+    t = draw(finite)
+    fix = AbsoluteFix(t, [draw(coord), draw(coord)], draw(covariances()), draw(st.sampled_from(list(FixSource))), draw(st.none() | floor_names), draw(prob))
+    return Fix(fix, draw(st.none() | regions(t)), draw(st.dictionaries(floor_names, prob, max_size=4)))
+
+
+@st.composite
+def poses(draw):
+    cov = draw(st.none() | st.tuples(nonneg, finite, finite, nonneg).map(lambda v: np.array([[v[0], v[1]], [v[2], v[3]]])))
+    return Pose(draw(finite), draw(finite), draw(finite), draw(st.none() | floor_names), cov)
+
+
+locates = st.builds(LocateRequest, scans(min_readings=0))
+acks = st.builds(Ack, ids, st.integers(0, 2**62))
+db_values = st.integers(0, 10**9) | st.dictionaries(st.text(max_size=16), st.integers(0, 10**9), max_size=4)
+statuses = st.builds(Status, st.lists(ids, max_size=5).map(lambda v: tuple(sorted(v))), st.dictionaries(st.text(max_size=32), st.integers(0, 10**9), max_size=6),
+                     st.dictionaries(st.text(max_size=16), db_values, max_size=6), st.dictionaries(ids, st.integers(1, 10**6), max_size=4))
+map_infos = st.builds(MapInfo, ids, st.integers(1, 10**9))
+
+MESSAGES = {"batch": batches(), "ack": acks, "fix": fixes(), "pose": poses(), "locate": locates, "status": statuses, "map-info": map_infos}
+
+
+# ---------------------------------------------------------------------------------------------- equality
+ULP_PI = math.ulp(math.pi)
+
+
+def _same(a, b, where="record"):
+    """Field by field: numbers and texts exactly, arrays and mappings by value, geometries exactly.
+
+    One exception: a step's heading is wrapped to (-pi, pi] again by the decoded StepEvent, and
+    (h + pi) mod 2 pi - pi can move an already wrapped h by up to an ulp of 2 pi (one rounding in the
+    sum, Sterbenz-exact difference)."""
+    if isinstance(a, StepEvent) and isinstance(b, StepEvent):
+        for name in a.__dataclass_fields__:
+            x, y = getattr(a, name), getattr(b, name)
+            if name in ("heading", "heading_change") and x is not None and y is not None:
+                assert abs(x - y) <= 2 * ULP_PI, (where, name, x, y)
+            else:
+                _same(x, y, f"{where}.{name}")
+        return
+    if hasattr(a, "__dataclass_fields__"):
+        assert type(a) is type(b), (where, type(a), type(b))
+        for name in a.__dataclass_fields__:
+            _same(getattr(a, name), getattr(b, name), f"{where}.{name}")
+    elif isinstance(a, shapely.Geometry):
+        assert shapely.equals_exact(a, b, tolerance=0.0), where
+    elif isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        assert a is not None and b is not None and np.array_equal(np.asarray(a), np.asarray(b)), (where, a, b)
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b), (where, a, b)
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float) and math.isnan(a):
+        assert math.isnan(b), where
+    else:
+        assert a == b or (hasattr(a, "keys") and dict(a) == dict(b)), (where, a, b)
+
+
+# ---------------------------------------------------------------------------------------------- round trips
+@pytest.mark.parametrize("name", sorted(MESSAGES))
+def test_every_message_round_trips(name):
+    codec = C.CODECS[name]
+
+    @SETTINGS
+    @given(MESSAGES[name])
+    def check(record):
+        payload = codec.encode(record)
+        assert isinstance(payload, bytes)
+        back = codec.decode(payload)
+        _same(record, back)
+        again = codec.encode(back)
+        assert again == payload or name == "batch"  # a step heading may move by an ulp (see _same)
+        _same(back, codec.decode(again))
+
+    check()
+
+
+def test_every_message_has_a_codec():
+    assert set(C.CODECS) == set(MESSAGES)
+    for name, codec in C.CODECS.items():
+        if name != "map-info":  # an attachment, not a payload with a schema
+            assert codec.encoding == f"application/json;schema={codec.schema}"
+
+
+# ---------------------------------------------------------------------------------------------- golden bytes
+GOLDEN_BATCH = (
+    b'{"schema":"hybridloc.batch/1","site":"site1","device":"dev01","seq":17,"device_model":"OPPO PBCM10","sent_at":1700000000.0,'
+    b'"steps":[{"t":1700000000.5,"length":0.71,"heading":1.5700000000000003,"sigma_length":0.06,"sigma_heading":0.2,'
+    b'"heading_change":0.009999999999999787,"sigma_heading_change":0.02},{"t":1700000001.0,"length":0.65,"heading":-3.0,"sigma_length":0.05,'
+    b'"sigma_heading":0.25,"height_change":0.3,"sigma_height_change":0.05,"floor_change":1,"degraded":"mag-disturbed"}],'
+    b'"scans":[{"t":1700000001.0,"tech":"wifi","rssi":{"aa:bb:cc:dd:ee:ff":-61.0,"11:22:33:44:55:66":-80.5},"freq":{"aa:bb:cc:dd:ee:ff":2412000000.0},'
+    b'"age":{"aa:bb:cc:dd:ee:ff":1.2}},{"t":1700000001.5,"tech":"ble","rssi":{"uuid_1_2_mac":-70.0}}],'
+    b'"marks":[{"t":1700000002.0,"x":12.5,"y":40.0,"floor":"F1"}]}'
+)
+
+
+def _golden_batch() -> Batch:
+    steps = [StepEvent(1700000000.5, 0.71, 1.57, 0.06, 0.2, 0.01, 0.02),
+             StepEvent(1700000001.0, 0.65, -3.0, 0.05, 0.25, None, None, 0.3, 0.05, 1, "mag-disturbed")]
+    scans = [RfScan(1700000001.0, "wifi", {"aa:bb:cc:dd:ee:ff": -61.0, "11:22:33:44:55:66": -80.5}, {"aa:bb:cc:dd:ee:ff": 2412000000.0}, {"aa:bb:cc:dd:ee:ff": 1.2}),
+             RfScan(1700000001.5, "ble", {"uuid_1_2_mac": -70.0})]
+    return Batch("site1", "dev01", 17, "OPPO PBCM10", steps, scans, [SurveyMark(1700000002.0, 12.5, 40.0, "F1")], 1700000000.0)
+
+
+def _golden_fix() -> AbsoluteFix:
+    return AbsoluteFix(1700000001.0, [12.25, 40.5], [[4.0, 0.5], [0.5, 9.0]], "wifi", "F1", 0.875)
+
+
+FIX_PART = b'"fix": {"t": 1700000001.0, "x": 12.25, "y": 40.5, "cov": [[4.0, 0.5], [0.5, 9.0]], "floor": "F1", "floor_prob": 0.875, "source": "wifi"}'
+GOLDEN = [  # (record, the bytes hybridloc sent before the codecs, and sends now)
+    ("batch", _golden_batch, GOLDEN_BATCH),
+    ("ack", lambda: Ack("dev01", 17), b'{"schema": "hybridloc.ack/1", "device": "dev01", "acked_seq": 17}'),
+    ("fix", lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.Polygon([(10, 38), (15, 38), (15, 43), (10, 43)]), 0.95, 1700000001.0)),
+     b'{"schema": "hybridloc.fix/1", ' + FIX_PART + b', "region": {"floor": "F1", "mass": 0.95, "geometry": {"type": "MultiPolygon", "coordinates": '
+     b'[[[[10.0, 38.0], [15.0, 38.0], [15.0, 43.0], [10.0, 43.0], [10.0, 38.0]]]]}}}'),
+    ("fix", lambda: Fix(_golden_fix()), b'{"schema": "hybridloc.fix/1", ' + FIX_PART + b"}"),
+    ("fix", lambda: Fix(None, reason="no known transmitter in the scan", t=1700000001.0),
+     b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no known transmitter in the scan", "t": 1700000001.0}'),
+    ("fix", lambda: Fix(None, reason="no radio map for site 'x'"), b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no radio map for site \'x\'"}'),
+    ("pose", lambda: Pose(1.5, 2.0, -3.25, "F1"), b'{"schema": "hybridloc.pose/1", "t": 1.5, "x": 2.0, "y": -3.25, "floor": "F1"}'),
+    ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5})), b'{"schema": "hybridloc.locate/1", "scan": {"t": 1.0, "tech": "wifi", "rssi": {"a1": -50.5}}}'),
+    ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2}),
+     b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {"batches-received": 3}, "db": {"devices": 1}, "maps_loaded": {"site1": 2}}'),
+    ("map-info", lambda: MapInfo("site1", 2), b'{"site": "site1", "version": 2}'),
+]
+
+
+@pytest.mark.parametrize("name,record,golden", GOLDEN, ids=[f"{g[0]}-{i}" for i, g in enumerate(GOLDEN)])
+def test_bytes_are_todays(name, record, golden):
+    """The bytes hybridloc sent before the codecs (same keys, order and separators): old clients and
+    spooled batches keep working. Added keys (a pose's cov, a fix's floor_probs) appear only when set."""
+    codec = C.CODECS[name]
+    assert codec.encode(record()) == golden
+    assert codec.encode(codec.decode(golden)) == golden
+
+
+def test_added_keys_come_last():
+    pose = C.POSE.encode(Pose(1.5, 2.0, -3.25, "F1", [[1.0, 0.25], [0.25, 4.0]]))
+    assert pose == b'{"schema": "hybridloc.pose/1", "t": 1.5, "x": 2.0, "y": -3.25, "floor": "F1", "cov": [[1.0, 0.25], [0.25, 4.0]]}'
+    fix = C.FIX.encode(Fix(_golden_fix(), None, {"F1": 0.875, "F2": 0.125}))
+    assert fix == b'{"schema": "hybridloc.fix/1", ' + FIX_PART + b', "floor_probs": {"F1": 0.875, "F2": 0.125}}'
+    # an old pose (no cov) still decodes
+    assert C.POSE.decode(b'{"schema": "hybridloc.pose/1", "t": 1.5, "x": 2.0, "y": -3.25, "floor": null}').cov is None
+
+
+def test_deprecated_protocol_names_still_work():
+    b = _golden_batch()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert P.encode_batch(b.site, b.device, b.seq, b.steps, b.scans, b.marks, b.device_model, b.sent_at) == GOLDEN_BATCH
+        assert P.decode_batch(GOLDEN_BATCH, "site1", "dev01").seq == 17
+        assert P.decode_ack(P.encode_ack("dev01", 4)) == 4
+        assert P.ScanRecord is RfScan and P.MarkRecord is SurveyMark
+        fix, region, reason = P.fix_from_dict(P.fix_to_dict(None, reason="why", t=2.0))
+        assert fix is None and region is None and reason == "why"
+    assert len(caught) >= 6 and all(issubclass(w.category, DeprecationWarning) for w in caught)
+    with pytest.raises(AttributeError):
+        P.NoSuchName  # noqa: B018
+
+
+# ---------------------------------------------------------------------------------------------- rejections
+def _reason(codec, payload, **kw) -> str:
+    with pytest.raises(P.Rejected) as exc:
+        codec.decode(payload, **kw)
+    assert exc.value.reason in REASONS
+    return exc.value.reason
+
+
+def _msg(name) -> dict:
+    return json.loads(C.CODECS[name].encode(dict(GOLDEN_RECORDS)[name]()))
+
+
+GOLDEN_RECORDS = [("batch", _golden_batch), ("ack", lambda: Ack("dev01", 17)),
+                  ("fix", lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.box(10, 38, 15, 43), 0.95, 1700000001.0), {"F1": 1.0})),
+                  ("pose", lambda: Pose(1.5, 2.0, -3.25, "F1", [[1.0, 0.0], [0.0, 1.0]])),
+                  ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5}, {"a1": 2.4e9}, {"a1": 0.5}, "pixel"))),
+                  ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2})),
+                  ("map-info", lambda: MapInfo("site1", 2))]
+
+
+def _dumps(msg) -> bytes:
+    return json.dumps(msg).encode()
+
+
+@pytest.mark.parametrize("name", sorted(MESSAGES))
+def test_common_rejections(name):
+    codec = C.CODECS[name]
+    assert _reason(codec, b"{not json") == "malformed-json"
+    assert _reason(codec, b"\xff\xfe") == "malformed-json"  # not UTF-8
+    assert _reason(codec, b"[1, 2]") == "malformed-json"  # not an object
+    assert _reason(codec, b"[" * 100_000) in ("malformed-json", "too-large")  # nested past the recursion limit
+    msg = _msg(name)
+    if "schema" in msg:
+        assert _reason(codec, _dumps({**msg, "schema": msg["schema"][:-1] + "99"})) == "schema-version"
+        assert _reason(codec, _dumps({k: v for k, v in msg.items() if k != "schema"})) == "schema-version"
+    for token in (b"NaN", b"Infinity", b"-Infinity"):
+        assert _reason(codec, _dumps(msg)[:-1] + b', "extra": ' + token + b"}") == "non-finite"
+
+
+@pytest.mark.parametrize("name", ["batch", "locate", "pose"])
+def test_oversized_client_messages_are_too_large(name):
+    codec = C.CODECS[name]
+    payload = _dumps(_msg(name))
+    padded = payload[:-1] + b', "pad": "' + b"x" * (P.MAX_BATCH_BYTES - len(payload)) + b'"}'
+    assert len(padded) > P.MAX_BATCH_BYTES
+    assert _reason(codec, padded) == "too-large"
+    assert codec.decode(padded[: len(payload) - 1] + b', "pad": ""}')  # the same message under the limit is taken
+
+
+def test_batch_with_too_many_items_is_too_large():
+    msg = _msg("batch")
+    msg["marks"] = [{"t": 0.0, "x": 0.0, "y": 0.0, "floor": ""}] * (P.MAX_BATCH_ITEMS - len(msg["steps"]) - len(msg["scans"]) + 1)
+    assert _reason(C.BATCH, _dumps(msg)) == "too-large"
+
+
+def _numeric_paths(obj, path=()):
+    """Paths of every number in a decoded JSON message."""
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _numeric_paths(v, path + (k,))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _numeric_paths(v, path + (i,))
+    elif isinstance(obj, (int, float)) and not isinstance(obj, bool):
+        yield path
+
+
+def _with(msg, path, value):
+    msg = json.loads(json.dumps(msg))
+    node = msg
+    for k in path[:-1]:
+        node = node[k]
+    node[path[-1]] = value
+    return msg
+
+
+NON_FINITE = [b"NaN", b"Infinity", b"-Infinity", b"1e999", b"-1e999"]
+INTEGERS = {"seq", "acked_seq", "version"}  # integers on the wire: their reason is bad-seq / bad-value / count checks
+
+
+@pytest.mark.parametrize("name", ["batch", "fix", "pose", "locate"])
+def test_any_non_finite_number_is_non_finite(name):
+    """Every number of the message, replaced by NaN, +-Infinity or an overflowing literal (1e999,
+    which JSON parsers read as infinity): non-finite."""
+    msg = _msg(name)
+    paths = [p for p in _numeric_paths(msg) if p[-1] not in INTEGERS]
+
+    @SETTINGS
+    @given(st.sampled_from(paths), st.sampled_from(NON_FINITE))
+    def check(path, token):
+        payload = _dumps(_with(msg, path, "@@")).replace(b'"@@"', token)
+        assert _reason(C.CODECS[name], payload) == "non-finite", (path, token)
+
+    check()
+
+
+@SETTINGS
+@given(st.floats(allow_nan=False, allow_infinity=False).filter(lambda r: not RSSI_MIN_DBM <= r <= RSSI_MAX_DBM), st.integers(0, 1), st.sampled_from(["batch", "locate"]))
+def test_any_rssi_outside_the_range_is_rssi_out_of_range(value, which, name):
+    msg = _msg(name)
+    scan = msg["scans"][0] if name == "batch" else msg["scan"]
+    keys = list(scan["rssi"])
+    scan["rssi"][keys[min(which, len(keys) - 1)]] = value
+    assert _reason(C.CODECS[name], _dumps(msg)) == "rssi-out-of-range"
+
+
+@SETTINGS
+@given(st.sampled_from(["site", "device"]), st.text(max_size=80).filter(lambda s: not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", s)) | st.none() | st.integers())
+def test_any_bad_id_is_bad_id(field, value):
+    assert _reason(C.BATCH, _dumps({**_msg("batch"), field: value})) == "bad-id"
+
+
+def test_batch_rejections():
+    msg = _msg("batch")
+    assert _reason(C.BATCH, _dumps(msg), site="site1", device="dev02") == "key-mismatch"
+    assert _reason(C.BATCH, _dumps(msg), site="site2") == "key-mismatch"
+    assert C.BATCH.decode(_dumps(msg), site="site1", device="dev01").seq == 17
+    for seq in (0, -1, 1.5, "1", True, None):
+        assert _reason(C.BATCH, _dumps({**msg, "seq": seq})) == "bad-seq", seq
+    assert _reason(C.BATCH, _dumps({**msg, "seq": "@@"}).replace(b'"@@"', b"1e999")) == "bad-seq"
+    assert _reason(C.BATCH, _dumps({**msg, "seq": "@@"}).replace(b'"@@"', b"1" * 5000)) == "malformed-json"  # past Python's int digits limit
+    for rssi in ({}, [], "x"):
+        assert _reason(C.BATCH, _dumps(_with(msg, ("scans", 0, "rssi"), rssi))) == "bad-scan"
+    assert _reason(C.BATCH, _dumps(_with(msg, ("scans", 0, "tech"), "lora"))) == "bad-scan"
+    assert _reason(C.BATCH, _dumps(_with(msg, ("steps", 0, "length"), -0.5))) == "bad-value"  # StepEvent's own check
+    assert _reason(C.BATCH, _dumps(_with(msg, ("steps", 0, "t"), "soon"))) == "bad-value"
+    assert _reason(C.BATCH, _dumps(_with(msg, ("steps", 1, "floor_change"), 1.5))) == "bad-value"
+    assert _reason(C.BATCH, _dumps(_with(msg, ("steps", 1, "floor_change"), 10**400))) == "non-finite"  # no float holds it
+    assert _reason(C.BATCH, _dumps({**msg, "sent_at": "yesterday"})) == "bad-value"
+    del msg["steps"][0]["t"]
+    assert _reason(C.BATCH, _dumps(msg)) == "malformed-json"
+    assert _reason(C.BATCH, _dumps({**_msg("batch"), "steps": {"t": 1}})) == "malformed-json"
+    assert _reason(C.BATCH, _dumps({**_msg("batch"), "marks": [1, 2]})) == "malformed-json"
+
+
+def test_fix_pose_locate_ack_status_map_rejections():
+    fix = _msg("fix")
+    assert _reason(C.FIX, _dumps(_with(fix, ("fix", "cov"), [[1.0, 2.0], [2.0, 1.0]]))) == "bad-value"  # not positive definite
+    assert _reason(C.FIX, _dumps(_with(fix, ("fix", "cov"), [[1.0, 0.0]]))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("fix", "floor_prob"), 1.5))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("fix", "source"), "sonar"))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("floor_probs", "F1"), 2.0))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("region", "mass"), 0.0))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("region", "geometry"), {"type": "Point", "coordinates": [0, 0]}))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("region", "geometry", "coordinates"), [[[[0, 0], [1]]]]))) == "bad-value"
+    assert _reason(C.FIX, _dumps(_with(fix, ("fix",), [1, 2]))) == "malformed-json"
+    assert _reason(C.POSE, _dumps(_with(_msg("pose"), ("cov", 0, 0), -1.0))) == "bad-value"
+    assert _reason(C.POSE, _dumps({k: v for k, v in _msg("pose").items() if k != "x"})) == "malformed-json"
+    assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan",), None))) == "malformed-json"
+    assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan", "tech"), "lora"))) == "bad-scan"
+    assert C.LOCATE.decode(_dumps(_with(_msg("locate"), ("scan", "rssi"), {}))).scan.rssi_dbm == {}  # answered with "no fix"
+    for seq in (-1, 1.5, None):
+        assert _reason(C.ACK, _dumps({**_msg("ack"), "acked_seq": seq})) == "bad-seq"
+    assert _reason(C.ACK, _dumps({**_msg("ack"), "device": "a/b"})) == "bad-id"
+    assert _reason(C.STATUS, _dumps({**_msg("status"), "online": "dev01"})) == "malformed-json"
+    assert _reason(C.STATUS, _dumps({**_msg("status"), "counts": {"x": 1.5}})) == "bad-value"
+    assert _reason(C.MAP_INFO, _dumps({"site": "site1", "version": 0})) == "bad-value"
+    assert _reason(C.MAP_INFO, _dumps({"site": "s/1", "version": 1})) == "bad-id"
+
+
+# ---------------------------------------------------------------------------------------------- nothing else escapes
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner, max_size=3), max_leaves=8)
+
+
+def _paths(obj, path=()):
+    yield path
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, path + (k,))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, path + (i,))
+
+
+@pytest.mark.parametrize("name", sorted(MESSAGES))
+def test_a_decoder_raises_nothing_but_rejected(name):
+    """Any part of a valid message replaced by any JSON value (or the payload by any bytes): the
+    decoder returns a record or refuses with a known reason; no other exception reaches the server."""
+    codec = C.CODECS[name]
+    msg = _msg(name)
+    paths = [p for p in _paths(msg) if p]
+
+    @SETTINGS
+    @given(st.sampled_from(paths), json_values, st.binary(max_size=64))
+    def check(path, value, raw):
+        for payload in (json.dumps(_with(msg, path, value)).encode(), raw):
+            try:
+                codec.decode(payload)
+            except P.Rejected as exc:
+                assert exc.reason in REASONS
+
+    check()
