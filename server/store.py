@@ -46,7 +46,7 @@ class WalkInfo:
     """A stored walk without its data (what :meth:`Store.walks` lists).
 
     ``t_start``/``t_end`` in s on the device's clock; ``floors`` in order of first appearance;
-    ``created_at``/``updated_at`` are the server's (tz-aware) times of its first and latest batch.
+    ``created_at``/``updated_at`` are the server's times (UTC) of its first and latest batch.
     """
 
     walk_id: int

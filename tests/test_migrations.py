@@ -31,9 +31,10 @@ def _fill_0001(eng) -> dict[str, list[tuple]]:
         c.execute(insert(t["device"]), [{"id": "dA", "site_id": "s1", "model": "Pixel", "last_seq": 5},
                                         {"id": "dB", "site_id": "s1", "model": "", "last_seq": 1},
                                         {"id": "dC", "site_id": "s1", "model": "", "last_seq": 0}])
-        batches = [(1, "dA", 1), (2, "dA", 2), (3, "dA", 3), (4, "dA", 4), (5, "dA", 5), (6, "dB", 1)]
-        c.execute(insert(t["batch"]), [{"id": i, "device_id": d, "seq": q, "received_at": NOW, "n_steps": 0, "n_scans": 0, "n_marks": 0}
-                                       for i, d, q in batches])
+        # (id, device, seq, steps, scans, marks), the counts matching the rows written below
+        batches = [(1, "dA", 1, 11, 0, 0), (2, "dA", 2, 0, 8, 0), (3, "dA", 3, 0, 0, 0), (4, "dA", 4, 11, 0, 2), (5, "dA", 5, 0, 2, 0), (6, "dB", 1, 1, 0, 0)]
+        c.execute(insert(t["batch"]), [{"id": i, "device_id": d, "seq": q, "received_at": NOW, "n_steps": ns, "n_scans": nc, "n_marks": nm}
+                                       for i, d, q, ns, nc, nm in batches])
         # dA: a walk 100-112 s (steps, then its scans, then an empty batch), silence, a walk 500-512 s
         c.execute(insert(t["step"]), [step(1, "dA", T0 + 100.0 + k) for k in range(11)] + [step(4, "dA", T0 + 500.0 + k) for k in range(11)]
                   + [step(6, "dB", T0 + 7.0)])
@@ -76,9 +77,9 @@ def test_upgrade_downgrade_upgrade_on_a_filled_database(tmp_path):
     st = Store(db)
     walks = _walks(st)
     assert walks == [
-        ("dB", T0 + 7.0, T0 + 7.0, WalkEnd.OPEN, (), "", 1, 0, 0, 0),
-        ("dA", T0 + 100.0, T0 + 112.0, WalkEnd.IDLE, (), "Pixel", 3, 0, 0, 0),  # the counts are 0001's batch counts (0 in this fill)
-        ("dA", T0 + 500.0, T0 + 512.0, WalkEnd.OPEN, ("F1", "B1", "F2"), "Pixel", 2, 0, 0, 0),
+        ("dB", T0 + 7.0, T0 + 7.0, WalkEnd.OPEN, (), "", 1, 1, 0, 0),
+        ("dA", T0 + 100.0, T0 + 112.0, WalkEnd.IDLE, (), "Pixel", 3, 11, 8, 0),  # the empty batch 3 joined it
+        ("dA", T0 + 500.0, T0 + 512.0, WalkEnd.OPEN, ("F1", "B1", "F2"), "Pixel", 2, 11, 2, 2),  # the fix at 505 s named B1; the one at 50 s no walk
     ]
     ids = {(w.device, w.t_start): w.walk_id for w in st.walks("s1")}
     first = st.read_walk(ids[("dA", T0 + 100.0)])
@@ -120,7 +121,7 @@ def test_a_migrated_open_walk_takes_the_next_batch(tmp_path):
            "steps": [P.step_to_dict(StepEvent(T0 + 515.0, 0.7, 0.0, 0.05, 0.1))]}
     assert st.persist([P.decode_batch(json.dumps(msg).encode())])[0] == {"dA": 6}
     last = st.walks("s1", device="dA")[-1]
-    assert (last.t_start, last.t_end, last.n_batches, last.n_steps, last.end) == (T0 + 500.0, T0 + 515.0, 3, 1, WalkEnd.OPEN)
+    assert (last.t_start, last.t_end, last.n_batches, last.n_steps, last.end) == (T0 + 500.0, T0 + 515.0, 3, 12, WalkEnd.OPEN)
     st.close()
 
 

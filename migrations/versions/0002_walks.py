@@ -123,7 +123,8 @@ def _split_into_walks(conn: sa.Connection) -> None:
     fix = sa.Table("fix", md, sa.Column("device_id"), sa.Column("t"), sa.Column("floor"))
     walk = sa.Table("walk", md, sa.Column("id", sa.Integer(), primary_key=True), sa.Column("created_at", sa.DateTime(timezone=True)),
                     sa.Column("updated_at", sa.DateTime(timezone=True)),
-                    *(sa.Column(c) for c in ("site_id", "device_id", "t_start", "t_end", "device_model", "end_reason", "n_batches", "n_steps", "n_scans", "n_marks")))
+                    *(sa.Column(c) for c in ("site_id", "device_id", "t_start", "t_end", "device_model", "end_reason",
+                                             "n_batches", "n_steps", "n_scans", "n_marks")))
     walk_floor = sa.Table("walk_floor", md, sa.Column("walk_id"), sa.Column("floor"), sa.Column("t_first"))
 
     # each batch's record time span, over its steps, scans and marks
