@@ -3,13 +3,18 @@
 Times are stored as float seconds on the devices' clocks (``t``) exactly as sent, plus a tz-aware
 ``received_at`` where the server stamps arrival. Every ingested batch is one row keyed by
 (device, seq), unique: ingest is idempotent.
+
+A device's batches are grouped into walks (:class:`Walk`): a run of batches between a start and an
+end (an end-of-walk marker or an idle gap, see :mod:`hybridloc.server.store`). Each batch names its
+walk; steps, scans and marks reach it through their batch (``walk_id`` is not repeated on them: the
+walk's device and time span select them through ``ix_*_device_t``, see ``Store.read_walk``).
 """
 
 from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, UniqueConstraint, event
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, UniqueConstraint, event, text
 from sqlalchemy import create_engine as _create_engine
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -74,7 +79,45 @@ class Batch(Base):
     n_steps: Mapped[int] = mapped_column(Integer, default=0)
     n_scans: Mapped[int] = mapped_column(Integer, default=0)
     n_marks: Mapped[int] = mapped_column(Integer, default=0)
+    #: The walk the batch belongs to; None for a batch without records that found no open walk.
+    walk_id: Mapped[int | None] = mapped_column(ForeignKey("walk.id"), index=True)
     __table_args__ = (UniqueConstraint("device_id", "seq"),)
+
+
+class Walk(Base):
+    """One device's run of batches between a start and an end (:class:`hybridloc.types.Walk` without the data).
+
+    ``t_start``/``t_end`` are the first and last record times (device clock, s); ``end_reason`` is a
+    :class:`hybridloc.types.WalkEnd` value; the counts add up the walk's batches.
+    """
+
+    __tablename__ = "walk"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id"))
+    device_id: Mapped[str] = mapped_column(ForeignKey("device.id"))
+    t_start: Mapped[float] = mapped_column(Float)
+    t_end: Mapped[float] = mapped_column(Float)
+    device_model: Mapped[str] = mapped_column(String(64), default="")
+    end_reason: Mapped[str] = mapped_column(String(8), default="open")
+    n_batches: Mapped[int] = mapped_column(Integer, default=0)
+    n_steps: Mapped[int] = mapped_column(Integer, default=0)
+    n_scans: Mapped[int] = mapped_column(Integer, default=0)
+    n_marks: Mapped[int] = mapped_column(Integer, default=0)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    # "walks of a site since t" and "the device's latest walk": both range over t_end
+    __table_args__ = (Index("ix_walk_site_t_end", "site_id", "t_end"), Index("ix_walk_device_t_end", "device_id", "t_end"))
+
+
+class WalkFloor(Base):
+    """A floor a walk's marks or fixes named, with the time it was first named (orders a walk's floors)."""
+
+    __tablename__ = "walk_floor"
+    walk_id: Mapped[int] = mapped_column(ForeignKey("walk.id"), primary_key=True)
+    floor: Mapped[str] = mapped_column(String(32), primary_key=True)
+    t_first: Mapped[float] = mapped_column(Float)
+    # "walks of a floor": the primary key (walk_id, floor) cannot serve a lookup by floor
+    __table_args__ = (Index("ix_walk_floor_floor", "floor", "walk_id"),)
 
 
 class Step(Base):
@@ -88,7 +131,11 @@ class Step(Base):
     sigma_length: Mapped[float] = mapped_column(Float)
     sigma_heading: Mapped[float] = mapped_column(Float)
     heading_change: Mapped[float | None] = mapped_column(Float)
+    sigma_heading_change: Mapped[float | None] = mapped_column(Float)
+    height_change: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
+    sigma_height_change: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
     floor_change: Mapped[int] = mapped_column(Integer, default=0)
+    degraded: Mapped[str] = mapped_column(String(32), default="", server_default=text("''"))
     __table_args__ = (Index("ix_step_device_t", "device_id", "t"),)
 
 
@@ -99,6 +146,8 @@ class Scan(Base):
     device_id: Mapped[str] = mapped_column(String(64))
     t: Mapped[float] = mapped_column(Float)
     technology: Mapped[str] = mapped_column(String(8))
+    #: {"rssi": {transmitter: dBm}, "freq": {transmitter: Hz}, "age": {transmitter: s}}; "freq" and "age"
+    #: only where the scan carried them (RfScan's rssi_dbm, frequency_hz, age_s)
     readings: Mapped[dict] = mapped_column(JSON)
     __table_args__ = (Index("ix_scan_device_t", "device_id", "t"),)
 
@@ -112,6 +161,7 @@ class SurveyMark(Base):
     x: Mapped[float] = mapped_column(Float)
     y: Mapped[float] = mapped_column(Float)
     floor: Mapped[str] = mapped_column(String(32))
+    __table_args__ = (Index("ix_survey_mark_device_t", "device_id", "t"),)
 
 
 class Fix(Base):

@@ -22,10 +22,41 @@ def alembic_config(engine: Engine | None = None) -> alembic.config.Config:
 
 
 def upgrade(engine: Engine, revision: str = "head") -> None:
+    _run(engine, lambda cfg: alembic.command.upgrade(cfg, revision))
+
+
+def downgrade(engine: Engine, revision: str) -> None:
+    """Undo migrations down to ``revision`` (e.g. ``"0001_initial"``; ``"base"`` drops everything)."""
+    _run(engine, lambda cfg: alembic.command.downgrade(cfg, revision))
+
+
+def _run(engine: Engine, command) -> None:
+    """Run an Alembic command on one connection in one transaction.
+
+    On SQLite, ``batch_alter_table`` rebuilds a table (create a copy, copy the rows, drop, rename),
+    and dropping a table that other rows reference fails while foreign keys are enforced; SQLite's
+    own procedure for such changes (https://www.sqlite.org/lang_altertable.html, "other kinds of table
+    schema changes") is: foreign keys off outside the transaction, change, ``PRAGMA foreign_key_check``
+    before committing, foreign keys on again.
+    """
     cfg = alembic_config()
-    with engine.begin() as conn:
-        cfg.attributes["connection"] = conn
-        alembic.command.upgrade(cfg, revision)
+    with engine.connect() as conn:
+        sqlite = conn.dialect.name == "sqlite"
+        if sqlite:
+            conn.exec_driver_sql("PRAGMA foreign_keys=OFF")  # a no-op inside a transaction: before it
+            conn.commit()
+        try:
+            with conn.begin():
+                cfg.attributes["connection"] = conn
+                command(cfg)
+                if sqlite:
+                    bad = conn.exec_driver_sql("PRAGMA foreign_key_check").fetchall()
+                    if bad:
+                        raise RuntimeError(f"migration left {len(bad)} rows with broken foreign keys, e.g. {bad[:3]}")
+        finally:
+            if sqlite:
+                conn.exec_driver_sql("PRAGMA foreign_keys=ON")
+                conn.commit()
 
 
 def current_revision(engine: Engine) -> str | None:

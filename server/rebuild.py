@@ -1,9 +1,10 @@
 """``hybridloc map rebuild --site S``: a radio map from the surveys stored in the database.
 
-A survey is a device's stream of steps, scans and survey marks. For each device of the site that sent
-at least two marks, its scans are labelled by the PDR bridged between consecutive marks
-(:func:`hybridloc.radio.survey.label_scans`, the same passive-survey labelling as ``map build``), and
-the labelled scans of all devices build the site's new radio map version.
+A survey is a device's steps, scans and survey marks, read through the store's walks
+(:meth:`Store.read_walk`). For each device of the site that sent at least two marks, its scans are
+labelled by the PDR bridged between consecutive marks (:func:`hybridloc.radio.survey.label_scans`, the
+same passive-survey labelling as ``map build``), and the labelled scans of all devices build the site's
+new radio map version.
 
 Incremental and resumable: each device's labelled scans are cached in ``<cache>/<site>/<device>.json``
 together with the device's last batch sequence number; a device whose data did not change since is
@@ -22,18 +23,18 @@ from sqlalchemy.orm import Session
 
 from hybridloc.radio.radiomap import BuildParams, build_radio_map
 from hybridloc.radio.survey import LabelledScan, label_scans
-from hybridloc.types import RfScan, StepEvent, Waypoints
+from hybridloc.types import RfScan, Technology, Waypoints
 
 from . import db as m
 from .store import Store
 
 
-def _device_survey(s: Session, device: str):
-    steps = [StepEvent(r.t, r.length, r.heading, r.sigma_length, r.sigma_heading, r.heading_change, None, floor_change=r.floor_change)
-             for r in s.execute(select(m.Step).where(m.Step.device_id == device).order_by(m.Step.t)).scalars()]
-    marks = s.execute(select(m.SurveyMark).where(m.SurveyMark.device_id == device).order_by(m.SurveyMark.t)).scalars().all()
-    scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {}), r.readings.get("age", {})) for r in s.execute(
-        select(m.Scan).where(m.Scan.device_id == device, m.Scan.technology == "wifi").order_by(m.Scan.t)).scalars()]
+def _device_survey(store: Store, site: str, device: str):
+    """(steps, survey marks, WiFi scans) of all the device's stored walks, each sorted by time."""
+    walks = [store.read_walk(w.walk_id) for w in store.walks(site, device=device)]
+    steps = sorted((st for w in walks for st in w.steps), key=lambda st: st.t)
+    marks = sorted((mk for w in walks for mk in w.marks), key=lambda mk: mk.t)
+    scans = sorted((sc for w in walks for sc in w.scans if sc.technology == Technology.WIFI), key=lambda sc: sc.t)
     return steps, marks, scans
 
 
@@ -54,7 +55,7 @@ def rebuild(store: Store, site: str, cache_dir: str | os.PathLike, progress=None
                 except ValueError:
                     cached = None
             if cached is None or cached.get("last_seq") != dev.last_seq:
-                steps, marks, scans = _device_survey(s, dev.id)
+                steps, marks, scans = _device_survey(store, site, dev.id)
                 rows = []
                 by_floor: dict[str, list] = {}
                 for mk in marks:

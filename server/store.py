@@ -5,20 +5,74 @@ sequence number now persisted (what the server acknowledges). A batch is written
 next one of its device; duplicates and gaps are counted as rejections (reasons ``duplicate`` and
 ``out-of-order``) and change nothing. Validation failures before this point are passed in and stored
 in the same transaction.
+
+Walks. Each persisted batch joins its device's open walk or opens a new one: a batch whose records lie
+more than :data:`WALK_IDLE_GAP_S` (device clock) from the open walk's span [t_start, t_end] starts a
+new walk and the open one ends ``idle``; a batch carrying the end-of-walk marker is its walk's last
+(``marker``). The span, not the previous batch alone, is what a batch is compared with: a client
+sends a stretch's steps and its scans in separate batches whose times interleave. A batch without
+records joins the open walk, if any. :meth:`Store.walks` lists stored walks (summaries) and
+:meth:`Store.read_walk` returns one as a :class:`hybridloc.types.Walk`; the SLAM work reads walks
+through these, never through raw rows.
 """
 
 from __future__ import annotations
 
+import datetime as dt
 from collections import Counter
+from collections.abc import Collection
+from dataclasses import dataclass
 
-from sqlalchemy import insert, select
+from sqlalchemy import func, insert, select, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
+from hybridloc.types import RfScan, StepEvent, SurveyMark, Walk, WalkEnd
 from hybridloc.wire.protocol import Batch
 
 from . import db as m
 from .migrate import upgrade
+
+#: Device-clock silence, s, that ends a walk. Longer than any silence inside one: Android (9 and later)
+#: lets a foreground app scan WiFi 4 times per 2 minutes, so a phone standing still (no steps) may
+#: send nothing for up to 120 s and still be on its walk; the Indoor Location Competition's site1
+#: walks never go more than 15.5 s between scans (60 of 305 walks read). 180 s keeps a margin over
+#: 120 s and still splits a device's separate walks, which are minutes to days apart.
+WALK_IDLE_GAP_S = 180.0
+
+
+@dataclass(frozen=True)
+class WalkInfo:
+    """A stored walk without its data (what :meth:`Store.walks` lists).
+
+    ``t_start``/``t_end`` in s on the device's clock; ``floors`` in order of first appearance;
+    ``created_at``/``updated_at`` are the server's times (UTC) of its first and latest batch.
+    """
+
+    walk_id: int
+    site: str
+    device: str
+    device_model: str
+    t_start: float
+    t_end: float
+    floors: tuple[str, ...]
+    end: WalkEnd
+    n_batches: int
+    n_steps: int
+    n_scans: int
+    n_marks: int
+    created_at: dt.datetime
+    updated_at: dt.datetime
+
+    @property
+    def duration(self) -> float:
+        """s."""
+        return self.t_end - self.t_start
+
+
+def _span_gap(w: m.Walk, lo: float, hi: float) -> float:
+    """Time between the record span [lo, hi] and the walk's [t_start, t_end], s (<= 0 when they overlap)."""
+    return max(lo - w.t_end, w.t_start - hi)
 
 
 class Store:
@@ -30,20 +84,25 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
-    def persist(self, batches: list[Batch], invalid: Counter | None = None) -> tuple[dict[str, int], Counter, int]:
+    def persist(self, batches: list[Batch], invalid: Counter | None = None,
+                end_of_walk: Collection[tuple[str, int]] = ()) -> tuple[dict[str, int], Counter, int]:
         """(highest persisted seq per device, rejections by (device, reason), batches written).
 
         ``invalid`` counts messages already refused by validation; they are stored in the same
-        transaction (and included in the returned rejections).
+        transaction (and included in the returned rejections). ``end_of_walk`` names the batches, as
+        (device, seq), that carry the end-of-walk marker; a batch whose ``end_of_walk`` attribute is
+        true counts too.
         """
         acked: dict[str, int] = {}
         rejected: Counter = Counter(invalid or {})
         written = 0
         if not batches and not rejected:
             return acked, rejected, written
+        ends = set(end_of_walk)
         with Session(self.engine) as s, s.begin():
             devices: dict[str, m.Device] = {}
             sites: set[str] = set()
+            open_walks: dict[str, m.Walk | None] = {}
             for b in batches:
                 dev = devices.get(b.device)
                 if dev is None:
@@ -72,7 +131,8 @@ class Store:
                     s.execute(insert(m.Step), [
                         {"batch_id": row.id, "device_id": b.device, "t": st.t, "length": st.length, "heading": st.heading,
                          "sigma_length": st.sigma_length, "sigma_heading": st.sigma_heading, "heading_change": st.heading_change,
-                         "floor_change": st.floor_change} for st in b.steps])
+                         "sigma_heading_change": st.sigma_heading_change, "height_change": st.height_change,
+                         "sigma_height_change": st.sigma_height_change, "floor_change": st.floor_change, "degraded": st.degraded} for st in b.steps])
                 if b.scans:
                     s.execute(insert(m.Scan), [
                         {"batch_id": row.id, "device_id": b.device, "t": sc.t, "technology": sc.technology.value,
@@ -85,10 +145,47 @@ class Store:
                 dev.last_seen = m.utcnow()
                 if b.device_model and not dev.model:
                     dev.model = b.device_model
+                self._join_walk(s, row, b, dev, open_walks, getattr(b, "end_of_walk", False) or (b.device, b.seq) in ends)
                 acked[b.device] = b.seq
                 written += 1
             self._add_rejections(s, rejected)
         return acked, rejected, written
+
+    @staticmethod
+    def _join_walk(s: Session, row: m.Batch, b: Batch, dev: m.Device, open_walks: dict[str, m.Walk | None], ends_walk: bool) -> None:
+        """Put the batch ``row`` in its device's open walk, or in a new one after an idle gap (module docstring)."""
+        if b.device not in open_walks:
+            open_walks[b.device] = s.execute(select(m.Walk).where(m.Walk.device_id == b.device, m.Walk.end_reason == WalkEnd.OPEN.value)
+                                             .order_by(m.Walk.id.desc()).limit(1)).scalar_one_or_none()
+        w = open_walks[b.device]
+        times = [r.t for r in (*b.steps, *b.scans, *b.marks)]
+        if times:
+            lo, hi = min(times), max(times)
+            if w is None or _span_gap(w, lo, hi) > WALK_IDLE_GAP_S:
+                if w is not None:
+                    w.end_reason = WalkEnd.IDLE.value
+                w = m.Walk(site_id=dev.site_id, device_id=b.device, t_start=lo, t_end=hi, device_model=b.device_model or dev.model,
+                           end_reason=WalkEnd.OPEN.value, n_batches=0, n_steps=0, n_scans=0, n_marks=0)
+                s.add(w)
+                s.flush()
+            w.t_start, w.t_end = min(w.t_start, lo), max(w.t_end, hi)
+            for mk in b.marks:
+                if mk.floor:
+                    _name_floor(s, w.id, mk.floor, mk.t)
+        if w is None:
+            return  # no records and no open walk: a batch of nothing belongs to no walk
+        row.walk_id = w.id
+        w.n_batches += 1
+        w.n_steps += len(b.steps)
+        w.n_scans += len(b.scans)
+        w.n_marks += len(b.marks)
+        if b.device_model and not w.device_model:
+            w.device_model = b.device_model
+        w.updated_at = m.utcnow()
+        if ends_walk:
+            w.end_reason = WalkEnd.MARKER.value
+            w = None
+        open_walks[b.device] = w
 
     @staticmethod
     def _add_rejections(s: Session, counts: Counter) -> None:
@@ -108,12 +205,79 @@ class Store:
         self.add_fixes([(device, fix)])
 
     def add_fixes(self, fixes: list) -> None:
-        """Store (device, AbsoluteFix) pairs in one transaction."""
+        """Store (device, AbsoluteFix) pairs in one transaction; a fix's floor joins the floors of the
+        device's latest walk whose span holds the fix's time."""
         if not fixes:
             return
         with Session(self.engine) as s, s.begin():
             s.add_all([m.Fix(device_id=d, t=f.t, x=float(f.pos_enu[0]), y=float(f.pos_enu[1]), floor=f.floor, cov=f.cov.tolist(), source=f.source.value)
                        for d, f in fixes])
+            for d, f in fixes:
+                if not f.floor:
+                    continue
+                wid = s.execute(select(m.Walk.id).where(m.Walk.device_id == d, m.Walk.t_start <= f.t, m.Walk.t_end >= f.t)
+                                .order_by(m.Walk.id.desc()).limit(1)).scalar_one_or_none()
+                if wid is not None:
+                    _name_floor(s, wid, f.floor, f.t)
+
+    # -------------------------------------------------------------- walks
+    def walks(self, site: str, device: str | None = None, floor: str | None = None, since: float | None = None,
+              ended_only: bool = False) -> list[WalkInfo]:
+        """The site's stored walks, by start time: of ``device``, naming ``floor``, with records at or
+        after ``since`` (device clock, s: t_end >= since), ended (by a marker or an idle gap) only."""
+        cond = [m.Walk.site_id == site]
+        if device is not None:
+            cond.append(m.Walk.device_id == device)
+        if since is not None:
+            cond.append(m.Walk.t_end >= since)
+        if ended_only:
+            cond.append(m.Walk.end_reason != WalkEnd.OPEN.value)
+        if floor is not None:
+            cond.append(m.Walk.id.in_(select(m.WalkFloor.walk_id).where(m.WalkFloor.floor == floor)))
+        with Session(self.engine) as s:
+            rows = s.execute(select(m.Walk).where(*cond).order_by(m.Walk.t_start, m.Walk.id)).scalars().all()
+            floors: dict[int, list[str]] = {}
+            for wid, fl in s.execute(select(m.WalkFloor.walk_id, m.WalkFloor.floor).join(m.Walk, m.Walk.id == m.WalkFloor.walk_id).where(*cond)
+                                     .order_by(m.WalkFloor.walk_id, m.WalkFloor.t_first, m.WalkFloor.floor)):
+                floors.setdefault(wid, []).append(fl)
+            return [WalkInfo(w.id, w.site_id, w.device_id, w.device_model, w.t_start, w.t_end, tuple(floors.get(w.id, ())), WalkEnd(w.end_reason),
+                             w.n_batches, w.n_steps, w.n_scans, w.n_marks, w.created_at, w.updated_at) for w in rows]
+
+    def read_walk(self, walk_id: int) -> Walk:
+        """A stored walk with its data: every step field, every scan's RSSI, ages and frequencies, the
+        survey marks, each sorted by time (ties in arrival order). KeyError for an unknown id.
+
+        Records are selected by the walk's device and time span (``ix_step_device_t``,
+        ``ix_scan_device_t``, ``ix_survey_mark_device_t``) and kept when their batch is the walk's
+        (``ix_batch_walk_id``). SQLite's plan: SEARCH step USING INDEX ix_step_device_t (device_id=?
+        AND t>? AND t<?), SEARCH batch USING COVERING INDEX ix_batch_walk_id (walk_id=? AND rowid=?),
+        no sort (the index is in (t, id) order). So the records themselves need no ``walk_id``.
+        """
+        with Session(self.engine) as s:
+            w = s.get(m.Walk, walk_id)
+            if w is None:
+                raise KeyError(f"no stored walk {walk_id!r}")
+
+            def records(model):
+                return s.execute(select(model).join(m.Batch, m.Batch.id == model.batch_id)
+                                 .where(model.device_id == w.device_id, model.t >= w.t_start, model.t <= w.t_end, m.Batch.walk_id == w.id)
+                                 .order_by(model.t, model.id)).scalars()
+
+            steps = [StepEvent(r.t, r.length, r.heading, r.sigma_length, r.sigma_heading, r.heading_change, r.sigma_heading_change,
+                               r.height_change, r.sigma_height_change, r.floor_change, r.degraded) for r in records(m.Step)]
+            scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {}), r.readings.get("age", {}), w.device_model)
+                     for r in records(m.Scan)]
+            marks = [SurveyMark(r.t, r.x, r.y, r.floor) for r in records(m.SurveyMark)]
+            floors = s.execute(select(m.WalkFloor.floor).where(m.WalkFloor.walk_id == w.id).order_by(m.WalkFloor.t_first, m.WalkFloor.floor)).scalars().all()
+            return Walk(w.site_id, w.device_id, w.id, w.t_start, w.t_end, w.device_model, tuple(floors), steps, scans, marks, WalkEnd(w.end_reason))
+
+    def close_idle_walks(self, idle_s: float = WALK_IDLE_GAP_S, now: dt.datetime | None = None) -> int:
+        """End (``idle``) the open walks whose latest batch arrived more than ``idle_s`` before ``now``
+        (server clock); the number ended. For a live server, where no later batch may ever come."""
+        cutoff = (now or m.utcnow()) - dt.timedelta(seconds=idle_s)
+        with Session(self.engine) as s, s.begin():
+            return s.execute(update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff)
+                             .values(end_reason=WalkEnd.IDLE.value)).rowcount
 
     # -------------------------------------------------------------- radio maps
     def save_map(self, site: str, data: bytes, n_scans: int = 0) -> int:
@@ -132,8 +296,6 @@ class Store:
             return (row.version, row.data) if row else None
 
     def status(self) -> dict:
-        from sqlalchemy import func
-
         with Session(self.engine) as s:
             return {
                 "devices": s.execute(select(func.count()).select_from(m.Device)).scalar_one(),
@@ -142,9 +304,19 @@ class Store:
                 "scans": s.execute(select(func.count()).select_from(m.Scan)).scalar_one(),
                 "marks": s.execute(select(func.count()).select_from(m.SurveyMark)).scalar_one(),
                 "fixes": s.execute(select(func.count()).select_from(m.Fix)).scalar_one(),
+                "walks": s.execute(select(func.count()).select_from(m.Walk)).scalar_one(),
                 "rejections": _rejections(s),
                 "maps": {site: v for site, v in s.execute(select(m.RadioMapVersion.site_id, func.max(m.RadioMapVersion.version)).group_by(m.RadioMapVersion.site_id)).all()},
             }
+
+
+def _name_floor(s: Session, walk_id: int, floor: str, t: float) -> None:
+    """The walk names ``floor`` at time ``t`` (its first time is kept: floors are ordered by it)."""
+    wf = s.get(m.WalkFloor, (walk_id, floor))
+    if wf is None:
+        s.add(m.WalkFloor(walk_id=walk_id, floor=floor, t_first=t))
+    elif t < wf.t_first:
+        wf.t_first = t
 
 
 def _rejections(s: Session) -> dict:
