@@ -28,7 +28,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from hybridloc.types import RfScan, StepEvent, SurveyMark, Walk, WalkEnd
-from hybridloc.wire.protocol import Batch
+from hybridloc.wire.messages import Batch
 
 from . import db as m
 from .migrate import upgrade

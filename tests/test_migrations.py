@@ -11,6 +11,7 @@ from hybridloc.server.migrate import current_revision, downgrade, upgrade
 from hybridloc.server.store import WALK_IDLE_GAP_S, Store
 from hybridloc.types import StepEvent, WalkEnd
 from hybridloc.wire import protocol as P
+from hybridloc.wire.codecs import BATCH, step_to_dict
 
 T0 = 1.6e9
 NOW = dt.datetime(2024, 5, 1, 12, 0, tzinfo=dt.timezone.utc)
@@ -118,8 +119,8 @@ def test_a_migrated_open_walk_takes_the_next_batch(tmp_path):
     eng.dispose()
     st = Store(db)  # upgrades to head
     msg = {"schema": P.BATCH_SCHEMA, "site": "s1", "device": "dA", "seq": 6, "device_model": "", "sent_at": 0.0,
-           "steps": [P.step_to_dict(StepEvent(T0 + 515.0, 0.7, 0.0, 0.05, 0.1))]}
-    assert st.persist([P.decode_batch(json.dumps(msg).encode())])[0] == {"dA": 6}
+           "steps": [step_to_dict(StepEvent(T0 + 515.0, 0.7, 0.0, 0.05, 0.1))]}
+    assert st.persist([BATCH.decode(json.dumps(msg).encode())])[0] == {"dA": 6}
     last = st.walks("s1", device="dA")[-1]
     assert (last.t_start, last.t_end, last.n_batches, last.n_steps, last.end) == (T0 + 500.0, T0 + 515.0, 3, 12, WalkEnd.OPEN)
     st.close()

@@ -17,6 +17,7 @@ from hybridloc.server.service import Server
 from hybridloc.server.store import WALK_IDLE_GAP_S, Store
 from hybridloc.types import StepEvent, SurveyMark, WalkEnd
 from hybridloc.wire import protocol as P
+from hybridloc.wire.codecs import BATCH, step_to_dict
 from hybridloc.wire.zconfig import client_config
 
 SITE = "site1"
@@ -24,12 +25,12 @@ SITE = "site1"
 
 def _payload(device, seq, steps=(), scans=(), marks=(), model="", site=SITE) -> bytes:
     msg = {"schema": P.BATCH_SCHEMA, "site": site, "device": device, "seq": seq, "device_model": model, "sent_at": 0.0,
-           "steps": [P.step_to_dict(s) for s in steps], "scans": list(scans), "marks": [{"t": k.t, "x": k.x, "y": k.y, "floor": k.floor} for k in marks]}
+           "steps": [step_to_dict(s) for s in steps], "scans": list(scans), "marks": [{"t": k.t, "x": k.x, "y": k.y, "floor": k.floor} for k in marks]}
     return json.dumps(msg, allow_nan=False).encode()
 
 
 def _batch(device, seq, steps=(), scans=(), marks=(), model="", site=SITE):
-    return P.decode_batch(_payload(device, seq, steps, scans, marks, model, site))
+    return BATCH.decode(_payload(device, seq, steps, scans, marks, model, site))
 
 
 def _full_step(t, k=0):
