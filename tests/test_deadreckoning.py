@@ -150,3 +150,16 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(ValueError, match="strictly increasing"):
         DeadReckoning.from_lengths_headings([2.0, 1.0], [0.5, 0.5], [0.0, 0.0])
 
+
+def test_kalman_filter_keeps_the_pdr_track_through_a_clock_that_goes_back():
+    """LocalFusion's own PDR track (for GPS displacements, Kourogi eq 17) is a live DeadReckoning: a
+    step whose time goes back starts the track over from where it was instead of failing."""
+    from hybridloc.fusion.kalman import LocalFusion
+
+    f = LocalFusion(init=(0.0, 0.0, 1.0))
+    for s in _steps([0.0] * 4, length=0.5, t0=0.0, dt=1.0):  # t = 1 .. 4, 2 m East
+        f.predict(s)
+    np.testing.assert_array_equal(f._raw_at(2.5), [1.25, 0.0])
+    assert f._raw_at(0.5) is None  # before the first step: not in the track
+    f.predict(StepEvent(3.0, 0.5, math.pi / 2, 0.05, 0.05))  # the clock went back to t = 3
+    assert f._raw.t.tolist() == [3.0] and f._raw.position.tolist() == [2.0, 0.5]
