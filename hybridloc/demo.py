@@ -28,7 +28,7 @@ from . import geo
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
-from .pdr.phone import dead_reckon
+from .pdr.deadreckoning import DeadReckoning
 from .progress import Progress
 from .samples import ILC_SITE1_F1
 from .units import wrap_angle
@@ -36,8 +36,7 @@ from .units import wrap_angle
 
 
 def _pdr_track_at(steps, wp_t) -> np.ndarray:
-    tr = dead_reckon(steps)  # from (0, 0) one second before the first step
-    return np.column_stack([np.interp(wp_t, tr.t, tr.pos_enu[:, 0]), np.interp(wp_t, tr.t, tr.pos_enu[:, 1])])
+    return DeadReckoning.from_steps(steps, covariance=False).position_at(wp_t)  # from (0, 0) one second before the first step
 
 
 def _first_leg_rotation(steps, wp_t, wp_xy) -> float:

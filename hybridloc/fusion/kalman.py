@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..estimation import ChiSquareGate, Measurement, UpdateInfo, UpdateStats, correct as gated_update
+from ..pdr.deadreckoning import DeadReckoning
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
 from .measurements import CorridorHeading, PositionFix, StepDisplacement
@@ -102,8 +103,7 @@ class LocalFusion:
         self._gate = ChiSquareGate(self.cfg.gate_probability)
         self._gate_by_source = {src: ChiSquareGate(p) for src, p in self.cfg.gate_by_source.items()}
         self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
-        self._raw: list[tuple[float, float, float]] = []  # (t, X, Y): the PDR's own track (sum of L (cos psi, sin psi))
-        self._raw_xy = (0.0, 0.0)
+        self._raw = DeadReckoning(covariance=False, max_rows=200)  # the PDR's own track (sum of L (cos psi, sin psi)) since its first step
         if init is not None:
             self.x[:2] = init[:2]
             self.P[0, 0] = self.P[1, 1] = init[2] ** 2
@@ -133,8 +133,9 @@ class LocalFusion:
         self.P = F @ self.P @ F.T + Q
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
-        self._raw_xy = (self._raw_xy[0] + L * math.cos(step.heading), self._raw_xy[1] + L * math.sin(step.heading))
-        _keep(self._raw, (step.t, *self._raw_xy))
+        if self._raw.t_last is not None and step.t <= self._raw.t_last:  # a clock that went back: the PDR's track starts over
+            self._raw = DeadReckoning(pos0=self._raw.position, covariance=False, max_rows=200)
+        self._raw.add(step)
         self._corridor(step)
         return self._stepped(step)
 
@@ -172,9 +173,7 @@ class LocalFusion:
 
     def _raw_at(self, t: float) -> np.ndarray | None:
         """The PDR's own track at time t; None outside the kept history."""
-        if not self._raw or t < self._raw[0][0] or t > self._raw[-1][0]:
-            return None
-        return _track_at(self._raw, t)
+        return self._raw.position_at(t) if self._raw.covers(t) else None
 
     def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
         """One gated update with a position fix or a displacement (GPS differential mode); returns

@@ -28,6 +28,7 @@ from ..metrics import oracle_start_errors
 from ..types import ImuBlock, StepEvent
 from ..units import wrap_angle
 from .attitude import forward_headings
+from .deadreckoning import DeadReckoning
 from .phone import PhonePdr, PhonePdrConfig
 from .steplength import MIN_CALIBRATION_SEGMENT_M, LengthCalibrator, StepFeatures, calibrate_from_marks, make_model
 
@@ -155,20 +156,14 @@ def _segments(run: TraceRun):
     return out
 
 
-def _track(run: TraceRun, lengths: np.ndarray, heading: str = "ours") -> tuple[np.ndarray, np.ndarray]:
-    """Step times (with a start 1 s before the first step) and positions from lengths and headings
-    (``heading``: "ours", the steps' own, or "android", the rotation vector's)."""
+def _track(run: TraceRun, lengths: np.ndarray, heading: str = "ours") -> DeadReckoning:
+    """The PDR track from the steps' times with ``lengths`` and headings (``heading``: "ours", the
+    steps' own, or "android", the rotation vector's), from (0, 0) 1 s before the first step (or at
+    the first waypoint if earlier)."""
     if not run.steps:
-        return np.array([run.wp_t[0]]), np.zeros((1, 2))
+        return DeadReckoning(run.wp_t[0])
     h = np.array([s.heading for s in run.steps]) if heading == "ours" else run.android_heading
-    t = np.concatenate([[min(run.steps[0].t - 1.0, run.wp_t[0])], [s.t for s in run.steps]])
-    d = np.column_stack([lengths * np.cos(h), lengths * np.sin(h)])
-    return t, np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
-
-
-def _interp(t, p, tq):
-    tq = np.clip(tq, t[0], t[-1])
-    return np.column_stack([np.interp(tq, t, p[:, 0]), np.interp(tq, t, p[:, 1])])
+    return DeadReckoning.from_lengths_headings([s.t for s in run.steps], lengths, h, t0=min(run.steps[0].t - 1.0, run.wp_t[0]))
 
 
 def fit_model(runs: list[TraceRun], model_name: str):
@@ -205,7 +200,7 @@ def marks_on_straight_walks(runs: list[TraceRun], model, straight_deg: float = 5
         if r.android_heading is None or not r.features:
             continue
         L = np.array([model.length(f) for f in r.features])
-        tracks = [_interp(*_track(r, L, h), r.wp_t) for h in ("ours", "android")]
+        tracks = [_track(r, L, h).position_at(r.wp_t) for h in ("ours", "android")]
         for k, turn_t, turn_ours, turn_android in _turns(r, tracks):
             n += 1
             if max(abs(turn_ours), abs(turn_android)) < math.radians(straight_deg):
@@ -219,8 +214,7 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
     len_err, turn_err, wp_err = [], [], []
     for r in runs:
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
-        t, p = _track(r, L, heading)
-        wp_est = _interp(t, p, r.wp_t)
+        wp_est = _track(r, L, heading).position_at(r.wp_t)
         lens = []
         for k, t0, t1, D, idx in _segments(r):
             if D >= MIN_SEGMENT_M:

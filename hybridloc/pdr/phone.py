@@ -34,6 +34,7 @@ from scipy import signal
 from ..types import SATURATION_REPEATS, SATURATION_SHARE, ImuBlock, StepEvent, Trajectory
 from ..units import DEG, G0, wrap_angle
 from .attitude import AttitudeConfig, AttitudeFilter
+from .deadreckoning import DeadReckoning
 from .steplength import BounceHeightLength, LengthModel, StepFeatures
 
 
@@ -489,17 +490,8 @@ def run_phone_pdr(imu: ImuBlock, length_model: LengthModel | None = None, config
 
 
 def dead_reckon(steps: list[StepEvent], x0: float = 0.0, y0: float = 0.0, t0: float | None = None) -> Trajectory:
-    """Positions after each step (Kourogi eq 12), starting at (x0, y0) at ``t0`` (default: 1 s before the first step)."""
-    if not steps:
-        t = [0.0 if t0 is None else t0]
-        return Trajectory(np.array(t), np.array([[x0, y0, 0.0]]), sigma_enu=np.zeros((1, 3)))
-    ts = [steps[0].t - 1.0 if t0 is None else min(t0, steps[0].t - 1e-3)] + [s.t for s in steps]
-    pos = np.zeros((len(steps) + 1, 3))
-    pos[0, :2] = (x0, y0)
-    sig = np.zeros((len(steps) + 1, 3))
-    C = np.zeros((2, 2))
-    for i, s in enumerate(steps, 1):
-        pos[i, :2] = pos[i - 1, :2] + s.displacement_enu
-        C = s.propagate_position_covariance(C)  # Kourogi eq 13
-        sig[i, :2] = np.sqrt(np.diag(C))
-    return Trajectory(np.array(ts), pos, sigma_enu=sig)
+    """Positions after each step (Kourogi eq 12) and their sigmas (eq 13), starting at (x0, y0) at ``t0``
+    (default: 1 s before the first step; no later than 1 ms before it): :class:`.deadreckoning.DeadReckoning`."""
+    if steps and t0 is not None:
+        t0 = min(t0, steps[0].t - 1e-3)
+    return DeadReckoning.from_steps(steps, (x0, y0), 0.0 if t0 is None and not steps else t0).to_trajectory()

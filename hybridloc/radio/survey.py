@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..pdr.deadreckoning import DeadReckoning
 from ..types import RfScan, StepEvent, Waypoints
 
 
@@ -33,21 +34,12 @@ class LabelledScan:
     source: str = ""
 
 
-def _pdr_track(steps: list[StepEvent], t0: float) -> tuple[np.ndarray, np.ndarray]:
-    t = np.array([t0] + [s.t for s in steps])
-    d = np.array([s.displacement_enu for s in steps]).reshape(-1, 2)
-    return t, np.vstack([[0.0, 0.0], np.cumsum(d, axis=0)])
-
-
 def label_scans(scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoints, t_start: float, source: str = "",
                 sigma0: float = 0.5, rel_sigma: float = 0.1) -> list[LabelledScan]:
     """Label the scans lying between the first and last waypoint (module docstring)."""
     if len(waypoints) < 2:
         return []
-    t_tr, p_tr = _pdr_track(steps, min(t_start, steps[0].t - 1.0) if steps else t_start)
-
-    def track_at(t):
-        return np.array([np.interp(t, t_tr, p_tr[:, 0]), np.interp(t, t_tr, p_tr[:, 1])])
+    track_at = DeadReckoning.from_steps(steps, t0=min(t_start, steps[0].t - 1.0) if steps else t_start, covariance=False).position_at
 
     out: list[LabelledScan] = []
     wt, wp = waypoints.t, waypoints.pos_enu
