@@ -169,7 +169,8 @@ class Server:
                 self.counts["batches-received"] += 1
             except P.Rejected as rej:
                 bad[(device, rej.reason)] += 1
-        acked, rejected, written = self.store.persist(batches, bad)
+        new_ids: list[tuple[str, int]] = []
+        acked, rejected, written = self.store.persist(batches, bad, written_ids=new_ids)
         for (_, reason), n in rejected.items():
             self.counts[f"rejected:{reason}"] += n
         self.counts["batches-persisted"] += written
@@ -179,9 +180,14 @@ class Server:
                              congestion_control=zenoh.CongestionControl.BLOCK)
         # answer the newest WiFi scan of each batch that brought one: a fix, or "no fix" with the
         # reason (no map for the site, no known transmitter...), so a client always hears back.
-        # The fixes are stored in one transaction before any is pushed.
+        # Only batches stored now are answered: a resent duplicate was answered when it was stored,
+        # and answering it again made the client fuse the same fix twice and count one answer too
+        # many. The fixes are stored in one transaction before any is pushed.
+        stored = set(new_ids)
         answers = []
         for b in batches:
+            if (b.device, b.seq) not in stored:
+                continue
             scans = [sc for sc in b.scans if sc.technology is Technology.WIFI]
             if not scans:
                 continue

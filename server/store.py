@@ -85,8 +85,12 @@ class Store:
         self.engine.dispose()
 
     def persist(self, batches: list[Batch], invalid: Counter | None = None,
-                end_of_walk: Collection[tuple[str, int]] = ()) -> tuple[dict[str, int], Counter, int]:
+                end_of_walk: Collection[tuple[str, int]] = (), written_ids: list[tuple[str, int]] | None = None,
+                ) -> tuple[dict[str, int], Counter, int]:
         """(highest persisted seq per device, rejections by (device, reason), batches written).
+
+        ``written_ids``, when given, receives the (device, seq) of every batch written (not the
+        duplicates and out-of-order ones), so the caller answers each stored batch once.
 
         ``invalid`` counts messages already refused by validation; they are stored in the same
         transaction (and included in the returned rejections). ``end_of_walk`` names the batches, as
@@ -148,6 +152,8 @@ class Store:
                 self._join_walk(s, row, b, dev, open_walks, getattr(b, "end_of_walk", False) or (b.device, b.seq) in ends)
                 acked[b.device] = b.seq
                 written += 1
+                if written_ids is not None:
+                    written_ids.append((b.device, b.seq))
             self._add_rejections(s, rejected)
         return acked, rejected, written
 

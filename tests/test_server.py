@@ -144,13 +144,21 @@ def test_locate_queryable_and_pushed_fix(server):
         bad = C.LOCATE.encode(LocateRequest(RfScan(1.0, "wifi", {}))).replace(b"{}", b'{"a1": 5.0}')  # a reading above 0 dBm
         errs = [r.err.payload.to_bytes() for r in s.get(P.key_locate(SITE, "dev05"), payload=bad, timeout=5.0) if not r.ok]
         assert errs and b"rssi-out-of-range" in errs[0] and srv.counts["rejected:bad-locate"] == 1
-        got = threading.Event()
-        sub = s.declare_subscriber(P.key_fix(SITE, "dev05"), lambda smp: got.set())
+        got, fixes = threading.Event(), []
+        sub = s.declare_subscriber(P.key_fix(SITE, "dev05"), lambda smp: (fixes.append(smp.payload.to_bytes()), got.set()))
         up = Uplink(s, SITE, "dev05", tmp / "spool5")
         try:
             assert up.wait_connected()
-            up.send(scans=[RfScan(2.0, "wifi", reading((10.0, 12.0)))])
+            scan = RfScan(2.0, "wifi", reading((10.0, 12.0)))
+            up.send(scans=[scan])
             assert got.wait(10.0)  # the server pushed a fix for the new scan
+            # the same batch resent (a late ack): acknowledged again, stored and answered once
+            s.put(P.key_batch(SITE, "dev05"), _batch(SITE, "dev05", 1, scans=[scan]))
+            deadline = time.monotonic() + 10.0
+            while srv.counts["rejected:duplicate"] < 1 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(0.5)  # a second answer would be put right after the duplicate was counted
+            assert srv.counts["rejected:duplicate"] == 1 and len(fixes) == 1
         finally:
             up.close()
             sub.undeclare()
