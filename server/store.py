@@ -22,8 +22,9 @@ import datetime as dt
 from collections import Counter
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import cast
 
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import CursorResult, func, insert, select, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
@@ -164,7 +165,7 @@ class Store:
             open_walks[b.device] = s.execute(select(m.Walk).where(m.Walk.device_id == b.device, m.Walk.end_reason == WalkEnd.OPEN.value)
                                              .order_by(m.Walk.id.desc()).limit(1)).scalar_one_or_none()
         w = open_walks[b.device]
-        times = [r.t for r in (*b.steps, *b.scans, *b.marks)]
+        times = [r.t for r in b.steps] + [r.t for r in b.scans] + [r.t for r in b.marks]
         if times:
             lo, hi = min(times), max(times)
             if w is None or _span_gap(w, lo, hi) > WALK_IDLE_GAP_S:
@@ -275,15 +276,16 @@ class Store:
                      for r in records(m.Scan)]
             marks = [SurveyMark(r.t, r.x, r.y, r.floor) for r in records(m.SurveyMark)]
             floors = s.execute(select(m.WalkFloor.floor).where(m.WalkFloor.walk_id == w.id).order_by(m.WalkFloor.t_first, m.WalkFloor.floor)).scalars().all()
-            return Walk(w.site_id, w.device_id, w.id, w.t_start, w.t_end, w.device_model, tuple(floors), steps, scans, marks, WalkEnd(w.end_reason))
+            return Walk(w.site_id, w.device_id, w.id, w.t_start, w.t_end, w.device_model, tuple(floors), tuple(steps), tuple(scans), tuple(marks), WalkEnd(w.end_reason))
 
     def close_idle_walks(self, idle_s: float = WALK_IDLE_GAP_S, now: dt.datetime | None = None) -> int:
         """End (``idle``) the open walks whose latest batch arrived more than ``idle_s`` before ``now``
         (server clock); the number ended. For a live server, where no later batch may ever come."""
         cutoff = (now or m.utcnow()) - dt.timedelta(seconds=idle_s)
         with Session(self.engine) as s, s.begin():
-            return s.execute(update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff)
-                             .values(end_reason=WalkEnd.IDLE.value)).rowcount
+            res = s.execute(update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff)
+                            .values(end_reason=WalkEnd.IDLE.value))
+            return int(cast(CursorResult, res).rowcount)
 
     # -------------------------------------------------------------- radio maps
     def save_map(self, site: str, data: bytes, n_scans: int = 0) -> int:

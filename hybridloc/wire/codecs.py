@@ -128,7 +128,7 @@ def _dumps(msg: dict, compact: bool = False) -> bytes:
 # ---------------------------------------------------------------------------------------------- shared parts
 def step_to_dict(s: StepEvent) -> dict:
     """A step as the wire writes it (optional fields only when set)."""
-    d = {"t": s.t, "length": s.length, "heading": s.heading, "sigma_length": s.sigma_length, "sigma_heading": s.sigma_heading}
+    d: dict[str, Any] = {"t": s.t, "length": s.length, "heading": s.heading, "sigma_length": s.sigma_length, "sigma_heading": s.sigma_heading}
     if s.heading_change is not None:
         d["heading_change"] = s.heading_change
         d["sigma_heading_change"] = s.sigma_heading_change
@@ -281,7 +281,7 @@ class FixCodec(Codec[Fix]):
     def encode(self, a: Fix) -> bytes:
         fix = a.fix
         if fix is None:
-            d = {"schema": FIX_SCHEMA, "fix": None, "reason": a.reason}
+            d: dict[str, Any] = {"schema": FIX_SCHEMA, "fix": None, "reason": a.reason}
             if a.t is not None:
                 d["t"] = float(a.t)
             return _dumps(d)
@@ -306,7 +306,7 @@ class FixCodec(Codec[Fix]):
     @staticmethod
     def _fix(f: dict, msg: dict) -> Fix:
         t = _finite(f["t"], "fix t")
-        fix = AbsoluteFix(t, [_finite(f["x"], "x"), _finite(f["y"], "y")], _matrix2(f["cov"], "cov"), f["source"], _floor(f.get("floor")),
+        fix = AbsoluteFix(t, np.array([_finite(f["x"], "x"), _finite(f["y"], "y")]), _matrix2(f["cov"], "cov"), f["source"], _floor(f.get("floor")),
                           _finite(f.get("floor_prob", 1.0), "floor_prob"))
         region = None
         if msg.get("region") is not None:

@@ -54,7 +54,7 @@ def encoding(schema: str) -> str:
     return f"application/json;schema={schema}"
 
 
-def check_id(value: str, what: str = "id") -> str:
+def check_id(value: object, what: str = "id") -> str:
     """Site and device ids are 1-64 characters of [A-Za-z0-9_.-] (one key-expression chunk)."""
     if not isinstance(value, str) or not _ID.match(value):
         raise ValueError(f"invalid {what} {value!r}: 1-64 characters of letters, digits, '_', '.', '-'")
