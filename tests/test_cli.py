@@ -23,11 +23,12 @@ def test_cli_length_models_are_the_librarys():
     assert set(LENGTH_MODELS) == set(MODELS)
 
 
-def test_inspect_reports_bad_file_with_exit_1(tmp_path):
+def test_inspect_reports_bad_file_with_exit_2(tmp_path):
+    """Bad input is the user's to mend: exit status 2 (issue #19; it was 1), one line, no traceback."""
     p = tmp_path / "junk.bin"
     p.write_bytes(b"\x00junk")
     r = _run("data", "inspect", str(p))
-    assert r.returncode == 1 and "unknown format" in r.stderr
+    assert r.returncode == 2 and "unknown format" in r.stderr and "Traceback" not in r.stderr
 
 
 @pytest.mark.shared_data
@@ -55,7 +56,7 @@ def test_pdr_phone_bad_input_is_a_clear_error(tmp_path):
     p = tmp_path / "g.csv"
     p.write_text("t,ax,ay,az,gx,gy,gz\n" + "\n".join(f"{i * 0.02:.2f},0,0,1.0,0,0,0" for i in range(100)))
     r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"))
-    assert r.returncode == 1 and "looks like g" in r.stderr
+    assert r.returncode == 2 and "looks like g" in r.stderr
     r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"), "--accel-unit", "g")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "o" / "g" / "steps.csv").is_file()

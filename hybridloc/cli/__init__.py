@@ -21,7 +21,7 @@ import logging
 import sys
 
 from .. import __version__
-from ._common import LENGTH_MODELS
+from ._common import LENGTH_MODELS, apply_settings, input_error_status, one_line
 
 __all__ = ["LENGTH_MODELS", "build_parser", "main"]
 
@@ -34,6 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hybridloc", description="Crowd-sourced hybrid PDR + WiFi/RF SLAM for indoor positioning.")
     ap.add_argument("--version", action="version", version=f"hybridloc {__version__}")
     ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    ap.add_argument("--config", metavar="FILE", help="settings file (TOML: site, endpoint, db, [security], [filter]; see hybridloc.settings); "
+                    "HYBRIDLOC_* environment variables override it, options override both")
     sub = ap.add_subparsers(dest="command", required=True)
 
     data.register(sub)
@@ -55,9 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2), format="%(levelname)s %(name)s: %(message)s")
     try:
+        apply_settings(args)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (ValueError, OSError) as exc:
-        print(f"hybridloc: error: {exc}", file=sys.stderr)
-        return 1
+    except Exception as exc:
+        status = input_error_status(exc)
+        if status is None:
+            raise  # a bug: keep its traceback
+        log.debug("exit status %d", status, exc_info=True)
+        print(f"hybridloc: error: {one_line(exc)}", file=sys.stderr)
+        return status

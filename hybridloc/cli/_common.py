@@ -11,8 +11,10 @@ LENGTH_MODELS = ("constant", "weinberg", "frequency", "kim", "height")
 
 def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "m/s^2"):
     """(imu, read report, device model, waypoints or None) of a recording."""
+    from ..errors import check_input_file
     from ..io import detect_format
 
+    check_input_file(path, "recording")
     fmt = fmt or detect_format(path)
     if fmt == "msft":
         from ..io.msft import read_ilc_trace
@@ -80,3 +82,85 @@ def stem_safe(path: str) -> str:
     from ..io.common import stem_of
 
     return re.sub(r"[^A-Za-z0-9_.-]", "_", stem_of(path))[:40]
+
+
+def _json_number(v):
+    """A figure for the JSON line: floats rounded to 6 significant digits, NaN and infinities as null."""
+    import math
+
+    if isinstance(v, bool) or v is None or isinstance(v, (int, str)):
+        return v
+    f = float(v)
+    return float(f"{f:.6g}") if math.isfinite(f) else None
+
+
+def print_headline(figures: dict) -> None:
+    """The last line of an ``eval`` command or a benchmark: one JSON object of its headline figures,
+    named with their units (``cold_mean_m``, ``floor_hit_pct``...), for scripts and CI; the table above
+    it is for people."""
+    import json
+
+    print(json.dumps({k: _json_number(v) for k, v in figures.items()}), flush=True)
+
+
+def pyplot(needed_for: str):
+    """matplotlib.pyplot on the file-only Agg backend, or :class:`~hybridloc.errors.MissingDependency`
+    naming the ``plot`` extra (matplotlib is a core dependency; this covers a trimmed install)."""
+    from ..errors import require
+
+    matplotlib = require("matplotlib", "plot", needed_for)
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def input_error_status(exc: BaseException) -> int | None:
+    """The exit status of an exception the user can mend, or of a computation that failed (1); None
+    for anything else (a bug, which keeps its traceback).
+
+    2: :class:`~hybridloc.errors.HybridlocError` of the user's side (bad input, missing data, missing
+    package), ``ValueError`` (a bad value, a file not in its format, bytes that are not text),
+    ``OSError`` (a missing or unreadable file, a folder where a file is expected, a corrupt gzip
+    stream), ``EOFError`` (a truncated file), and the readers' own complaints about files that are not
+    what they claim (a .mat file that is not MATLAB, a zip that is not one, a database file that is
+    not SQLite). 1: :class:`~hybridloc.errors.ComputationFailed` and other ``RuntimeError``.
+    """
+    from ..errors import HybridlocError
+
+    if isinstance(exc, HybridlocError):
+        return exc.exit_code
+    if isinstance(exc, (ValueError, OSError, EOFError)):
+        return 2
+    if type(exc).__name__ in ("MatReadError", "BadZipFile") or type(exc).__module__.startswith("sqlalchemy."):
+        return 2
+    if isinstance(exc, RuntimeError):
+        return 1
+    return None
+
+
+def one_line(exc: BaseException) -> str:
+    """The first line of an exception's message (database drivers append the SQL and a link)."""
+    text = str(exc).strip() or type(exc).__name__
+    return text.splitlines()[0]
+
+
+def apply_settings(args: argparse.Namespace) -> None:
+    """Options a command takes from the settings (``_settings``: option dest -> dotted setting key,
+    ``site[]`` for a repeatable option): the option when given, else the environment, else the
+    settings file, else the built-in default. Then the options the command requires (``_required``)."""
+    from ..settings import load_settings
+
+    settings = load_settings(args.config)
+    for dest, key in getattr(args, "_settings", {}).items():
+        if getattr(args, dest, None) is not None:
+            continue
+        if key.endswith("[]"):
+            v = settings.get(key[:-2])
+            setattr(args, dest, None if v is None else [v])
+        else:
+            setattr(args, dest, settings.get(key))
+    for dest in getattr(args, "_required", ()):
+        if getattr(args, dest, None) is None:
+            args._parser.error(f"the following arguments are required: --{dest.replace('_', '-')} (or set {dest} in the settings: --config FILE, "
+                               f"HYBRIDLOC_{dest.upper()})")

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..errors import MissingData, check_input_file
 from ._common import load_imu, open_calibration, parse_floats, security, stem_safe
 
 
@@ -30,6 +31,29 @@ def _cmd_client(args: argparse.Namespace) -> int:
         from ..pdr import PhonePdrConfig
 
         pdr_config = PhonePdrConfig(walking_offset=args.offset, estimate_offset=args.estimate_offset)
+    # every input file is read before the session opens: a bad one is one line, not a half-run client
+    plan = None
+    if args.floorplan:
+        from ..io.msft import read_ilc_site
+
+        plan = read_ilc_site(args.floorplan)
+    imu = tr = local = None
+    if args.replay:
+        check_input_file(args.replay, "recording")
+    if args.replay and args.kind == "foot":
+        imu, _, _, _ = load_imu(args.replay, args.format, args.rate)
+    elif args.replay:
+        from ..io.msft import read_ilc_trace
+
+        tr = read_ilc_trace(args.replay)
+        if tr.imu is None:
+            raise MissingData(f"{args.replay}: no IMU data to replay ({tr.report.summary()})")
+        if args.fixes:
+            from ..io.fixes import read_fixes_csv
+
+            local, rep = read_fixes_csv(args.fixes)
+            if not rep.ok:
+                print(f"{args.fixes}: {rep.summary()}", file=sys.stderr)
     pdr = None
     with open_client(args.endpoint, security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
         fusion = None
@@ -37,11 +61,6 @@ def _cmd_client(args: argparse.Namespace) -> int:
             from ..clients.agent import fetch_walk_prior
             from ..fusion import ParticleFusion
 
-            plan = None
-            if args.floorplan:
-                from ..io.msft import read_ilc_site
-
-                plan = read_ilc_site(args.floorplan)
             prior = fetch_walk_prior(s, args.site, plan)
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
@@ -55,9 +74,8 @@ def _cmd_client(args: argparse.Namespace) -> int:
         elif args.floorplan:  # our Kalman filter, with the floors' grid directions (heuristic drift elimination)
             from ..fusion import LocalFusion
             from ..geo import corridor_axes
-            from ..io.msft import read_ilc_site
 
-            fusion = LocalFusion(init=init, floor=args.floor, corridor_axes=corridor_axes(read_ilc_site(args.floorplan)))
+            fusion = LocalFusion(init=init, floor=args.floor, corridor_axes=corridor_axes(plan))
         if args.live:
             from ..clients.agent import live_phone
 
@@ -72,21 +90,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
             print(f"{device}: live input: {ls.samples} IMU samples, {ls.scans} scans, {ls.bad_lines} malformed lines skipped"
                   + (f" (first: {ls.first_bad})" if ls.first_bad else ""))
         elif args.kind == "foot":
-            imu, _, _, _ = load_imu(args.replay, args.format, args.rate)
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             replay_foot(agent, imu, args.speed)
         else:
-            from ..io.msft import read_ilc_trace
-
-            tr = read_ilc_trace(args.replay)
             agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor)
-            local = None
-            if args.fixes:
-                from ..io.fixes import read_fixes_csv
-
-                local, rep = read_fixes_csv(args.fixes)
-                if not rep.ok:
-                    print(f"{args.fixes}: {rep.summary()}", file=sys.stderr)
             pdr = replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local, length_model=length_model,
                                pdr_config=pdr_config)
         r = agent.close(wait=args.ack_timeout)
@@ -129,16 +136,16 @@ def register(sub) -> None:
     for kind, helptext in (("phone", "a phone: step-and-heading PDR, WiFi scans, fused fixes"), ("foot", "a foot-mounted IMU: ZUPT INS strides, fused fixes"),
                            ("survey", "an operator surveying by walking: steps, scans and survey marks (waypoints)")):
         c = csub.add_parser(kind, help=helptext)
-        c.add_argument("--endpoint", default="tcp/127.0.0.1:7447")
-        c.add_argument("--site", required=True)
+        c.add_argument("--endpoint")
+        c.add_argument("--site")
         c.add_argument("--device", help="device id (default: from the recording's name)")
         c.add_argument("--replay", metavar="FILE", help="recording to replay (ILC trace for phone/survey; IMU file for foot)")
         c.add_argument("--live", metavar="SOURCE", help="phone: read live IMU samples and WiFi scans as lines from SOURCE (a pipe or FIFO; - for "
                        "stdin): 't,ax,ay,az,gx,gy,gz[,mx,my,mz]' and 'wifi,t,BSSID=RSSI;...' (needs --rate)")
-        c.add_argument("--speed", type=float, default=1.0, help="replay speed factor K (0 = as fast as possible)")
+        c.add_argument("--speed", type=float, help="replay speed factor K (0 = as fast as possible)")
         c.add_argument("--fixes", metavar="CSV", help="the device's own GPS / RFID fixes for the replay (t,x,y,floor,sigma,source[,sigma_random]; "
                        "the simulator writes them beside each walk): fused at their times, GPS pairs also in differential mode")
-        c.add_argument("--filter", choices=("kalman", "particle", "kourogi"), default="kalman",
+        c.add_argument("--filter", choices=("kalman", "particle", "kourogi"),
                        help="local fusion: our Kalman filter (position, heading bias, step scale), a particle filter with the site's walls "
                             "and walk prior, or Kourogi et al.'s own (position and velocity; the reference) (default kalman)")
         c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout): walls and walk prior "
@@ -164,4 +171,6 @@ def register(sub) -> None:
             c.add_argument("--update-calibration", action="store_true",
                            help="at the end, teach --calibration (created when absent) what this walk showed: a survey from its marks "
                                 "(known distances), a phone from the step-length scale its Kalman filter learned from the fixes")
-        c.set_defaults(func=_cmd_client)
+        c.set_defaults(func=_cmd_client, _parser=c, _required=("site",), _settings={
+            "endpoint": "endpoint", "site": "site", "speed": "filter.speed", "filter": "filter.kind", "start": "filter.start", "floor": "filter.floor",
+            "floorplan": "floorplan", "user": "security.user", "password": "security.password", "tls_ca": "security.tls_ca"})

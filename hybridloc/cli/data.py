@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ._common import input_error_status, one_line
+
 
 def _cmd_data_inspect(args: argparse.Namespace) -> int:
     from ..inspect import inspect_file
@@ -13,9 +15,12 @@ def _cmd_data_inspect(args: argparse.Namespace) -> int:
     for p in args.files:
         try:
             print(inspect_file(p, args.format, args.rate).render())
-        except (ValueError, OSError) as exc:  # DataFormatError is a ValueError
-            print(f"{p}: error: {exc}", file=sys.stderr)
-            status = 1
+        except Exception as exc:  # one line per unreadable input, then the next input
+            code = input_error_status(exc)
+            if code is None:
+                raise
+            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
+            status = max(status, code)
         print()
     return status
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import LENGTH_MODELS
+from ._common import LENGTH_MODELS, print_headline
 
 
 def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
@@ -23,6 +23,10 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
         raise ValueError(f"no Indoor Location Competition traces under {args.dir}")
     cfg = PhonePdrConfig(detector=args.detector)
     runs, skipped = collect_runs(paths, cfg)
+    if not runs:
+        from ..errors import MissingData
+
+        raise MissingData(f"{args.dir}: no trace with IMU data and waypoints ({len(skipped)} skipped)")
     print(f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
           "lengths calibrated by 2-fold cross-fitting over traces")
     print(f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}")
@@ -73,6 +77,10 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
           f"{len(rec['gait'][angles[0]])} real walks re-oriented; walk heading within 20 deg of the unturned phone's): ours (sign from the gait) "
           + " / ".join(f"{share['gait'][a]:.0f}" for a in angles) + " %, the principal axis signed by continuity (textbook) "
           + " / ".join(f"{share['continuity'][a]:.0f}" for a in angles) + " %")
+    wp = summarize_errors(main_m.wp_err)
+    print_headline({"segment_length_median_pct": 100 * np.median(main_m.length_rel_err), "segment_length_p90_pct": 100 * np.percentile(main_m.length_rel_err, 90),
+                    "turn_error_median_deg": np.median(main_m.turn_err_deg), "waypoint_error_mean_m": wp.mean, "waypoint_error_median_m": wp.median,
+                    "length_error_ratio_to_constant": np.median(main_m.length_rel_err) / base, "steps": main_m.n_steps, "walked_m": main_m.walked_m})
     return 0
 
 
@@ -114,25 +122,169 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
     print(f"plain DEDRIFT-I (Ojeda) in the same run: mean 2-D ARMSE {dd.mean():.3f} m; ratio ours/DEDRIFT-I {a2.mean() / dd.mean():.3f}")
     if loops:
         print(f"closed loops ({len(loops)}): mean return-to-start error {np.mean(loops):.2f}% of distance travelled (Ojeda eq 9)")
+    print_headline({"armse_mean_m": a2.mean(), "armse_median_m": np.median(a2), "armse_forward_mean_m": fw.mean(), "armse_3d_mean_m": a3.mean(),
+                    "authors_armse_mean_m": au.mean(), "dedrift_armse_mean_m": dd.mean(), "loop_error_mean_pct": np.mean(loops) if loops else float("nan"),
+                    "trials": len(rows)})
     return 0
 
 
 def _cmd_eval_fingerprint(args: argparse.Namespace) -> int:
     from ..radio.evaluate import run_fingerprint_eval
 
-    return run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every, args.uji_validation)
+    res = run_fingerprint_eval(args.uji, args.ilc, args.folds, args.every, args.uji_validation)
+    print_fingerprint(res)
+    print_headline(fingerprint_headline(res))
+    return 0
+
+
+def _print_uji(results: dict, indent: str) -> None:
+    """One row per method of :data:`~hybridloc.radio.evaluate.UJI_METHODS` and the ratio of their mean errors."""
+    import numpy as np
+
+    from ..radio.evaluate import UJI_METHODS, _fmt
+
+    for name, label in UJI_METHODS:
+        v = results[name]
+        print(f"{indent}{label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
+    print(f"{indent}ratio of mean error ours/plain: {np.nanmean(results['ours']['errors']) / np.nanmean(results['plain']['errors']):.2f}")
+
+
+def print_fingerprint(res) -> None:
+    """The report of ``eval fingerprint`` (:class:`hybridloc.radio.evaluate.FingerprintEval`)."""
+    import numpy as np
+
+    from ..radio.evaluate import UJI_COVERED_M, UJI_METHODS, _fmt
+
+    if res.uji:
+        val = res.uji_validation
+        if res.uji_split is not None:
+            v = res.uji_split
+            print(f"UJIIndoorLoc standard split: references {res.uji}, queries {val} ({v['ours']['n']} scans)")
+            _print_uji(v, "  ")
+            print("  (goal: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m)")
+        r = res.uji_cv
+        print(f"UJIIndoorLoc {res.uji}: cross-validation grouped by user"
+              + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)"))
+        for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
+            print(f"  {title}:")
+            _print_uji({name: r[name][subset] for name, _ in UJI_METHODS}, "    ")
+        print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
+    if res.ilc:
+        print(f"Indoor Location Competition {res.ilc}: {res.n_ilc_traces} traces as surveys, {res.folds}-fold leave-traces-out, WiFi only, per scan")
+        for m in res.ilc_methods:
+            s = m.score
+            e = np.array(s.errors)
+            print(f"  {m.label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
+                  f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}")
+        ro = res.routes
+        s = ro.score
+        e = np.array(s.errors)
+        rep, rest = ro.repeated_errors, ro.other_errors
+        print(f"  routes held out whole ({ro.n_repeated} of {res.n_ilc_traces} walks follow a route walked more than once, with the same marks; "
+              f"in the folds above {ro.n_seen} of them have a repeat in the map), weighted 5-NN: floor hit {100 * np.mean(s.floor_hits):.2f}%  "
+              f"error on the right floor: {_fmt(e)}; on the repeated routes' walks {np.nanmean(rep) if rep.size else float('nan'):.2f} m, "
+              f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
+              f"(mean area {np.mean(s.region_areas):.0f} m^2)")
+        print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
+
+
+def fingerprint_headline(res) -> dict:
+    import numpy as np
+
+    out: dict = {}
+    if res.uji_split is not None:
+        v = res.uji_split["ours"]
+        out.update(uji_split_mean_m=np.nanmean(v["errors"]), uji_split_floor_hit_pct=100 * v["floor"], uji_split_building_hit_pct=100 * v["building"])
+    if res.uji_cv is not None:
+        v = res.uji_cv["ours"]["all"]
+        out.update(uji_cv_mean_m=np.nanmean(v["errors"]), uji_cv_floor_hit_pct=100 * v["floor"])
+    for m, key in zip(res.ilc_methods, ("ilc_knn", "ilc_prob")):
+        s = m.score
+        out[f"{key}_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
+        out[f"{key}_floor_hit_pct"] = 100 * np.mean(s.floor_hits)
+        out[f"{key}_region_hit_pct"] = 100 * np.mean(s.region_hits)
+    if res.routes is not None:
+        s = res.routes.score
+        out["ilc_routes_held_out_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
+    return out
 
 
 def _cmd_eval_sim_realism(args: argparse.Namespace) -> int:
     from ..sim.evaluate import run_sim_realism
 
-    return run_sim_realism(args.ilc, args.walkers, args.minutes, args.every, args.seed)
+    res = run_sim_realism(args.ilc, args.walkers, args.minutes, args.every, args.seed)
+    print_sim_realism(res)
+    print_headline(sim_realism_headline(res))
+    return 0
+
+
+def print_sim_realism(res) -> None:
+    """The table of ``eval sim-realism`` (:class:`hybridloc.sim.evaluate.SimRealism`)."""
+    import numpy as np
+
+    from ..sim.evaluate import poisson_rate
+    from ..sim.realism import DIST_BINS, in_range
+
+    print(f"simulated: {res.walkers} walkers x {res.minutes:g} min in a generated 3-floor building (seed {res.seed})")
+    if res.have_real:
+        print(f"real: {res.n_real_traces} Indoor Location Competition traces of {res.ilc}")
+
+    def row(name, sim_v, real_v=None, unit=""):
+        if real_v is None or len(real_v) == 0:
+            print(f"  {name:<44} sim {sim_v:8.2f}{unit}")
+            return
+        lo, hi = np.percentile(real_v, [10, 90])
+        ok = "inside" if in_range(sim_v, real_v) else "OUTSIDE"
+        print(f"  {name:<44} sim {sim_v:8.2f}{unit}   real p10-p90 {lo:7.2f}..{hi:7.2f}{unit}   {ok}")
+
+    print("statistic (simulated median vs the real distribution)")
+    for st in res.stats:
+        row(st.name, st.sim, st.real, st.unit)
+    print("  fingerprint cosine similarity by distance bin (m): " + "  ".join(f"{a:g}-{b:g}" for a, b in zip(DIST_BINS[:-1], DIST_BINS[1:])))
+    print("    sim  " + "  ".join(f"{v:6.3f}" for v in res.sim_similarity))
+    if res.have_real:
+        print("    real " + "  ".join(f"{v:6.3f}" for v in res.real_similarity))
+        print(f"    rms difference sim - real {_similarity_rms(res):.3f} (the radio model's n, shadowing and noise are set on it; "
+              "the real scans carry survey-label error, the simulated ones their true positions)")
+    r, plain = res.pdr, res.plain
+
+    def rate(k: int, minutes: float) -> str:
+        per_min, lo, hi = poisson_rate(k, minutes)
+        return f"{per_min:.2f}/min (95 % interval {lo:.2f}-{hi:.2f}; {minutes:.1f} min)"
+
+    print(f"phone PDR on the simulated walks (consumer IMU, phone in hand): {r['n_detected']} steps detected for {r['n_true']} true "
+          f"(count error {100 * r['count_error']:+.2f}%; goal within 1 %); false steps standing {rate(r['false_standing'], r['standing_min'])}, "
+          f"handling {rate(r['false_handling'], r['handling_min'])}; goal <= 1/min")
+    h, hp = np.degrees(r["heading_errors"]), np.degrees(plain["heading_errors"])
+    print(f"heading on the simulated walks (relative to the first step, straight walking, {res.minutes:g} min walks with raw consumer gyros "
+          f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
+          f"{np.median(hp):.1f} / {np.percentile(hp, 90):.1f} deg (ratio of medians ours/plain {np.median(h) / np.median(hp):.2f})")
+
+
+def _similarity_rms(res) -> float:
+    import numpy as np
+
+    diff = np.array(res.sim_similarity) - np.array(res.real_similarity)
+    return float(np.sqrt(np.nanmean(diff**2)))
+
+
+def sim_realism_headline(res) -> dict:
+    import numpy as np
+
+    r = res.pdr
+    h = np.degrees(r["heading_errors"])
+    out = {"step_count_error_pct": 100 * r["count_error"], "false_steps_standing_per_min": r["false_per_min_standing"],
+           "false_steps_handling_per_min": r["false_per_min_handling"], "heading_error_median_deg": float(np.median(h))}
+    if res.have_real:
+        out["similarity_rms_diff"] = _similarity_rms(res)
+    return out
 
 
 def _cmd_eval_fusion(args: argparse.Namespace) -> int:
     from ..demo import run_fusion_eval
 
-    return run_fusion_eval(args.dir, Path(args.out), args.replay_every, args.every)
+    print_headline(run_fusion_eval(args.dir, Path(args.out), args.replay_every, args.every))
+    return 0
 
 
 def register(sub) -> None:

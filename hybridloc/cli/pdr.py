@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._common import LENGTH_MODELS, load_imu, open_calibration
+from ._common import input_error_status, one_line, LENGTH_MODELS, load_imu, open_calibration
 
 
 def _cmd_pdr_phone(args: argparse.Namespace) -> int:
@@ -22,9 +22,12 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
     for p in args.traces:
         try:
             imu, report, device, marks = load_imu(p, args.format, None, args.accel_unit)
-        except (ValueError, OSError) as exc:
-            print(f"{p}: error: {exc}", file=sys.stderr)
-            status = 1
+        except Exception as exc:  # one line per unreadable input, then the next input
+            code = input_error_status(exc)
+            if code is None:
+                raise
+            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
+            status = max(status, code)
             continue
         model = cal.model if cal is not None else make_model(args.model)
         cfg = PhonePdrConfig(detector=args.detector, walking_offset=args.offset, estimate_offset=args.estimate_offset)
@@ -79,9 +82,12 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
                 raise ValueError(f"--rate {args.rate} Hz disagrees with the file's timestamps ({imu.rate_hz:.1f} Hz)")
             if not 50.0 <= imu.rate_hz <= 2000.0:
                 raise ValueError(f"sample rate {imu.rate_hz:.1f} Hz is implausible for a foot-mounted IMU (50-2000 Hz)")
-        except (ValueError, OSError) as exc:
-            print(f"{p}: error: {exc}", file=sys.stderr)
-            status = 1
+        except Exception as exc:  # one line per unreadable input, then the next input
+            code = input_error_status(exc)
+            if code is None:
+                raise
+            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
+            status = max(status, code)
             continue
         res = run_foot_ins(imu, FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward))
         d = out / stem_of(p)

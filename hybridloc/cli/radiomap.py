@@ -22,13 +22,23 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
 
 def _cmd_map_show(args: argparse.Namespace) -> int:
     from ..radio.plot import plot_map
+    from ..radio.radiomap import RadioMap
+    from ._common import pyplot
 
     plan = None
     if args.floorplan:
         from ..io.msft import read_ilc_site
 
         plan = read_ilc_site(args.floorplan)
-    plot_map(args.map, args.out, args.tx, plan)
+    rmap = RadioMap.load(args.map)
+    plt = pyplot("map show")
+    fig, axes = plt.subplots(len(rmap.floors), 2, figsize=(12, 5 * len(rmap.floors)), squeeze=False)
+    try:
+        plot_map(axes, rmap, args.tx, plan)
+        fig.tight_layout()
+        fig.savefig(args.out, dpi=80)
+    finally:
+        plt.close(fig)
     print(f"wrote {args.out}")
     return 0
 
