@@ -50,6 +50,13 @@ def test_eval_pdr_phone_on_bundled_sample_prints_figures():
     assert r.returncode == 0, r.stderr
     for key in ("constant", "weinberg", "frequency", "segment length error median", "heading-change error median", "error at waypoints"):
         assert key in r.stdout
+    # the last line is one JSON object of the headline figures, named with their units, for scripts and CI
+    import json
+
+    head = json.loads(r.stdout.splitlines()[-1])
+    assert {"segment_length_median_pct", "turn_error_median_deg", "waypoint_error_mean_m"} <= set(head)
+    assert 0 <= head["segment_length_median_pct"] < 100 and head["waypoint_error_mean_m"] > 0
+    assert f"segment length error median {head['segment_length_median_pct']:.1f}%" in r.stdout  # the same figure as the table's
 
 
 def test_pdr_phone_bad_input_is_a_clear_error(tmp_path):

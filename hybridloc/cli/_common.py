@@ -164,3 +164,12 @@ def apply_settings(args: argparse.Namespace) -> None:
         if getattr(args, dest, None) is None:
             args._parser.error(f"the following arguments are required: --{dest.replace('_', '-')} (or set {dest} in the settings: --config FILE, "
                                f"HYBRIDLOC_{dest.upper()})")
+
+
+def check_db_driver(url: str) -> None:
+    """A PostgreSQL URL needs psycopg, the ``postgres`` extra: :class:`~hybridloc.errors.MissingDependency`
+    in one line before any connection is tried (SQLite needs nothing beyond the core set)."""
+    from ..errors import require
+
+    if str(url).startswith(("postgresql", "postgres:")):
+        require("psycopg", "postgres", "a PostgreSQL database")

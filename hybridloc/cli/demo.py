@@ -8,6 +8,9 @@ from pathlib import Path
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ..demo import run_demo
+    from ._common import pyplot
+
+    pyplot("the demo's figure")  # before minutes of work, not after
 
     return run_demo(Path(args.out), sim=args.sim, speed=args.speed)
 

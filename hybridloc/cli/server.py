@@ -7,10 +7,11 @@ import sys
 from pathlib import Path
 
 from ..progress import Progress
-from ._common import security
+from ._common import check_db_driver, security
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
     from ..server.service import Server, serve_forever
 
     server = Server(args.endpoint, args.db, security(args), method=args.method)
@@ -27,6 +28,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_db_upgrade(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
     from ..server.db import make_engine
     from ..server.migrate import current_revision, upgrade
 
@@ -53,6 +55,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_import(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
     from ..radio.radiomap import RadioMap
     from ..server.store import Store
 
@@ -65,6 +68,7 @@ def _cmd_map_import(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_export(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
     from ..server.store import Store
 
     st = Store(args.db)
@@ -78,6 +82,7 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_rebuild(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
     from ..server.rebuild import rebuild
     from ..server.store import Store
 
