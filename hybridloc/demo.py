@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import geo
+from .errors import ComputationFailed, MissingData
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
@@ -128,7 +129,7 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                     bar.update(i)
         v, n_lab, _ = rebuild(server.store, site, out / "rebuild-cache")
         if v is None:
-            raise RuntimeError("no radio map could be built from the surveys")
+            raise ComputationFailed("no radio map could be built from the surveys")
         server.load_map(site)
         say(f"[pipeline] radio map version {v} rebuilt from {n_lab} labelled scans of the stored surveys", flush=True)
         results = []
@@ -285,7 +286,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
 
     traces = find_ilc_traces(site_dir)[::every]
     if len(traces) < 4:
-        raise ValueError(f"too few Indoor Location Competition traces under {site_dir}")
+        raise MissingData(f"too few Indoor Location Competition traces under {site_dir}")
     others = traces[::replay_every]
     survey = [t for t in traces if t not in set(others)]
     t0 = time.monotonic()
@@ -419,8 +420,8 @@ def _write_outputs(out: Path, plan, results) -> None:
 def plot_demo(ax, plan, results) -> None:
     """The demo's figure into ``ax``: the first floor's outline and rooms, each client's true waypoints
     (dashed) and fused track (solid), and a 95 % disc at its last fix."""
-    from matplotlib.patches import Circle
     from matplotlib import colormaps
+    from matplotlib.patches import Circle
 
     fl = plan.floors[0]
     for poly in fl.outline.geoms:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..errors import BadInput, MissingData
+
 #: step length models of ``pdr phone --model`` and ``eval pdr-phone --model`` (hybridloc.pdr.steplength.MODELS)
 LENGTH_MODELS = ("constant", "weinberg", "frequency", "kim", "height")
 
@@ -21,7 +23,7 @@ def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "
 
         tr = read_ilc_trace(path)
         if tr.imu is None:
-            raise ValueError(f"{path}: no usable IMU data ({tr.report.summary()})")
+            raise MissingData(f"{path}: no usable IMU data ({tr.report.summary()})")
         return tr.imu, tr.report, tr.device_model, tr.waypoints
     from ..io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat
 
@@ -32,7 +34,7 @@ def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "
     elif fmt == "openshoe":
         rec = read_openshoe_mat(path, rate or 100.0)
     else:
-        raise ValueError(f"{path}: format {fmt} holds no IMU data")
+        raise MissingData(f"{path}: format {fmt} holds no IMU data")
     return rec.imu, rec.report, "", None
 
 
@@ -43,13 +45,13 @@ def open_calibration(path: str | None, update: bool, model_name: str):
 
     if path is None:
         if update:
-            raise ValueError("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
+            raise BadInput("--update-calibration needs --calibration FILE (the device's calibration; created when absent)")
         return None, None
     p = Path(path)
     if p.is_file():
         return LengthCalibrator.load(p), p
     if not update:
-        raise ValueError(f"calibration {p} not found (add --update-calibration to create it)")
+        raise MissingData(f"calibration {p} not found (add --update-calibration to create it)")
     return LengthCalibrator(make_model(model_name)), p
 
 
@@ -70,9 +72,9 @@ def parse_floats(text: str, n: int, what: str) -> tuple[float, ...]:
     try:
         vals = tuple(float(p) for p in text.split(","))
     except ValueError:
-        raise ValueError(f"{what} expected, got {text!r}") from None
+        raise BadInput(f"{what} expected, got {text!r}") from None
     if len(vals) != n or not all(math.isfinite(v) for v in vals):
-        raise ValueError(f"{what} expected ({n} finite numbers), got {text!r}")
+        raise BadInput(f"{what} expected ({n} finite numbers), got {text!r}")
     return vals
 
 

@@ -6,19 +6,25 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..errors import MissingData, check_input_file
+from ..errors import BadInput, MissingData, check_input_file
 from ._common import load_imu, open_calibration, parse_floats, security, stem_safe
 
 
 def _cmd_client(args: argparse.Namespace) -> int:
-    from ..clients.agent import Agent, PoseWriter, open_client, replay_foot, replay_phone
+    from ..clients.agent import (
+        Agent,
+        PoseWriter,
+        open_client,
+        replay_foot,
+        replay_phone,
+    )
 
     if bool(args.replay) == bool(args.live):
-        raise ValueError("give one input: --replay FILE (a recording) or --live SOURCE (a live line stream, - for stdin)")
+        raise BadInput("give one input: --replay FILE (a recording) or --live SOURCE (a live line stream, - for stdin)")
     if args.live and args.kind != "phone":
-        raise ValueError("--live is for phone clients (IMU samples and WiFi scans as lines); foot and survey clients replay recordings")
+        raise BadInput("--live is for phone clients (IMU samples and WiFi scans as lines); foot and survey clients replay recordings")
     if args.live and not args.rate:
-        raise ValueError("--live needs the IMU sample rate: --rate HZ")
+        raise BadInput("--live needs the IMU sample rate: --rate HZ")
     device = args.device or f"{args.kind}-{stem_safe(args.replay) if args.replay else 'live'}"
     spool = args.spool or f".hybridloc-spool/{device}"
     pose = PoseWriter(args.pose_out, args.pose_format)

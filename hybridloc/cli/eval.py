@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..errors import MissingData
 from ._common import LENGTH_MODELS, print_headline
 
 
@@ -16,16 +17,22 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     from ..io.msft import find_ilc_traces
     from ..metrics import summarize_errors
     from ..pdr import PhonePdrConfig
-    from ..pdr.evaluate import collect_runs, decompose_segment_errors, decompose_turn_errors, evaluate_phone_pdr, fit_model, marks_on_straight_walks, offset_recovery
+    from ..pdr.evaluate import (
+        collect_runs,
+        decompose_segment_errors,
+        decompose_turn_errors,
+        evaluate_phone_pdr,
+        fit_model,
+        marks_on_straight_walks,
+        offset_recovery,
+    )
 
     paths = find_ilc_traces(args.dir)[:: args.every]
     if not paths:
-        raise ValueError(f"no Indoor Location Competition traces under {args.dir}")
+        raise MissingData(f"no Indoor Location Competition traces under {args.dir}")
     cfg = PhonePdrConfig(detector=args.detector)
     runs, skipped = collect_runs(paths, cfg)
     if not runs:
-        from ..errors import MissingData
-
         raise MissingData(f"{args.dir}: no trace with IMU data and waypoints ({len(skipped)} skipped)")
     print(f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
           "lengths calibrated by 2-fold cross-fitting over traces")
@@ -91,7 +98,7 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
 
     files = sorted(Path(args.dir).glob("*.mat"))
     if not files:
-        raise ValueError(f"no PyShoe .mat trials in {args.dir}")
+        raise MissingData(f"no PyShoe .mat trials in {args.dir}")
     print(f"foot INS (15-state ESKF, ZUPT, default adaptive SHOE detector, one setting for all, strides RTS-smoothed) on {len(files)} PyShoe VICON trials")
     print("ARMSE: the smoothed track `hybridloc pdr foot` writes; fwd: the forward filter alone (a live client's track, and what the "
           "authors' figure is); ours@opt: our forward filter on the authors' per-trial-optimal stance labels")

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..errors import MissingData
+
 
 def _cmd_locate(args: argparse.Namespace) -> int:
     import csv
@@ -19,7 +21,7 @@ def _cmd_locate(args: argparse.Namespace) -> int:
     rmap = RadioMap.load(args.map)
     if args.method == "knn":
         if not rmap.references:
-            raise ValueError(f"{args.map} holds no reference scans for kNN; use --method prob")
+            raise MissingData(f"{args.map} holds no reference scans for kNN; use --method prob")
         knn = KnnLocator(rmap.references, k=args.k, max_age_s=args.max_age, metric=args.metric)
     else:
         prob = ProbabilisticLocator(rmap, max_age_s=args.max_age)

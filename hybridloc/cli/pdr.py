@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from ._common import input_error_status, one_line, LENGTH_MODELS, load_imu, open_calibration
+from ..errors import BadInput
+from ._common import LENGTH_MODELS, input_error_status, load_imu, one_line, open_calibration
 
 
 def _cmd_pdr_phone(args: argparse.Namespace) -> int:
@@ -69,8 +70,8 @@ def _update_calibration(path: str, cal, cal_path: Path, steps, features, marks) 
 def _cmd_pdr_foot(args: argparse.Namespace) -> int:
     import csv
 
-    from ..io.common import stem_of
     from ..ins.foot import FootInsConfig, run_foot_ins, strides
+    from ..io.common import stem_of
     from ..pdr.files import write_steps_csv
 
     out = Path(args.out)
@@ -79,9 +80,9 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         try:
             imu, report, _, _ = load_imu(p, args.format, args.rate, args.accel_unit)
             if args.rate and args.format != "openshoe" and abs(imu.rate_hz - args.rate) > 0.05 * args.rate:
-                raise ValueError(f"--rate {args.rate} Hz disagrees with the file's timestamps ({imu.rate_hz:.1f} Hz)")
+                raise BadInput(f"--rate {args.rate} Hz disagrees with the file's timestamps ({imu.rate_hz:.1f} Hz)")
             if not 50.0 <= imu.rate_hz <= 2000.0:
-                raise ValueError(f"sample rate {imu.rate_hz:.1f} Hz is implausible for a foot-mounted IMU (50-2000 Hz)")
+                raise BadInput(f"sample rate {imu.rate_hz:.1f} Hz is implausible for a foot-mounted IMU (50-2000 Hz)")
         except Exception as exc:  # one line per unreadable input, then the next input
             code = input_error_status(exc)
             if code is None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..errors import MissingData
+
 
 def _cmd_map_build(args: argparse.Namespace) -> int:
     from ..radio.radiomap import BuildParams, build_radio_map
@@ -11,7 +13,7 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
 
     labelled, plan, site = labelled_from_inputs(args.format, args.inputs, args.floorplan)
     if not labelled:
-        raise ValueError("no labelled scans in the inputs (surveys need at least two waypoints)")
+        raise MissingData("no labelled scans in the inputs (surveys need at least two waypoints)")
     params = BuildParams(cell=args.cell, max_age_s=args.max_age)
     rmap = build_radio_map(labelled, site=args.site or site, plan=plan, params=params)
     rmap.save(args.out)

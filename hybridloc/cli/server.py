@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..errors import BadInput, MissingData
 from ..progress import Progress
 from ._common import check_db_driver, security
 
@@ -18,7 +19,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     for spec in args.map or []:
         site, _, path = spec.partition("=")
         if not path:
-            raise ValueError(f"--map expects SITE=FILE, got {spec!r}")
+            raise BadInput(f"--map expects SITE=FILE, got {spec!r}")
         server.load_map(site, Path(path).read_bytes())
     for site in args.site or []:
         if server.load_map(site) is None:
@@ -75,7 +76,7 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
     got = st.load_map(args.site)
     st.close()
     if got is None:
-        raise ValueError(f"no radio map stored for site {args.site!r}")
+        raise MissingData(f"no radio map stored for site {args.site!r}")
     Path(args.out).write_bytes(got[1])
     print(f"site {args.site} radio map version {got[0]} -> {args.out}")
     return 0
