@@ -5,7 +5,7 @@ import pytest
 
 
 def _run(*args):
-    return subprocess.run([sys.executable, "-m", "hybridloc.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "hybridloc.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_help_and_version():
