@@ -17,6 +17,7 @@ from hybridloc.ins.stance import gyro_minimum
 from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import foot_imu
 from hybridloc.sim.walker import simulate_walk
+from benchmarks import headline
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -44,6 +45,8 @@ def main(argv: list[str] | None = None) -> None:
     E_r = r[:, 1].mean()  # Ojeda eq 8
     print(f"mean return-to-start error E_r {E_r:.2f} m over mean distance {r[:, 0].mean():.0f} m: E_p = {100 * E_r / r[:, 0].mean():.2f}% "
           f"(goal <= 0.5 %); DEDRIFT-I {100 * r[:, 2].mean() / r[:, 0].mean():.1f}%; ratio ours/DEDRIFT-I {r[:, 1].mean() / r[:, 2].mean():.3f}")
+    headline({"return_to_start_mean_m": E_r, "return_to_start_pct": 100 * E_r / r[:, 0].mean(), "dedrift_return_to_start_pct": 100 * r[:, 2].mean() / r[:, 0].mean(),
+              "distance_mean_m": r[:, 0].mean()})
 
 
 if __name__ == "__main__":

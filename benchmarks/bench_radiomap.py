@@ -20,6 +20,7 @@ from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import BuildParams, build_radio_map
 from hybridloc.radio.survey import LabelledScan
 from hybridloc.types import RfScan
+from benchmarks import headline
 
 
 def world(n_scans: int, rng: np.random.Generator, side: float = 106.0, n_ap: int = 1000):
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> None:
         e = [np.linalg.norm(r.fix.pos_enu - p) for r, p in zip(res, q_pts)]
         print(f"{label}, 20,000 references (fit {fit:.1f} s): {per_q[metric]:.2f} ms per query in a batch; median error {np.median(e):.2f} m")
     print(f"ratios: Sorensen/scikit-learn kNN time {per_q['sorensen'] / per_q['euclidean']:.2f}; cell-likelihood/Sorensen kNN time {np.median(ts) / per_q['sorensen']:.2f}")
+    headline({"build_s": build, "locate_region_median_ms": np.median(ts), "knn_sorensen_ms_per_query": per_q["sorensen"], "knn_euclidean_ms_per_query": per_q["euclidean"]})
 
 if __name__ == "__main__":
     main()

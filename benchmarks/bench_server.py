@@ -30,6 +30,8 @@ import numpy as np
 
 from hybridloc.wire.zconfig import free_port
 
+from benchmarks import headline
+
 
 
 def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
@@ -168,6 +170,7 @@ def main(argv: list[str] | None = None) -> None:
     backends = [("SQLite (WAL)", None)]
     if args.postgres:
         backends.append(("PostgreSQL", "pg"))
+    figures: dict = {}
     for label, kind in backends:
         prev = None
         for n in (1, 2, 4):
@@ -187,12 +190,17 @@ def main(argv: list[str] | None = None) -> None:
             cost = r["wall"] / msgs * 1000 * 1000  # ms per 1,000 messages
             growth = f", x{cost / prev:.2f} vs half the load" if prev else ""
             prev = cost
+            figures[f"{label.split()[0].lower()}_{n}_clients_steps_per_s"] = r["steps"] / r["wall"]
+            figures[f"{label.split()[0].lower()}_{n}_clients_scans_per_s"] = r["scans"] / r["wall"]
+            figures[f"{label.split()[0].lower()}_{n}_clients_lossless"] = bool(r["lossless"])
             print(f"{label} ingest, {n} client process(es): {r['steps'] / r['wall']:,.0f} steps/s + {r['scans'] / r['wall']:,.0f} scans/s persisted, "
                   f"{'zero loss' if r['lossless'] else 'LOSS'} ({r['steps']} steps, {r['scans']} scans, {r['resent']} resent); "
                   f"{cost:.2f} ms per 1,000 messages{growth}")
     lat = locate_run(args.seconds)
     print(f"locate at 200 queries/s over Zenoh (client -> router/server): p50 {np.percentile(lat, 50):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms "
           f"over {len(lat)} queries (goal p50 <= 5 ms, p99 <= 20 ms)")
+    figures.update(locate_p50_ms=np.percentile(lat, 50), locate_p99_ms=np.percentile(lat, 99))
+    headline(figures)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import disturbance_field, foot_imu, phone_imu
 from hybridloc.sim.radio import make_radio_model, simulate_radio
 from hybridloc.sim.walker import simulate_walk
+from benchmarks import headline
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -48,6 +49,7 @@ def main(argv: list[str] | None = None) -> None:
     imu, _ = foot_imu(walk, rng)
     foot = time.perf_counter() - t0
     print(f"foot IMU at 200 Hz: {imu.duration:.0f} s of data in {foot:.2f} s = {imu.duration / foot:.0f}x real time (goal >= 200x)")
+    headline({"phone_wall_s": phone, "phone_samples_per_s": n_samples / phone, "foot_real_time_factor": imu.duration / foot})
 
 
 if __name__ == "__main__":

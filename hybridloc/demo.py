@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from . import geo
+from .errors import ComputationFailed, MissingData
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
@@ -127,7 +128,7 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                     bar.update(i)
         v, n_lab, _ = rebuild(server.store, site, out / "rebuild-cache")
         if v is None:
-            raise RuntimeError("no radio map could be built from the surveys")
+            raise ComputationFailed("no radio map could be built from the surveys")
         server.load_map(site)
         say(f"[pipeline] radio map version {v} rebuilt from {n_lab} labelled scans of the stored surveys", flush=True)
         results = []
@@ -266,8 +267,9 @@ def _rel(x: float, ref: float) -> str:
     return f"{abs(r):.0f}% {'below' if r < 0 else 'above'}"
 
 
-def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> int:
+def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> dict:
     """``hybridloc eval fusion``: surveys build the map; every ``replay_every``-th trace is a phone client.
+    Prints its report and returns the headline figures (the JSON line's: ``cold_mean_m``, ``wifi_mean_m``...).
 
     The phone clients run our Kalman filter (:class:`~hybridloc.fusion.LocalFusion`) live, in lock-step
     with the server's answers. The same steps and fixes, in the order they reached each client, are
@@ -283,7 +285,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
 
     traces = find_ilc_traces(site_dir)[::every]
     if len(traces) < 4:
-        raise ValueError(f"too few Indoor Location Competition traces under {site_dir}")
+        raise MissingData(f"too few Indoor Location Competition traces under {site_dir}")
     others = traces[::replay_every]
     survey = [t for t in traces if t not in set(others)]
     t0 = time.monotonic()
@@ -372,7 +374,14 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
             print(f"  clients {label} ({n} clients, {int(m.sum())} waypoints): mean error "
                   + ", ".join(f"{k} {np.nanmean(E[k][m]):.2f} m" for k in (names[0], names[1], names[2], names[4])))
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
-    return 0
+    keys = ("pdr_mean_m", "wifi_mean_m", "cold_mean_m", "particle_cold_mean_m", "known_start_mean_m", "particle_known_start_mean_m",
+            "kourogi_cold_mean_m", "kourogi_known_start_mean_m", "particle_no_map_mean_m")
+    head: dict = {key: summ[k].mean for key, k in zip(keys, names)}
+    head.update(cold_p95_m=summ[names[2]].p95, particle_cold_p95_m=summ[names[3]].p95,
+                floor_hit_pct=100 * float(np.mean(floors[names[2]])) if floors[names[2]] else float("nan"),
+                particle_floor_hit_pct=100 * float(np.mean(floors[names[3]])) if floors[names[3]] else float("nan"),
+                fix_lag_median_s=float(np.median(lags)) if lags else float("nan"), waypoints=summ[names[2]].n, clients=len(results))
+    return head
 
 
 def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:
@@ -391,22 +400,34 @@ def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:
 
 
 def _write_outputs(out: Path, plan, results) -> None:
+    """``demo.png`` (:func:`plot_demo`) and ``demo.geojson`` (:func:`demo_features`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .io.writers import floorplan_features, point_features, write_geojson
-    from .types import Trajectory
+    from .io.writers import write_geojson
 
     fig, ax = plt.subplots(figsize=(11, 8))
+    plot_demo(ax, plan, results)
+    fig.tight_layout()
+    fig.savefig(out / "demo.png", dpi=90)
+    plt.close(fig)
+    write_geojson(out / "demo.geojson", demo_features(plan, results))
+
+
+def plot_demo(ax, plan, results) -> None:
+    """The demo's figure into ``ax``: the first floor's outline and rooms, each client's true waypoints
+    (dashed) and fused track (solid), and a 95 % disc at its last fix."""
+    from matplotlib import colormaps
+    from matplotlib.patches import Circle
+
     fl = plan.floors[0]
     for poly in fl.outline.geoms:
         ax.plot(*poly.exterior.xy, color="0.3", lw=1)
     for _, room in fl.rooms:
         ax.fill(*room.exterior.xy, color="0.9", ec="0.75", lw=0.5)
-    feats = floorplan_features(plan)
-    colors = plt.cm.tab10.colors
+    colors = colormaps["tab10"].colors
     for i, (tr, r) in enumerate(results):
         c = colors[i % len(colors)]
         wp = tr.waypoints.pos_enu
@@ -414,23 +435,29 @@ def _write_outputs(out: Path, plan, results) -> None:
         if r.poses:
             xy = np.array([[p[1], p[2]] for p in r.poses])
             ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=r.device)
-            t = np.array([p[0] for p in r.poses])
-            order = np.argsort(t, kind="stable")
-            tt, idx = np.unique(t[order], return_index=True)
-            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
-                          "properties": {"kind": "track", "device": r.device}})
             # a containment-style disc of 2 sigma at the last fix, for the eye
             last = r.poses[-1]
-            circ = plt.Circle((last[1], last[2]), 2.45 * max(last[4], last[5]), color=c, alpha=0.15)
-            ax.add_patch(circ)
-        feats += point_features(tr.waypoints.t, wp, kind="true_waypoint", trace=Path(tr.path).name)
-        _ = Trajectory
+            ax.add_patch(Circle((last[1], last[2]), 2.45 * max(last[4], last[5]), color=c, alpha=0.15))
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title("hybridloc demo: fused tracks (solid), true waypoints (dashed), 95 % regions at the last fix")
     ax.legend(fontsize=7, loc="upper right")
-    fig.tight_layout()
-    fig.savefig(out / "demo.png", dpi=90)
-    plt.close(fig)
-    write_geojson(out / "demo.geojson", feats)
+
+
+def demo_features(plan, results) -> list[dict]:
+    """GeoJSON features of the demo: the floor plan, each client's fused track (time-ordered, one
+    point per time) and its true waypoints."""
+    from .io.writers import floorplan_features, point_features
+
+    feats = floorplan_features(plan)
+    for tr, r in results:
+        if r.poses:
+            xy = np.array([[p[1], p[2]] for p in r.poses])
+            t = np.array([p[0] for p in r.poses])
+            order = np.argsort(t, kind="stable")
+            tt, idx = np.unique(t[order], return_index=True)
+            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
+                          "properties": {"kind": "track", "device": r.device}})
+        feats += point_features(tr.waypoints.t, tr.waypoints.pos_enu, kind="true_waypoint", trace=Path(tr.path).name)
+    return feats

@@ -5,7 +5,7 @@ import pytest
 
 
 def _run(*args):
-    return subprocess.run([sys.executable, "-m", "hybridloc.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "hybridloc.cli", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_help_and_version():
@@ -23,11 +23,12 @@ def test_cli_length_models_are_the_librarys():
     assert set(LENGTH_MODELS) == set(MODELS)
 
 
-def test_inspect_reports_bad_file_with_exit_1(tmp_path):
+def test_inspect_reports_bad_file_with_exit_2(tmp_path):
+    """Bad input is the user's to mend: exit status 2 (issue #19; it was 1), one line, no traceback."""
     p = tmp_path / "junk.bin"
     p.write_bytes(b"\x00junk")
     r = _run("data", "inspect", str(p))
-    assert r.returncode == 1 and "unknown format" in r.stderr
+    assert r.returncode == 2 and "unknown format" in r.stderr and "Traceback" not in r.stderr
 
 
 @pytest.mark.shared_data
@@ -49,13 +50,20 @@ def test_eval_pdr_phone_on_bundled_sample_prints_figures():
     assert r.returncode == 0, r.stderr
     for key in ("constant", "weinberg", "frequency", "segment length error median", "heading-change error median", "error at waypoints"):
         assert key in r.stdout
+    # the last line is one JSON object of the headline figures, named with their units, for scripts and CI
+    import json
+
+    head = json.loads(r.stdout.splitlines()[-1])
+    assert {"segment_length_median_pct", "turn_error_median_deg", "waypoint_error_mean_m"} <= set(head)
+    assert 0 <= head["segment_length_median_pct"] < 100 and head["waypoint_error_mean_m"] > 0
+    assert f"segment length error median {head['segment_length_median_pct']:.1f}%" in r.stdout  # the same figure as the table's
 
 
 def test_pdr_phone_bad_input_is_a_clear_error(tmp_path):
     p = tmp_path / "g.csv"
     p.write_text("t,ax,ay,az,gx,gy,gz\n" + "\n".join(f"{i * 0.02:.2f},0,0,1.0,0,0,0" for i in range(100)))
     r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"))
-    assert r.returncode == 1 and "looks like g" in r.stderr
+    assert r.returncode == 2 and "looks like g" in r.stderr
     r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"), "--accel-unit", "g")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "o" / "g" / "steps.csv").is_file()

@@ -172,9 +172,9 @@ def test_cli_rejects_g_units_and_wrong_rate(tmp_path):
     np.savetxt(p, np.column_stack([imu.t, imu.accel_body / G0, imu.gyro_body]), delimiter=",", header="t,ax,ay,az,gx,gy,gz", comments="")
     run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "foot", str(p), "--out", str(tmp_path / "o"), *a], capture_output=True, text=True, timeout=120)  # noqa: E731
     r = run()
-    assert r.returncode == 1 and "looks like g" in r.stderr
+    assert r.returncode == 2 and "looks like g" in r.stderr
     r = run("--accel-unit", "g", "--rate", "100")
-    assert r.returncode == 1 and "disagrees" in r.stderr
+    assert r.returncode == 2 and "disagrees" in r.stderr
     r = run("--accel-unit", "g")
     assert r.returncode == 0, r.stderr
     lines = (tmp_path / "o" / "walk" / "trajectory.csv").read_text().splitlines()

@@ -21,21 +21,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Literal
 
+from ..errors import DataFormatError  # noqa: F401  (defined with the other errors; imported from here too)
+
 OnError = Literal["skip", "raise"]
 
 #: The largest number of individual issues kept per report (counts by reason are always complete).
 MAX_KEPT_ISSUES = 200
-
-
-class DataFormatError(ValueError):
-    """A file cannot be read as the format claims. The message names file, line and reason."""
-
-    def __init__(self, path: str | os.PathLike, line: int | None, reason: str):
-        self.path = str(path)
-        self.line = line
-        self.reason = reason
-        where = f"{self.path}:{line}" if line is not None else self.path
-        super().__init__(f"{where}: {reason}")
 
 
 @dataclass(frozen=True)

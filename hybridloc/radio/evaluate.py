@@ -167,14 +167,6 @@ def _uji_score(loc: KnnLocator, test: list[LabelledScan]) -> tuple[list[float], 
     return e, fh, bh
 
 
-def _print_uji(results: dict, indent: str) -> None:
-    """One row per method of :data:`UJI_METHODS` and the ratio of their mean errors."""
-    for name, label in UJI_METHODS:
-        v = results[name]
-        print(f"{indent}{label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
-    print(f"{indent}ratio of mean error ours/plain: {np.nanmean(results['ours']['errors']) / np.nanmean(results['plain']['errors']):.2f}")
-
-
 def evaluate_uji(path: str, k: int = 5) -> dict:
     """Grouped-by-user cross-validation of weighted kNN (Sorensen on powed-rel) against a plain 3-NN
     on raw dBm (Euclidean).
@@ -238,41 +230,68 @@ def _fmt(e: np.ndarray) -> str:
     return f"mean {e.mean():.2f} m, median {np.median(e):.2f}, p75 {np.percentile(e, 75):.2f}, p95 {np.percentile(e, 95):.2f} (n={len(e)})"
 
 
-def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji_validation: str | None = None) -> int:
+@dataclass
+class IlcMethodScore:
+    label: str
+    score: FingerprintScore
+
+
+@dataclass
+class RoutesHeldOut:
+    """The ILC folds with every route's walks in one fold (:func:`route_folds`), weighted 5-NN."""
+
+    n_repeated: int  # walks that follow a route walked more than once
+    n_seen: int  # of those, how many the plain folds put beside a repeat kept in the map
+    score: FingerprintScore
+    repeated_errors: np.ndarray
+    other_errors: np.ndarray
+
+
+@dataclass
+class FingerprintEval:
+    """What ``hybridloc eval fingerprint`` reports (rendered by :mod:`hybridloc.cli.eval`)."""
+
+    uji: str = ""
+    uji_validation: Path | None = None
+    uji_split: dict | None = None  # evaluate_uji_split, when a validation file is scored
+    uji_cv: dict | None = None  # evaluate_uji
+    ilc: str = ""
+    folds: int = 4
+    n_ilc_traces: int = 0
+    ilc_methods: list[IlcMethodScore] = field(default_factory=list)
+    routes: RoutesHeldOut | None = None
+
+
+def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji_validation: str | None = None) -> FingerprintEval:
+    from ..errors import MissingData
+
+    out = FingerprintEval(uji=uji, ilc=ilc, folds=folds)
     if uji:
         if not Path(uji).is_file():
-            raise ValueError(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
+            raise MissingData(f"UJIIndoorLoc file {uji} not found (pass --uji '' to skip)")
         if uji_validation == "":
             val = None
         elif uji_validation:
             if not Path(uji_validation).is_file():
-                raise ValueError(f"UJIIndoorLoc validation file {uji_validation} not found")
+                raise MissingData(f"UJIIndoorLoc validation file {uji_validation} not found")
             val = Path(uji_validation)
         else:
             val = find_uji_validation(uji)
+        if ilc and not Path(ilc).is_dir():  # before the long UJIIndoorLoc part
+            raise MissingData(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")
+        out.uji_validation = val
         if val is not None:
-            v = evaluate_uji_split(uji, str(val))
-            print(f"UJIIndoorLoc standard split: references {uji}, queries {val} ({v['ours']['n']} scans)")
-            _print_uji(v, "  ")
-            print("  (goal: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m)")
-        r = evaluate_uji(uji)
-        print(f"UJIIndoorLoc {uji}: cross-validation grouped by user"
-              + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)"))
-        for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
-            print(f"  {title}:")
-            _print_uji({name: r[name][subset] for name, _ in UJI_METHODS}, "    ")
-        print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
+            out.uji_split = evaluate_uji_split(uji, str(val))
+        out.uji_cv = evaluate_uji(uji)
     if ilc:
         if not Path(ilc).is_dir():
-            raise ValueError(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")
+            raise MissingData(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")
         traces = load_site_surveys(ilc, every)
         plan = read_ilc_site(ilc)
-        print(f"Indoor Location Competition {ilc}: {len(traces)} traces as surveys, {folds}-fold leave-traces-out, WiFi only, per scan")
+        out.n_ilc_traces = len(traces)
         for method, kw, label in (("knn", {"k": 5, "max_age_s": 8.0}, "weighted 5-NN, powed"), ("prob", {"max_age_s": 8.0}, "cell likelihood")):
             s = evaluate_ilc(traces, folds, method, plan=plan, params=BuildParams(max_age_s=8.0) if method == "prob" else None, **kw)
-            e = np.array(s.errors)
-            print(f"  {label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
-                  f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}")
+            out.ilc_methods.append(IlcMethodScore(label, s))
         # The folds above deal walks recorded one after the other to different folds, so a route walked
         # twice in a row nearly always has one walk in the map. Held out whole, routes show what a path the
         # map has never seen walked gets.
@@ -281,13 +300,7 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         ordered = np.arange(len(traces)) % folds
         seen = sum(1 for i, g in enumerate(groups) if traces[i].name in repeated and np.any((groups == g) & (ordered != ordered[i])))
         s = evaluate_ilc(traces, folds, "knn", fold_of=route_folds(traces, folds, np.random.default_rng(0)), k=5, max_age_s=8.0)
-        e = np.array(s.errors)
         rep = np.array([x for k, v in s.by_trace.items() if k in repeated for x in v])
         rest = np.array([x for k, v in s.by_trace.items() if k not in repeated for x in v])
-        print(f"  routes held out whole ({len(repeated)} of {len(traces)} walks follow a route walked more than once, with the same marks; "
-              f"in the folds above {seen} of them have a repeat in the map), weighted 5-NN: floor hit {100 * np.mean(s.floor_hits):.2f}%  "
-              f"error on the right floor: {_fmt(e)}; on the repeated routes' walks {np.nanmean(rep) if rep.size else float('nan'):.2f} m, "
-              f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
-              f"(mean area {np.mean(s.region_areas):.0f} m^2)")
-        print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
-    return 0
+        out.routes = RoutesHeldOut(len(repeated), seen, s, rep, rest)
+    return out

@@ -1,5 +1,6 @@
-"""``hybridloc map show``: coverage and one transmitter's heat map per floor, as a PNG (matplotlib),
-over the floor plan's walls when one is given."""
+"""Radio map figures (``hybridloc map show``): coverage and one transmitter's heat map per floor,
+over the floor plan's walls when one is given. Every function draws into the matplotlib ``ax`` it is
+given (the caller makes and saves the figure), as evo's plot functions do."""
 
 from __future__ import annotations
 
@@ -9,47 +10,68 @@ from ..types import FloorPlan
 from .radiomap import RadioMap
 
 
-def plot_map(map_path: str, out_png: str, tx: str | None = None, plan: FloorPlan | None = None) -> None:
-    import matplotlib
+def most_seen_transmitter(rmap: RadioMap) -> str:
+    """The transmitter seen on the most cells (detection probability > 0.5), summed over floors."""
+    seen = np.zeros(len(rmap.transmitters))
+    for f in rmap.floors.values():
+        seen[f.tx] += (f.pd > 0.5).sum(axis=0)
+    return rmap.transmitters[int(np.argmax(seen))]
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+
+def plot_coverage(ax, floor):
+    """Cells coloured by log(1 + effective scans); returns the mappable (for a colour bar)."""
+    s = ax.scatter(floor.cells[:, 0], floor.cells[:, 1], c=np.log1p(floor.support), s=4, marker="s", cmap="viridis")
+    ax.set_title(f"{floor.name}: coverage (log(1 + effective scans))")
+    return s
+
+
+def plot_transmitter(ax, floor, j: int, tx: str):
+    """Mean RSSI (dBm) of transmitter column ``j`` where it is heard (detection probability > 0.1);
+    returns the mappable, or None when the floor never hears it."""
+    cols = np.flatnonzero(floor.tx == j)
+    s2 = None
+    if cols.size:
+        c = cols[0]
+        vals = np.where(floor.pd[:, c] > 0.1, floor.mu[:, c], np.nan)
+        s2 = ax.scatter(floor.cells[:, 0], floor.cells[:, 1], c=vals, s=4, marker="s", cmap="inferno", vmin=-100, vmax=-30)
+    ax.set_title(f"{floor.name}: {tx}")
+    return s2
+
+
+def plot_plan(ax, plan: FloorPlan | None, floor: str) -> None:
+    """The floor's rooms (light) and walls under what is drawn, equal axes in metres."""
     from matplotlib.collections import LineCollection
 
-    rmap = RadioMap.load(map_path)
+    walls, rooms = _plan_lines(plan, floor)
+    if rooms:
+        ax.add_collection(LineCollection(rooms, colors="0.8", linewidths=0.5, zorder=0))
+    if walls is not None:
+        ax.add_collection(LineCollection(walls, colors="0.45", linewidths=0.7, zorder=0))
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+
+def plot_map(axes, rmap: RadioMap, tx: str | None = None, plan: FloorPlan | None = None) -> str:
+    """Per floor of ``rmap``, one row of ``axes`` (shape (floors, 2)): coverage, and transmitter
+    ``tx`` (default :func:`most_seen_transmitter`), each with its colour bar. Returns the transmitter."""
+    from ..errors import BadInput
+
     floors = list(rmap.floors.values())
-    if tx is None:  # the transmitter seen on the most cells, summed over floors
-        seen = np.zeros(len(rmap.transmitters))
-        for f in floors:
-            seen[f.tx] += (f.pd > 0.5).sum(axis=0)
-        tx = rmap.transmitters[int(np.argmax(seen))]
+    if tx is None:
+        tx = most_seen_transmitter(rmap)
     j = rmap.tx_index.get(tx)
     if j is None:
-        raise ValueError(f"transmitter {tx!r} is not in the map")
-    fig, axes = plt.subplots(len(floors), 2, figsize=(12, 5 * len(floors)), squeeze=False)
+        raise BadInput(f"transmitter {tx!r} is not in the map")
     for row, f in zip(axes, floors):
-        s = row[0].scatter(f.cells[:, 0], f.cells[:, 1], c=np.log1p(f.support), s=4, marker="s", cmap="viridis")
-        row[0].set_title(f"{f.name}: coverage (log(1 + effective scans))")
-        fig.colorbar(s, ax=row[0])
-        cols = np.flatnonzero(f.tx == j)
-        if cols.size:
-            c = cols[0]
-            vals = np.where(f.pd[:, c] > 0.1, f.mu[:, c], np.nan)
-            s2 = row[1].scatter(f.cells[:, 0], f.cells[:, 1], c=vals, s=4, marker="s", cmap="inferno", vmin=-100, vmax=-30)
+        fig = row[0].figure
+        fig.colorbar(plot_coverage(row[0], f), ax=row[0])
+        s2 = plot_transmitter(row[1], f, j, tx)
+        if s2 is not None:
             fig.colorbar(s2, ax=row[1], label="mean RSSI, dBm")
-        row[1].set_title(f"{f.name}: {tx}")
-        walls, rooms = _plan_lines(plan, f.name)
         for ax in row:
-            if rooms:
-                ax.add_collection(LineCollection(rooms, colors="0.8", linewidths=0.5, zorder=0))
-            if walls is not None:
-                ax.add_collection(LineCollection(walls, colors="0.45", linewidths=0.7, zorder=0))
-            ax.set_aspect("equal")
-            ax.set_xlabel("x (m)")
-            ax.set_ylabel("y (m)")
-    fig.tight_layout()
-    fig.savefig(out_png, dpi=80)
-    plt.close(fig)
+            plot_plan(ax, plan, f.name)
+    return tx
 
 
 def _plan_lines(plan: FloorPlan | None, floor: str) -> tuple[np.ndarray | None, list[np.ndarray]]:

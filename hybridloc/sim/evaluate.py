@@ -4,6 +4,7 @@ walks with true steps (step-count error, false steps while standing or handling 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from ..units import wrap_angle
 from .building import generate_world
 from .imu import disturbance_field, phone_imu
 from .radio import make_radio_model, simulate_radio
-from .realism import DIST_BINS, in_range, rssi_slopes, similarity_by_distance, spectrum_peaks
+from .realism import rssi_slopes, similarity_by_distance, spectrum_peaks
 from .walker import simulate_walk
 
 
@@ -96,7 +97,56 @@ def pdr_on_sim(walks, imus, attitude: AttitudeConfig | None = None) -> dict:
             "heading_errors": np.concatenate(herr) if herr else np.zeros(0)}
 
 
-def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: int = 1) -> int:
+@dataclass
+class RealismStat:
+    """One statistic of ``eval sim-realism``: the simulated median beside the real values (None: no real counterpart)."""
+
+    name: str
+    sim: float
+    real: np.ndarray | None
+    unit: str
+
+
+@dataclass
+class SimRealism:
+    """What ``hybridloc eval sim-realism`` reports (rendered by :mod:`hybridloc.cli.eval`)."""
+
+    walkers: int
+    minutes: float
+    seed: int
+    ilc: str
+    n_real_traces: int | None  # None: no real site compared
+    stats: list[RealismStat]
+    sim_similarity: list[float]
+    real_similarity: list[float] | None
+    pdr: dict  # pdr_on_sim of our PDR
+    plain: dict  # pdr_on_sim through plain gyro integration
+
+    @property
+    def have_real(self) -> bool:
+        return self.n_real_traces is not None
+
+
+def poisson_rate(k: int, minutes: float) -> tuple[float, float, float]:
+    """(rate, low, high) per minute of ``k`` rare events in ``minutes``: a count of rare events is
+    Poisson, and its exact (Garwood) 95 % interval is chi2(0.025; 2k)/2 .. chi2(0.975; 2k+2)/2."""
+    from scipy.stats import chi2
+
+    lo = chi2.ppf(0.025, 2 * k) / 2 if k else 0.0
+    hi = chi2.ppf(0.975, 2 * k + 2) / 2
+    m = max(minutes, 1e-9)
+    return k / m, lo / m, hi / m
+
+
+def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: int = 1) -> SimRealism:
+    """The simulated statistics, beside those of the real site folder ``ilc`` ('' for none)."""
+    if ilc:  # checked before the minutes of simulation
+        from ..errors import MissingData, check_input_dir
+        from ..io.msft import find_ilc_traces
+
+        check_input_dir(ilc, "Indoor Location Competition site folder (pass --ilc '' to skip)")
+        if not find_ilc_traces(ilc):
+            raise MissingData(f"{ilc}: no Indoor Location Competition traces (pass --ilc '' to skip)")
     rng = np.random.default_rng(0)
     world, sim_lab, walks, imus, ap_pos = simulated_sample(walkers, minutes, seed)
     sim_slopes_crowd = rssi_slopes(sim_lab)
@@ -104,8 +154,9 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
     sim_sim = similarity_by_distance(sim_lab, rng)
     sim_freq = np.array([1.0 / np.median(np.diff([s.t for s in w.steps])) for w in walks if len(w.steps) > 5])
     sim_peaks = np.concatenate([spectrum_peaks(imu, walking_mask(w, imu.t)) for w, imu in zip(walks, imus)])
-    print(f"simulated: {walkers} walkers x {minutes:g} min in a generated 3-floor building (seed {seed})")
     have_real = bool(ilc) and Path(ilc).is_dir()
+    n_real = real_sim = None
+    real_slopes = real_freq = real_peaks = None
     if have_real:
         from ..radio.evaluate import load_site_surveys
         from ..io.msft import find_ilc_traces, read_ilc_trace
@@ -126,46 +177,12 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
                 freqs.append(1.0 / np.median(dt))
             peaks += spectrum_peaks(tr.imu)
         real_freq, real_peaks = np.array(freqs), np.array(peaks)
-        print(f"real: {len(traces)} Indoor Location Competition traces of {ilc}")
-
-    def row(name, sim_v, real_v=None, unit=""):
-        if real_v is None or len(real_v) == 0:
-            print(f"  {name:<44} sim {sim_v:8.2f}{unit}")
-            return
-        lo, hi = np.percentile(real_v, [10, 90])
-        ok = "inside" if in_range(sim_v, real_v) else "OUTSIDE"
-        print(f"  {name:<44} sim {sim_v:8.2f}{unit}   real p10-p90 {lo:7.2f}..{hi:7.2f}{unit}   {ok}")
-
-    print("statistic (simulated median vs the real distribution)")
-    row("RSSI slope vs log10 distance (crowd AP est.)", float(np.median(sim_slopes_crowd)), real_slopes if have_real else None, " dB/dec")
-    row("RSSI slope vs log10 distance (true AP pos.)", float(np.median(sim_slopes_true)), None, " dB/dec")
-    row("step frequency while walking", float(np.median(sim_freq)), real_freq if have_real else None, " Hz")
-    row("|a| spectrum peak while walking", float(np.median(sim_peaks)), real_peaks if have_real else None, " Hz")
-    print("  fingerprint cosine similarity by distance bin (m): " + "  ".join(f"{a:g}-{b:g}" for a, b in zip(DIST_BINS[:-1], DIST_BINS[1:])))
-    print("    sim  " + "  ".join(f"{v:6.3f}" for v in sim_sim))
-    if have_real:
-        print("    real " + "  ".join(f"{v:6.3f}" for v in real_sim))
-        diff = np.array(sim_sim) - np.array(real_sim)
-        print(f"    rms difference sim - real {float(np.sqrt(np.nanmean(diff**2))):.3f} (the radio model's n, shadowing and noise are set on it; "
-              "the real scans carry survey-label error, the simulated ones their true positions)")
+        n_real = len(traces)
+    stats = [RealismStat("RSSI slope vs log10 distance (crowd AP est.)", float(np.median(sim_slopes_crowd)), real_slopes, " dB/dec"),
+             RealismStat("RSSI slope vs log10 distance (true AP pos.)", float(np.median(sim_slopes_true)), None, " dB/dec"),
+             RealismStat("step frequency while walking", float(np.median(sim_freq)), real_freq, " Hz"),
+             RealismStat("|a| spectrum peak while walking", float(np.median(sim_peaks)), real_peaks, " Hz")]
     r = pdr_on_sim(walks, imus)
-
-    def rate(k: int, minutes: float) -> str:
-        # a count of rare events is Poisson: its exact (Garwood) 95 % interval, per minute
-        from scipy.stats import chi2
-
-        lo = chi2.ppf(0.025, 2 * k) / 2 if k else 0.0
-        hi = chi2.ppf(0.975, 2 * k + 2) / 2
-        m = max(minutes, 1e-9)
-        return f"{k / m:.2f}/min (95 % interval {lo / m:.2f}-{hi / m:.2f}; {minutes:.1f} min)"
-
-    print(f"phone PDR on the simulated walks (consumer IMU, phone in hand): {r['n_detected']} steps detected for {r['n_true']} true "
-          f"(count error {100 * r['count_error']:+.2f}%; goal within 1 %); false steps standing {rate(r['false_standing'], r['standing_min'])}, "
-          f"handling {rate(r['false_handling'], r['handling_min'])}; goal <= 1/min")
     # The same walks through a plain heading: gyro integration with no bias estimate and no compass.
     plain = pdr_on_sim(walks, imus, AttitudeConfig(k_mag=0.0, ki_acc=0.0, zaru=False))
-    h, hp = np.degrees(r["heading_errors"]), np.degrees(plain["heading_errors"])
-    print(f"heading on the simulated walks (relative to the first step, straight walking, {minutes:g} min walks with raw consumer gyros "
-          f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
-          f"{np.median(hp):.1f} / {np.percentile(hp, 90):.1f} deg (ratio of medians ours/plain {np.median(h) / np.median(hp):.2f})")
-    return 0
+    return SimRealism(walkers, minutes, seed, ilc, n_real, stats, list(sim_sim), None if real_sim is None else list(real_sim), r, plain)

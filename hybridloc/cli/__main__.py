@@ -1,0 +1,7 @@
+"""``python -m hybridloc.cli``: the ``hybridloc`` command."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

@@ -1,0 +1,23 @@
+"""``hybridloc demo``: the platform end to end."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from ..demo import run_demo
+    from ._common import pyplot
+
+    pyplot("the demo's figure")  # before minutes of work, not after
+
+    return run_demo(Path(args.out), sim=args.sim, speed=args.speed)
+
+
+def register(sub) -> None:
+    demo = sub.add_parser("demo", help="the platform end to end: server, surveys, radio map, phone clients, scores, PNG")
+    demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
+    demo.add_argument("--sim", action="store_true", help="use a simulated building instead of the bundled real sample")
+    demo.add_argument("--speed", type=float, default=20.0, help="replay speed of the phone clients (default 20x)")
+    demo.set_defaults(func=_cmd_demo)

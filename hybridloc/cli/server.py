@@ -1,0 +1,154 @@
+"""The server side: ``serve``, ``db upgrade``, ``status`` and the database's ``map import / export / rebuild``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..errors import BadInput, MissingData
+from ..progress import Progress
+from ._common import check_db_driver, security
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
+    from ..server.service import Server, serve_forever
+
+    server = Server(args.endpoint, args.db, security(args), method=args.method)
+    for spec in args.map or []:
+        site, _, path = spec.partition("=")
+        if not path:
+            raise BadInput(f"--map expects SITE=FILE, got {spec!r}")
+        server.load_map(site, Path(path).read_bytes())
+    for site in args.site or []:
+        if server.load_map(site) is None:
+            print(f"warning: no stored radio map for site {site!r}", file=sys.stderr)
+    serve_forever(server)
+    return 0
+
+
+def _cmd_db_upgrade(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
+    from ..server.db import make_engine
+    from ..server.migrate import current_revision, upgrade
+
+    eng = make_engine(args.db)
+    upgrade(eng)
+    print(f"{args.db}: schema at revision {current_revision(eng)}")
+    eng.dispose()
+    return 0
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from ..clients.status import query_status
+
+    st = query_status(args.endpoint, security(args), args.timeout)
+    if st is None:
+        print(f"no server answered on {args.endpoint}", file=sys.stderr)
+        return 1
+    print(f"devices online ({len(st['online'])}): {', '.join(st['online']) or '-'}")
+    print("database: " + ", ".join(f"{k} {v}" for k, v in st["db"].items() if k not in ("rejections", "maps")))
+    print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
+    print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
+    print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
+    return 0
+
+
+def _cmd_map_import(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
+    from ..radio.radiomap import RadioMap
+    from ..server.store import Store
+
+    RadioMap.load(args.map_file)  # refuse anything that is not a radio map
+    st = Store(args.db)
+    v = st.save_map(args.site, Path(args.map_file).read_bytes())
+    st.close()
+    print(f"{args.map_file} -> site {args.site} radio map version {v} in {args.db}")
+    return 0
+
+
+def _cmd_map_export(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
+    from ..server.store import Store
+
+    st = Store(args.db)
+    got = st.load_map(args.site)
+    st.close()
+    if got is None:
+        raise MissingData(f"no radio map stored for site {args.site!r}")
+    Path(args.out).write_bytes(got[1])
+    print(f"site {args.site} radio map version {got[0]} -> {args.out}")
+    return 0
+
+
+def _cmd_map_rebuild(args: argparse.Namespace) -> int:
+    check_db_driver(args.db)
+    from ..server.rebuild import rebuild
+    from ..server.store import Store
+
+    st = Store(args.db)
+    bar = Progress("[rebuild] devices", 0, bar_width=30)  # the device count comes with each update
+
+    def progress(i, n, dev):
+        bar.total = n
+        bar.update(i, f"({dev})")
+
+    try:
+        v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)
+    finally:
+        st.close()
+    if v is None:
+        print(f"site {args.site}: no survey (devices with at least two marks) in {args.db}; no map built", file=sys.stderr)
+        return 1
+    print(f"site {args.site}: radio map version {v} from {n} labelled scans ({relabelled} device(s) relabelled, the rest from the cache)")
+    return 0
+
+
+def register(sub) -> None:
+    sv = sub.add_parser("serve", help="run the server: Zenoh router + ingest + locate/map/status services")
+    sv.add_argument("--endpoint", help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
+    sv.add_argument("--db", help="SQLite file or database URL (postgresql+psycopg://...)")
+    sv.add_argument("--map", action="append", metavar="SITE=FILE", help="load a radio map file for a site (stored as a new version)")
+    sv.add_argument("--site", action="append", help="serve the newest stored radio map of this site")
+    sv.add_argument("--method", choices=("knn", "prob"), help="positioning method of the locate service (default knn)")
+    sv.add_argument("--users", help="user:password dictionary file (enables authentication)")
+    sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
+    sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
+    sv.add_argument("--tls-key", help="server private key (PEM)")
+    sv.set_defaults(func=_cmd_serve, _settings={"endpoint": "endpoint", "db": "db", "site": "site[]", "method": "method", "users": "security.users",
+                                                "acl_devices": "security.acl_devices", "tls_cert": "security.tls_cert", "tls_key": "security.tls_key"})
+
+    dbp = sub.add_parser("db", help="database maintenance")
+    dbsub = dbp.add_subparsers(dest="db_command", required=True)
+    du = dbsub.add_parser("upgrade", help="apply the Alembic migrations up to the newest schema")
+    du.add_argument("--db")
+    du.set_defaults(func=_cmd_db_upgrade, _settings={"db": "db"})
+
+    stp = sub.add_parser("status", help="ask a running server: devices online, message and rejection counts, map versions")
+    stp.add_argument("--endpoint")
+    stp.add_argument("--user")
+    stp.add_argument("--password")
+    stp.add_argument("--tls-ca")
+    stp.add_argument("--timeout", type=float, default=5.0)
+    stp.set_defaults(func=_cmd_status, _settings={"endpoint": "endpoint", "user": "security.user", "password": "security.password", "tls_ca": "security.tls_ca"})
+
+
+def register_map(msub) -> None:
+    """``map import``, ``map export``, ``map rebuild``: radio maps in the server's database."""
+    mi = msub.add_parser("import", help="store a radio map file as the site's newest version on the server database")
+    mi.add_argument("map_file", metavar="MAP")
+    mi.add_argument("--site")
+    mi.add_argument("--db", help="database file or URL (default hybridloc.db)")
+    mi.set_defaults(func=_cmd_map_import, _parser=mi, _required=("site",), _settings={"site": "site", "db": "db"})
+    me = msub.add_parser("export", help="write the site's newest radio map from the server database to a file")
+    me.add_argument("--site")
+    me.add_argument("--db")
+    me.add_argument("--out", required=True, metavar="MAP")
+    me.set_defaults(func=_cmd_map_export, _parser=me, _required=("site",), _settings={"site": "site", "db": "db"})
+
+    mr = msub.add_parser("rebuild", help="rebuild a site's radio map from the surveys stored in the database (incremental, resumable)")
+    mr.add_argument("--site")
+    mr.add_argument("--db")
+    mr.add_argument("--cache", help="folder for per-device labelled scans (default <db>.rebuild)")
+    mr.set_defaults(func=_cmd_map_rebuild, _parser=mr, _required=("site",), _settings={"site": "site", "db": "db"})

@@ -1,0 +1,84 @@
+"""Friendly failures (issue #19): every command fed a missing file, an empty file, a file of the wrong
+format or a folder where a file is expected answers with one line on stderr and exit status 2, never
+a traceback. The commands are read from the parser, so a new command without a case fails here."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from hybridloc.cli import build_parser, main
+
+
+def _leaves(p: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    subs = [a for a in p._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield " ".join(path)
+        return
+    for a in subs:
+        for name, sp in a.choices.items():
+            yield from _leaves(sp, (*path, name))
+
+
+# command -> argv with {f} the bad input and {o} an output folder. Commands with no input file of
+# their own get it as the settings file (--config), which every command reads first.
+CASES: dict[str, list[str]] = {
+    "data inspect": ["data", "inspect", "{f}"],
+    "pdr phone": ["pdr", "phone", "{f}", "--out", "{o}"],
+    "pdr foot": ["pdr", "foot", "{f}", "--out", "{o}"],
+    "map build": ["map", "build", "{f}", "--format", "msft", "--out", "{o}/m.npz"],
+    "map show": ["map", "show", "{f}", "--out", "{o}/m.png"],
+    "map import": ["map", "import", "{f}", "--site", "s", "--db", "{o}/h.db"],
+    "map export": ["--config", "{f}", "map", "export", "--site", "s", "--db", "{o}/h.db", "--out", "{o}/m.npz"],
+    "map rebuild": ["--config", "{f}", "map", "rebuild", "--site", "s", "--db", "{o}/h.db"],
+    "client phone": ["client", "phone", "--site", "s", "--replay", "{f}", "--spool", "{o}/spool"],
+    "client foot": ["client", "foot", "--site", "s", "--replay", "{f}", "--spool", "{o}/spool"],
+    "client survey": ["client", "survey", "--site", "s", "--replay", "{f}", "--spool", "{o}/spool"],
+    "serve": ["--config", "{f}", "serve", "--db", "{o}/h.db"],
+    "db upgrade": ["--config", "{f}", "db", "upgrade", "--db", "{o}/h.db"],
+    "status": ["--config", "{f}", "status", "--timeout", "0.1"],
+    "locate": ["locate", "{f}", "--map", "{f}", "--format", "msft", "--out", "{o}"],
+    "sim world": ["sim", "world", "--seed", "1", "--floorplan", "{f}", "--out", "{o}/w"],
+    "sim walk": ["sim", "walk", "--world", "{f}", "--out", "{o}/w"],
+    "eval pdr-phone": ["eval", "pdr-phone", "{f}"],
+    "eval pdr-foot": ["eval", "pdr-foot", "{f}"],
+    "eval fingerprint": ["eval", "fingerprint", "--uji", "{f}", "--ilc", ""],
+    "eval sim-realism": ["eval", "sim-realism", "--ilc", "{f}"],
+    "eval fusion": ["eval", "fusion", "{f}", "--out", "{o}"],
+    "demo": ["--config", "{f}", "demo", "--out", "{o}"],
+}
+
+# not a recording, a radio map, a MATLAB file, a CSV of any known layout, nor TOML
+WRONG = "<html><body>not a recording</body></html>\n= = [ nothing here\n"
+
+
+def test_every_command_has_a_case():
+    assert set(_leaves(build_parser())) == set(CASES)
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty", "wrong", "folder"])
+@pytest.mark.parametrize("command", sorted(CASES))
+def test_bad_input_is_one_line_and_exit_2(command, kind, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # nothing a command might write lands in the checkout
+    for var in ("HYBRIDLOC_CONFIG",):
+        monkeypatch.delenv(var, raising=False)
+    f = tmp_path / f"input-{kind}"
+    if kind == "empty":
+        f.write_bytes(b"")
+    elif kind == "wrong":
+        f.write_text(WRONG)
+    elif kind == "folder":
+        f.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = [a.replace("{f}", str(f)).replace("{o}", str(out)) for a in CASES[command]]
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2, (rc, err)
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
