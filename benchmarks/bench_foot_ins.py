@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import headline
 from hybridloc.ins.foot import dedrift_i, run_foot_ins
 from hybridloc.ins.stance import gyro_minimum
 from hybridloc.types import ImuBlock
 from hybridloc.units import G0
-from benchmarks import headline
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pyshoe-vicon"
 
@@ -61,8 +61,10 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     dedrift_i(imu, gyro_minimum(imu.gyro_body, n=100)[1])
     plain = time.perf_counter() - t0
-    print(f"foot INS: {len(imu)} samples ({imu.duration / 60:.0f} min at 200 Hz, {src}) in {ours:.1f} s = {len(imu) / ours:,.0f} samples/s, "
-          f"{imu.duration / ours:.0f}x real time (goal >= 100x, one hour in <= 36 s)")
+    print(
+        f"foot INS: {len(imu)} samples ({imu.duration / 60:.0f} min at 200 Hz, {src}) in {ours:.1f} s = {len(imu) / ours:,.0f} samples/s, "
+        f"{imu.duration / ours:.0f}x real time (goal >= 100x, one hour in <= 36 s)"
+    )
     print(f"plain DEDRIFT-I (no filter): {plain:.1f} s; ratio ours/plain = {ours / plain:.2f}")
     headline({"samples_per_s": len(imu) / ours, "real_time_factor": imu.duration / ours, "wall_s": ours, "ratio_to_dedrift": ours / plain})
 

@@ -12,12 +12,12 @@ import argparse
 
 import numpy as np
 
+from benchmarks import headline
 from hybridloc.ins.foot import FootInsConfig, dedrift_i, run_foot_ins
 from hybridloc.ins.stance import gyro_minimum
 from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import foot_imu
 from hybridloc.sim.walker import simulate_walk
-from benchmarks import headline
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -39,14 +39,24 @@ def main(argv: list[str] | None = None) -> None:
         dd = dedrift_i(imu, gyro_minimum(imu.gyro_body, n=100)[1])
         e_dd = float(np.linalg.norm(dd[-1, :2] - dd[0, :2]))
         rows.append((D, e_r, e_dd))
-        print(f"walk {i}: {imu.duration / 60:.1f} min, {D:.0f} m travelled (truth closes to {closure:.2f} m): return-to-start {e_r:.2f} m = "
-              f"{100 * e_r / D:.2f}% (DEDRIFT-I {100 * e_dd / D:.1f}%)")
+        print(
+            f"walk {i}: {imu.duration / 60:.1f} min, {D:.0f} m travelled (truth closes to {closure:.2f} m): return-to-start {e_r:.2f} m = "
+            f"{100 * e_r / D:.2f}% (DEDRIFT-I {100 * e_dd / D:.1f}%)"
+        )
     r = np.array(rows)
     E_r = r[:, 1].mean()  # Ojeda eq 8
-    print(f"mean return-to-start error E_r {E_r:.2f} m over mean distance {r[:, 0].mean():.0f} m: E_p = {100 * E_r / r[:, 0].mean():.2f}% "
-          f"(goal <= 0.5 %); DEDRIFT-I {100 * r[:, 2].mean() / r[:, 0].mean():.1f}%; ratio ours/DEDRIFT-I {r[:, 1].mean() / r[:, 2].mean():.3f}")
-    headline({"return_to_start_mean_m": E_r, "return_to_start_pct": 100 * E_r / r[:, 0].mean(), "dedrift_return_to_start_pct": 100 * r[:, 2].mean() / r[:, 0].mean(),
-              "distance_mean_m": r[:, 0].mean()})
+    print(
+        f"mean return-to-start error E_r {E_r:.2f} m over mean distance {r[:, 0].mean():.0f} m: E_p = {100 * E_r / r[:, 0].mean():.2f}% "
+        f"(goal <= 0.5 %); DEDRIFT-I {100 * r[:, 2].mean() / r[:, 0].mean():.1f}%; ratio ours/DEDRIFT-I {r[:, 1].mean() / r[:, 2].mean():.3f}"
+    )
+    headline(
+        {
+            "return_to_start_mean_m": E_r,
+            "return_to_start_pct": 100 * E_r / r[:, 0].mean(),
+            "dedrift_return_to_start_pct": 100 * r[:, 2].mean() / r[:, 0].mean(),
+            "distance_mean_m": r[:, 0].mean(),
+        }
+    )
 
 
 if __name__ == "__main__":

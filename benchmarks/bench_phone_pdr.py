@@ -16,10 +16,10 @@ import time
 import numpy as np
 from scipy import signal
 
+from benchmarks import headline
 from hybridloc.pdr import run_phone_pdr
 from hybridloc.types import ImuBlock
 from hybridloc.units import G0
-from benchmarks import headline
 
 
 def synth_hour(minutes: float, rng: np.random.Generator, rate: float = 50.0) -> ImuBlock:
@@ -55,10 +55,14 @@ def main(argv: list[str] | None = None) -> None:
     peaks, _ = signal.find_peaks(y, height=G0 + 1.0, distance=14)
     plain = time.perf_counter() - t0
     dur = imu.duration
-    print(f"phone PDR: {n} samples ({dur / 60:.0f} min at 50 Hz, 9-axis) in {ours:.2f} s = {n / ours:,.0f} samples/s, "
-          f"{dur / ours:,.0f}x real time (goal: <= 5 s per hour, >= 700x); {len(steps)} steps")
-    print(f"plain offline peak picker (scipy find_peaks, no heading): {plain:.3f} s, {len(peaks)} peaks; "
-          f"ratio ours/plain = {ours / plain:,.0f}x slower (the price of streaming attitude + heading per sample)")
+    print(
+        f"phone PDR: {n} samples ({dur / 60:.0f} min at 50 Hz, 9-axis) in {ours:.2f} s = {n / ours:,.0f} samples/s, "
+        f"{dur / ours:,.0f}x real time (goal: <= 5 s per hour, >= 700x); {len(steps)} steps"
+    )
+    print(
+        f"plain offline peak picker (scipy find_peaks, no heading): {plain:.3f} s, {len(peaks)} peaks; "
+        f"ratio ours/plain = {ours / plain:,.0f}x slower (the price of streaming attitude + heading per sample)"
+    )
     headline({"samples_per_s": n / ours, "real_time_factor": dur / ours, "wall_s": ours, "steps": len(steps), "ratio_to_peak_picker": ours / plain})
 
 

@@ -16,11 +16,11 @@ import time
 
 import numpy as np
 
+from benchmarks import headline
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import BuildParams, build_radio_map
 from hybridloc.radio.survey import LabelledScan
 from hybridloc.types import RfScan
-from benchmarks import headline
 
 
 def world(n_scans: int, rng: np.random.Generator, side: float = 106.0, n_ap: int = 1000):
@@ -52,8 +52,10 @@ def main(argv: list[str] | None = None) -> None:
     rmap = build_radio_map(labelled, params=BuildParams(cell=1.5, min_samples=3))
     build = time.perf_counter() - t0
     f = rmap.floors["F1"]
-    print(f"radio map: {len(labelled)} labelled scans (generated in {gen:.1f} s) built in {build:.1f} s "
-          f"(goal <= 30 s): {len(f.cells)} cells x {len(f.tx)} transmitters")
+    print(
+        f"radio map: {len(labelled)} labelled scans (generated in {gen:.1f} s) built in {build:.1f} s "
+        f"(goal <= 30 s): {len(f.cells)} cells x {len(f.tx)} transmitters"
+    )
     for region in (False, True):
         loc = ProbabilisticLocator(rmap, region=region)
         ts, errs = [], []
@@ -63,10 +65,15 @@ def main(argv: list[str] | None = None) -> None:
             ts.append(time.perf_counter() - t0)
             errs.append(np.linalg.norm(r.fix.pos_enu - p))
         ts = np.array(ts) * 1e3
-        print(f"locate (cell likelihood{', with 95% region polygons' if region else ''}): median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms "
-              f"(goal median <= 2 ms); median error {np.median(errs):.2f} m")
+        print(
+            f"locate (cell likelihood{', with 95% region polygons' if region else ''}): median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms "
+            f"(goal median <= 2 ms); median error {np.median(errs):.2f} m"
+        )
     per_q = {}
-    for metric, label in (("sorensen", "our weighted kNN (Sorensen, sparse references)"), ("euclidean", "plain weighted kNN (scikit-learn, Euclidean)")):
+    for metric, label in (
+        ("sorensen", "our weighted kNN (Sorensen, sparse references)"),
+        ("euclidean", "plain weighted kNN (scikit-learn, Euclidean)"),
+    ):
         t0 = time.perf_counter()
         knn = KnnLocator(labelled[:20000], k=5, metric=metric)
         fit = time.perf_counter() - t0
@@ -75,8 +82,18 @@ def main(argv: list[str] | None = None) -> None:
         per_q[metric] = (time.perf_counter() - t0) / len(queries) * 1e3
         e = [np.linalg.norm(r.fix.pos_enu - p) for r, p in zip(res, q_pts)]
         print(f"{label}, 20,000 references (fit {fit:.1f} s): {per_q[metric]:.2f} ms per query in a batch; median error {np.median(e):.2f} m")
-    print(f"ratios: Sorensen/scikit-learn kNN time {per_q['sorensen'] / per_q['euclidean']:.2f}; cell-likelihood/Sorensen kNN time {np.median(ts) / per_q['sorensen']:.2f}")
-    headline({"build_s": build, "locate_region_median_ms": np.median(ts), "knn_sorensen_ms_per_query": per_q["sorensen"], "knn_euclidean_ms_per_query": per_q["euclidean"]})
+    print(
+        f"ratios: Sorensen/scikit-learn kNN time {per_q['sorensen'] / per_q['euclidean']:.2f}; cell-likelihood/Sorensen kNN time {np.median(ts) / per_q['sorensen']:.2f}"
+    )
+    headline(
+        {
+            "build_s": build,
+            "locate_region_median_ms": np.median(ts),
+            "knn_sorensen_ms_per_query": per_q["sorensen"],
+            "knn_euclidean_ms_per_query": per_q["euclidean"],
+        }
+    )
+
 
 if __name__ == "__main__":
     main()

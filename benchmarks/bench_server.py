@@ -28,10 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hybridloc.wire.zconfig import free_port
-
 from benchmarks import headline
-
+from hybridloc.wire.zconfig import free_port
 
 
 def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
@@ -57,7 +55,9 @@ def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
 
 
 def _serve(ep: str, db: str) -> subprocess.Popen:
-    p = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     line = p.stdout.readline()
     if "listening" not in line:
         raise RuntimeError(f"server did not start: {line}")
@@ -93,8 +93,14 @@ def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
         n_scans = s.execute(select(func.count()).select_from(m.Scan)).scalar_one()
     eng.dispose()
     expect_steps, expect_scans = n_clients * n_batches * 100, n_clients * n_batches * 10
-    return {"clients": n_clients, "wall": wall, "steps": n_steps, "scans": n_scans, "lossless": n_steps == expect_steps and n_scans == expect_scans and all(r[2] for r in res),
-            "resent": sum(r[3] for r in res)}
+    return {
+        "clients": n_clients,
+        "wall": wall,
+        "steps": n_steps,
+        "scans": n_scans,
+        "lossless": n_steps == expect_steps and n_scans == expect_scans and all(r[2] for r in res),
+        "resent": sum(r[3] for r in res),
+    }
 
 
 def locate_run(seconds: float, rate: float = 200.0) -> np.ndarray:
@@ -118,14 +124,20 @@ def locate_run(seconds: float, rate: float = 200.0) -> np.ndarray:
     tmp = Path(tempfile.mkdtemp())
     build_radio_map(refs, site="bench").save(tmp / "m.npz")
     ep = f"tcp/127.0.0.1:{free_port()}"
-    p = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp / "l.db"), "--map", f"bench={tmp / 'm.npz'}"],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp / "l.db"), "--map", f"bench={tmp / 'm.npz'}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     assert "listening" in p.stdout.readline()
     lat = []
     try:
         with zenoh.open(client_config(ep)) as s:
             qr = s.declare_querier(P.key_locate("bench", "devq"), timeout=2.0)
-            queries = [json.dumps({"schema": P.LOCATE_SCHEMA, "scan": {"t": 0.0, "tech": "wifi", "rssi": scan(rng.uniform(5, 100, 2))}}) for _ in range(50)]
+            queries = [
+                json.dumps({"schema": P.LOCATE_SCHEMA, "scan": {"t": 0.0, "tech": "wifi", "rssi": scan(rng.uniform(5, 100, 2))}}) for _ in range(50)
+            ]
             t_next = time.perf_counter()
             t_end = t_next + seconds
             i = 0
@@ -193,12 +205,16 @@ def main(argv: list[str] | None = None) -> None:
             figures[f"{label.split()[0].lower()}_{n}_clients_steps_per_s"] = r["steps"] / r["wall"]
             figures[f"{label.split()[0].lower()}_{n}_clients_scans_per_s"] = r["scans"] / r["wall"]
             figures[f"{label.split()[0].lower()}_{n}_clients_lossless"] = bool(r["lossless"])
-            print(f"{label} ingest, {n} client process(es): {r['steps'] / r['wall']:,.0f} steps/s + {r['scans'] / r['wall']:,.0f} scans/s persisted, "
-                  f"{'zero loss' if r['lossless'] else 'LOSS'} ({r['steps']} steps, {r['scans']} scans, {r['resent']} resent); "
-                  f"{cost:.2f} ms per 1,000 messages{growth}")
+            print(
+                f"{label} ingest, {n} client process(es): {r['steps'] / r['wall']:,.0f} steps/s + {r['scans'] / r['wall']:,.0f} scans/s persisted, "
+                f"{'zero loss' if r['lossless'] else 'LOSS'} ({r['steps']} steps, {r['scans']} scans, {r['resent']} resent); "
+                f"{cost:.2f} ms per 1,000 messages{growth}"
+            )
     lat = locate_run(args.seconds)
-    print(f"locate at 200 queries/s over Zenoh (client -> router/server): p50 {np.percentile(lat, 50):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms "
-          f"over {len(lat)} queries (goal p50 <= 5 ms, p99 <= 20 ms)")
+    print(
+        f"locate at 200 queries/s over Zenoh (client -> router/server): p50 {np.percentile(lat, 50):.2f} ms, p99 {np.percentile(lat, 99):.2f} ms "
+        f"over {len(lat)} queries (goal p50 <= 5 ms, p99 <= 20 ms)"
+    )
     figures.update(locate_p50_ms=np.percentile(lat, 50), locate_p99_ms=np.percentile(lat, 99))
     headline(figures)
 

@@ -13,11 +13,11 @@ import time
 
 import numpy as np
 
+from benchmarks import headline
 from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import disturbance_field, foot_imu, phone_imu
 from hybridloc.sim.radio import make_radio_model, simulate_radio
 from hybridloc.sim.walker import simulate_walk
-from benchmarks import headline
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -41,8 +41,10 @@ def main(argv: list[str] | None = None) -> None:
         n_samples += len(imu)
         n_scans += len(radio.wifi) + len(radio.ble)
     phone = time.perf_counter() - t0
-    print(f"simulator: {args.walkers} walkers x {args.minutes:g} min of phone data ({n_samples:,} IMU samples, {n_scans:,} scans) "
-          f"in {phone:.1f} s (+{prep:.1f} s radio model set-up); goal <= 60 s for 1,000 x 10 min")
+    print(
+        f"simulator: {args.walkers} walkers x {args.minutes:g} min of phone data ({n_samples:,} IMU samples, {n_scans:,} scans) "
+        f"in {phone:.1f} s (+{prep:.1f} s radio model set-up); goal <= 60 s for 1,000 x 10 min"
+    )
     rng = np.random.default_rng(5)
     walk = simulate_walk(world, rng, args.minutes)
     t0 = time.perf_counter()

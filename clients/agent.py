@@ -59,7 +59,9 @@ class PoseWriter:
 
     def __init__(self, path: str | Path | None, fmt: str | None = None, origin: GeodeticOrigin | None = None):
         self.path = Path(path) if path else None
-        self.fmt = fmt or (("jsonl" if self.path.suffix in (".jsonl", ".json") else "nmea" if self.path.suffix == ".nmea" else "csv") if self.path else "csv")
+        self.fmt = fmt or (
+            ("jsonl" if self.path.suffix in (".jsonl", ".json") else "nmea" if self.path.suffix == ".nmea" else "csv") if self.path else "csv"
+        )
         if self.fmt == "nmea" and origin is None:
             raise ValueError("NMEA output needs the site's geodetic origin")
         self.origin = origin
@@ -76,7 +78,10 @@ class PoseWriter:
         if self.fmt == "csv":
             self._f.write(f"{e.t:.3f},{e.pos[0]:.3f},{e.pos[1]:.3f},{e.floor or ''},{sx:.3f},{sy:.3f},{e.kind}\n")
         elif self.fmt == "jsonl":
-            self._f.write(json.dumps({"t": e.t, "x": float(e.pos[0]), "y": float(e.pos[1]), "floor": e.floor, "sigma_x": sx, "sigma_y": sy, "kind": e.kind}) + "\n")
+            self._f.write(
+                json.dumps({"t": e.t, "x": float(e.pos[0]), "y": float(e.pos[1]), "floor": e.floor, "sigma_x": sx, "sigma_y": sy, "kind": e.kind})
+                + "\n"
+            )
         else:
             lat, lon, h = self.origin.enu_to_geodetic(np.array([e.pos[0], e.pos[1]]))
             self._f.write(gga_sentence(e.t, float(lat) / DEG, float(lon) / DEG, float(h), hdop=max(sx, sy) / 3.0) + "\r\n")
@@ -124,9 +129,19 @@ class Agent:
     * :attr:`estimate` (the newest pose), :meth:`close` (-> :class:`AgentResult`).
     """
 
-    def __init__(self, session: zenoh.Session, site: str, device: str, spool: str | Path, pose: PoseWriter, device_model: str = "",
-                 batch_period: float = 1.0, init: tuple[float, float, float] | None = None, fusion=None,
-                 floor: str | None = None):
+    def __init__(
+        self,
+        session: zenoh.Session,
+        site: str,
+        device: str,
+        spool: str | Path,
+        pose: PoseWriter,
+        device_model: str = "",
+        batch_period: float = 1.0,
+        init: tuple[float, float, float] | None = None,
+        fusion=None,
+        floor: str | None = None,
+    ):
         self.session = session
         self.site, self.device = site, device
         self.uplink = Uplink(session, site, device, spool, device_model)
@@ -134,7 +149,7 @@ class Agent:
         self.fusion = fusion if fusion is not None else LocalFusion(init=init, floor=floor)
         self.pose = pose
         self.batch_period = batch_period
-        self.fixes: "queue.Queue" = queue.Queue()
+        self.fixes: queue.Queue = queue.Queue()
         self._fix_sub = session.declare_subscriber(P.key_fix(site, device), lambda s: self.fixes.put(s.payload.to_bytes()))
         self._token = session.liveliness().declare_token(P.key_alive(site, device))
         self.n_accepted = 0
@@ -280,9 +295,21 @@ class Agent:
                 pass
         self.uplink.close()
         self.pose.close()
-        return AgentResult(self.device, len(self.all_steps), len(self.fix_log), self.n_accepted, self.uplink.next_seq - 1, self.uplink.acked,
-                           list(self.pose.rows), list(self.all_steps), list(self.fix_lags), list(self.fix_log),
-                           self.n_local, self.n_local_accepted, self.n_displacements)
+        return AgentResult(
+            self.device,
+            len(self.all_steps),
+            len(self.fix_log),
+            self.n_accepted,
+            self.uplink.next_seq - 1,
+            self.uplink.acked,
+            list(self.pose.rows),
+            list(self.all_steps),
+            list(self.fix_lags),
+            list(self.fix_log),
+            self.n_local,
+            self.n_local_accepted,
+            self.n_displacements,
+        )
 
 
 def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: float = 10.0):
@@ -299,8 +326,17 @@ def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: floa
     return None
 
 
-def replay_phone(agent: Agent, trace, speed: float = 1.0, survey: bool = False, chunk: float = 0.25, lockstep: bool = False,
-                 local_fixes: list | None = None, length_model=None, pdr_config: PhonePdrConfig | None = None) -> PhonePdr:
+def replay_phone(
+    agent: Agent,
+    trace,
+    speed: float = 1.0,
+    survey: bool = False,
+    chunk: float = 0.25,
+    lockstep: bool = False,
+    local_fixes: list | None = None,
+    length_model=None,
+    pdr_config: PhonePdrConfig | None = None,
+) -> PhonePdr:
     """Feed an Indoor Location Competition trace through the phone PDR into ``agent`` at ``speed``x
     (``lockstep``: wait for the server's answer to each scan before going on, :meth:`Agent.wait_answers`;
     ``local_fixes``: [(AbsoluteFix, sigma_random or None)] from the device's own GPS / RFID, fused at their times;

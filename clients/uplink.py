@@ -25,8 +25,9 @@ from hybridloc.wire.messages import Batch
 
 
 class Uplink:
-    def __init__(self, session: zenoh.Session, site: str, device: str, spool_dir: str | os.PathLike, device_model: str = "",
-                 resend_after: float = 2.0):
+    def __init__(
+        self, session: zenoh.Session, site: str, device: str, spool_dir: str | os.PathLike, device_model: str = "", resend_after: float = 2.0
+    ):
         self.session = session
         self.site, self.device = P.check_id(site, "site"), P.check_id(device, "device")
         self.device_model = device_model

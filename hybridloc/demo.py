@@ -26,14 +26,13 @@ import numpy as np
 
 from . import geo
 from .errors import ComputationFailed, MissingData
-from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .fusion import run_fusion
+from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
 from .pdr.deadreckoning import DeadReckoning
 from .progress import Progress
 from .samples import ILC_SITE1_F1
 from .units import wrap_angle
-
 
 
 def _pdr_track_at(steps, wp_t) -> np.ndarray:
@@ -101,12 +100,20 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
     say(f"[pipeline] server on {ep}, database {db}; {len(survey)} survey traces, {len(others)} phone clients", flush=True)
     server = Server(ep, str(db)).start()
     try:
+
         def run_agent(path, kind, spd):
             tr = read_ilc_trace(path)
             dev = f"{kind}-{Path(path).name.split('.')[0][:40]}"
             with open_client(ep) as s:
-                ag = Agent(s, site, dev, out / "spool" / dev, PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None), tr.device_model,
-                           fusion=LocalFusion(corridor_axes=corridor_axes))
+                ag = Agent(
+                    s,
+                    site,
+                    dev,
+                    out / "spool" / dev,
+                    PoseWriter(out / "poses" / f"{dev}.csv" if kind == "phone" else None),
+                    tr.device_model,
+                    fusion=LocalFusion(corridor_axes=corridor_axes),
+                )
                 ag.uplink.wait_connected(10)
                 # the device's own GPS / RFID fixes where the recording has them (the simulator writes
                 # <walk>_fixes.csv beside each trace)
@@ -187,11 +194,15 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         all_known += e_k.tolist()
         own = f"{r.local_accepted}/{r.local_fixes} (+{r.displacements} diff.)" if r.local_fixes else "-"
         mean = lambda e: float(np.nanmean(e)) if np.isfinite(e).any() else float("nan")  # noqa: E731
-        print(f"{r.device[:22]:<22} {len(wt) - 1:9d} {mean(e_p):9.2f}m {mean(e_f):6.2f}m {mean(e_k):17.2f}m "
-              f"{r.fixes_accepted:5d}/{r.fixes_received:<5d} {own:>18}")
+        print(
+            f"{r.device[:22]:<22} {len(wt) - 1:9d} {mean(e_p):9.2f}m {mean(e_f):6.2f}m {mean(e_k):17.2f}m "
+            f"{r.fixes_accepted:5d}/{r.fixes_received:<5d} {own:>18}"
+        )
     sp, sf, sk = summarize_errors(all_pdr), summarize_errors(all_fused), summarize_errors(all_known)
-    print(f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}; started at the true pose), fused mean "
-          f"{sf.mean:.2f} m (p75 {sf.p75:.2f}; started by the fixes), fused from PDR alone's start pose mean {sk.mean:.2f} m (p75 {sk.p75:.2f})")
+    print(
+        f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}; started at the true pose), fused mean "
+        f"{sf.mean:.2f} m (p75 {sf.p75:.2f}; started by the fixes), fused from PDR alone's start pose mean {sk.mean:.2f} m (p75 {sk.p75:.2f})"
+    )
     _write_outputs(out, plan, results)
     print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
     return 0
@@ -233,8 +244,18 @@ def true_motion_steps(steps, wp_t, wp_xy, sigma_length: float = 0.05, sigma_head
     out, prev = [], None
     for s, (dx, dy), h in zip(steps, d, heading):
         turn = None if prev is None else float(wrap_angle(h - prev))
-        out.append(dataclasses.replace(s, length=float(math.hypot(dx, dy)), heading=float(h), sigma_length=sigma_length, sigma_heading=sigma_heading,
-                                       heading_change=turn, sigma_heading_change=None if turn is None else sigma_heading, degraded=""))
+        out.append(
+            dataclasses.replace(
+                s,
+                length=float(math.hypot(dx, dy)),
+                heading=float(h),
+                sigma_length=sigma_length,
+                sigma_heading=sigma_heading,
+                heading_change=turn,
+                sigma_heading_change=None if turn is None else sigma_heading,
+                degraded="",
+            )
+        )
         prev = h
     return out
 
@@ -250,8 +271,11 @@ def _known_start(r, tr) -> dict | None:
     wt, wxy = tr.waypoints.t, tr.waypoints.pos_enu
     if len(r.step_events) < 2 or len(wt) < 2:
         return None
-    return {"init": (float(wxy[0][0]), float(wxy[0][1]), 1.0), "floor": tr.waypoints.floor_of(0),
-            "heading_bias": (_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0))}
+    return {
+        "init": (float(wxy[0][0]), float(wxy[0][1]), 1.0),
+        "floor": tr.waypoints.floor_of(0),
+        "heading_bias": (_first_leg_rotation(r.step_events, wt, wxy), math.radians(5.0)),
+    }
 
 
 def _replay(filt, r, steps=None) -> list[tuple]:
@@ -300,9 +324,17 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     store.close()
     rmap = RadioMap.load(io.BytesIO(got[1]))
     prior = WalkPrior.from_radio_map(rmap, plan)
-    names = ["PDR only (oracle start pose)", "WiFi only (server fixes)", "fused, Kalman, live", "fused, particle + map",
-             "fused, Kalman, start pose known", "fused, particle, start pose known",
-             "Kourogi x/y/vx/vy (paper), cold", "Kourogi x/y/vx/vy, start known", "fused, particle, no map"]
+    names = [
+        "PDR only (oracle start pose)",
+        "WiFi only (server fixes)",
+        "fused, Kalman, live",
+        "fused, particle + map",
+        "fused, Kalman, start pose known",
+        "fused, particle, start pose known",
+        "Kourogi x/y/vx/vy (paper), cold",
+        "Kourogi x/y/vx/vy, start known",
+        "fused, particle, no map",
+    ]
     errs: dict[str, list] = {k: [] for k in names}  # per waypoint after the first, NaN where a method has no answer
     floors: dict[str, list] = {k: [] for k in names[2:]}
     perfect: dict[str, list] = {"Kalman": [], "particle + map": []}  # a perfect PDR through the same filters, cold
@@ -316,8 +348,12 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         errs[names[1]] += _fused_errors(r.raw_fixes, wt, wxy).tolist()  # the fixes alone, scored alike
         lags += r.fix_lags
         since += (np.asarray(wt[1:]) - wt[0]).tolist()
-        variants = {names[2]: r.poses, names[3]: _replay(ParticleFusion(prior, corridor_axes=axes), r), names[6]: _replay(KourogiFusion(), r),
-                    names[8]: _replay(ParticleFusion(), r)}  # what the floor plan and walk prior add
+        variants = {
+            names[2]: r.poses,
+            names[3]: _replay(ParticleFusion(prior, corridor_axes=axes), r),
+            names[6]: _replay(KourogiFusion(), r),
+            names[8]: _replay(ParticleFusion(), r),
+        }  # what the floor plan and walk prior add
         start = _known_start(r, tr)
         if start:
             variants[names[4]] = _replay(LocalFusion(**start, corridor_axes=axes), r)
@@ -330,9 +366,11 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
             poses = variants.get(k, [])
             errs[k] += _fused_errors(poses, wt, wxy).tolist()
             floors[k] += _floor_hits(poses, tr.waypoints)
-    print(f"fusion through the real client and server path (Zenoh loopback, SQLite): {len(survey)} survey traces -> radio map; "
-          f"{len(results)} phone clients replayed in lock-step (fix lag on the recording's clock: median {np.median(lags) if lags else float('nan'):.1f} s), "
-          f"causal, {time.monotonic() - t0:.0f} s")
+    print(
+        f"fusion through the real client and server path (Zenoh loopback, SQLite): {len(survey)} survey traces -> radio map; "
+        f"{len(results)} phone clients replayed in lock-step (fix lag on the recording's clock: median {np.median(lags) if lags else float('nan'):.1f} s), "
+        f"causal, {time.monotonic() - t0:.0f} s"
+    )
     summ = {k: summarize_errors(v) for k, v in errs.items()}
     for k, sm in summ.items():
         fl = f", floor hit {100 * np.mean(floors[k]):.1f}%" if floors.get(k) else ""
@@ -343,27 +381,42 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         m = np.isfinite(E[names[0]]) & np.isfinite(E[names[1]]) & np.isfinite(E[k])
         if m.any():
             mp, mw, mf = E[names[0]][m].mean(), E[names[1]][m].mean(), E[k][m].mean()
-            print(f"  on the {int(m.sum())} waypoints all three answer: {k} {mf:.2f} m, {_rel(mf, mw)} WiFi only ({mw:.2f}), "
-                  f"{_rel(mf, mp)} PDR only ({mp:.2f})")
+            print(
+                f"  on the {int(m.sum())} waypoints all three answer: {k} {mf:.2f} m, {_rel(mf, mw)} WiFi only ({mw:.2f}), "
+                f"{_rel(mf, mp)} PDR only ({mp:.2f})"
+            )
     # PDR drifts with time, WiFi does not: the same means by how long the walk had been going
     T = np.asarray(since)
     bins = ((0, 10), (10, 20), (20, 40), (40, math.inf))
     in_bin = [(T >= a) & (T < b) for a, b in bins]
-    print("  mean error by time since the walk's first waypoint (s): " + "  ".join(f"{a:g}-{b:g}" for a, b in bins) + "   (waypoints: "
-          + ", ".join(str(int(m.sum())) for m in in_bin) + ")")
+    print(
+        "  mean error by time since the walk's first waypoint (s): "
+        + "  ".join(f"{a:g}-{b:g}" for a, b in bins)
+        + "   (waypoints: "
+        + ", ".join(str(int(m.sum())) for m in in_bin)
+        + ")"
+    )
     for k in (names[0], names[1], names[2], names[4]):
         print(f"    {k:<32}" + "  ".join(f"{np.nanmean(E[k][m]):6.2f}" if np.isfinite(E[k][m]).any() else "     -" for m in in_bin))
     # What the radio map leaves: its errors stay correlated for tens of seconds along a walk, so even
     # a perfect PDR cannot average them away (see _true_motion_average_errors).
     windows = (10.0, 20.0, 40.0, math.inf)
-    floor_of_map = [np.concatenate([_true_motion_average_errors(r.raw_fixes, tr.waypoints.t, tr.waypoints.pos_enu, w) for tr, r in results]) for w in windows]
-    print("  the radio map's floor: the WiFi fixes of the last 10 s / 20 s / 40 s / whole walk, each moved by the TRUE motion (a perfect PDR) "
-          "and averaged: " + " / ".join(f"{np.nanmean(e):.2f}" for e in floor_of_map) + " m at waypoints; a cold start beats it only with more "
-          "than the fixes (a known start, the floor plan)")
-    print("  a perfect PDR (each step's length and heading from the TRUE motion, same step times, same fixes in the same order) through the "
-          "same filters, cold: " + ", ".join(f"{k} {np.nanmean(v):.2f} m" for k, v in perfect.items())
-          + f"; against WiFi only ({np.nanmean(E[names[1]]):.2f} m): " + ", ".join(_rel(np.nanmean(v), np.nanmean(E[names[1]])) for v in perfect.values())
-          + ". What a cold start leaves above this is the PDR's; the rest is the radio map's")
+    floor_of_map = [
+        np.concatenate([_true_motion_average_errors(r.raw_fixes, tr.waypoints.t, tr.waypoints.pos_enu, w) for tr, r in results]) for w in windows
+    ]
+    print(
+        "  the radio map's floor: the WiFi fixes of the last 10 s / 20 s / 40 s / whole walk, each moved by the TRUE motion (a perfect PDR) "
+        "and averaged: " + " / ".join(f"{np.nanmean(e):.2f}" for e in floor_of_map) + " m at waypoints; a cold start beats it only with more "
+        "than the fixes (a known start, the floor plan)"
+    )
+    print(
+        "  a perfect PDR (each step's length and heading from the TRUE motion, same step times, same fixes in the same order) through the "
+        "same filters, cold: "
+        + ", ".join(f"{k} {np.nanmean(v):.2f} m" for k, v in perfect.items())
+        + f"; against WiFi only ({np.nanmean(E[names[1]]):.2f} m): "
+        + ", ".join(_rel(np.nanmean(v), np.nanmean(E[names[1]])) for v in perfect.values())
+        + ". What a cold start leaves above this is the PDR's; the rest is the radio map's"
+    )
     # Surveyors walked some routes more than once with the same marks: a client whose route is also
     # among the surveys walks a path the map has seen walked; the others walk new paths.
     seen = _routes_walked_by_surveys(traces, survey)
@@ -371,16 +424,32 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
     n_seen = sum(str(tr.path) in seen for tr, _ in results)
     for label, m, n in (("on a route a survey also walked", on_seen, n_seen), ("on a route no survey walked", ~on_seen, len(results) - n_seen)):
         if m.any():
-            print(f"  clients {label} ({n} clients, {int(m.sum())} waypoints): mean error "
-                  + ", ".join(f"{k} {np.nanmean(E[k][m]):.2f} m" for k in (names[0], names[1], names[2], names[4])))
+            print(
+                f"  clients {label} ({n} clients, {int(m.sum())} waypoints): mean error "
+                + ", ".join(f"{k} {np.nanmean(E[k][m]):.2f} m" for k in (names[0], names[1], names[2], names[4]))
+            )
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
-    keys = ("pdr_mean_m", "wifi_mean_m", "cold_mean_m", "particle_cold_mean_m", "known_start_mean_m", "particle_known_start_mean_m",
-            "kourogi_cold_mean_m", "kourogi_known_start_mean_m", "particle_no_map_mean_m")
+    keys = (
+        "pdr_mean_m",
+        "wifi_mean_m",
+        "cold_mean_m",
+        "particle_cold_mean_m",
+        "known_start_mean_m",
+        "particle_known_start_mean_m",
+        "kourogi_cold_mean_m",
+        "kourogi_known_start_mean_m",
+        "particle_no_map_mean_m",
+    )
     head: dict = {key: summ[k].mean for key, k in zip(keys, names)}
-    head.update(cold_p95_m=summ[names[2]].p95, particle_cold_p95_m=summ[names[3]].p95,
-                floor_hit_pct=100 * float(np.mean(floors[names[2]])) if floors[names[2]] else float("nan"),
-                particle_floor_hit_pct=100 * float(np.mean(floors[names[3]])) if floors[names[3]] else float("nan"),
-                fix_lag_median_s=float(np.median(lags)) if lags else float("nan"), waypoints=summ[names[2]].n, clients=len(results))
+    head.update(
+        cold_p95_m=summ[names[2]].p95,
+        particle_cold_p95_m=summ[names[3]].p95,
+        floor_hit_pct=100 * float(np.mean(floors[names[2]])) if floors[names[2]] else float("nan"),
+        particle_floor_hit_pct=100 * float(np.mean(floors[names[3]])) if floors[names[3]] else float("nan"),
+        fix_lag_median_s=float(np.median(lags)) if lags else float("nan"),
+        waypoints=summ[names[2]].n,
+        clients=len(results),
+    )
     return head
 
 
@@ -457,7 +526,12 @@ def demo_features(plan, results) -> list[dict]:
             t = np.array([p[0] for p in r.poses])
             order = np.argsort(t, kind="stable")
             tt, idx = np.unique(t[order], return_index=True)
-            feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
-                          "properties": {"kind": "track", "device": r.device}})
+            feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
+                    "properties": {"kind": "track", "device": r.device},
+                }
+            )
         feats += point_features(tr.waypoints.t, tr.waypoints.pos_enu, kind="true_waypoint", trace=Path(tr.path).name)
     return feats

@@ -65,7 +65,7 @@ class GeodeticOrigin:
     height: float = 0.0
 
     @classmethod
-    def from_degrees(cls, lat_deg: float, lon_deg: float, height: float = 0.0) -> "GeodeticOrigin":
+    def from_degrees(cls, lat_deg: float, lon_deg: float, height: float = 0.0) -> GeodeticOrigin:
         if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 360.0):
             raise ValueError(f"geodetic origin out of range: lat={lat_deg}, lon={lon_deg} (degrees expected)")
         return cls(lat_deg * DEG, lon_deg * DEG, height)

@@ -100,12 +100,20 @@ def inspect_file(path: str | os.PathLike, fmt: str | None = None, rate_hz: float
             per = np.median([len(x) for x in wifi])
             period = f", every {np.median(np.diff(ts)):.2f} s" if len(ts) > 1 else ""
             ages = np.concatenate([list(x.age_s.values()) for x in wifi])
-            s.lines.append(("wifi", f"{len(wifi)} scans{period}, {len(aps)} APs, median {per:.0f} APs/scan, median reading age {np.median(ages):.1f} s"))
+            s.lines.append(
+                ("wifi", f"{len(wifi)} scans{period}, {len(aps)} APs, median {per:.0f} APs/scan, median reading age {np.median(ages):.1f} s")
+            )
         else:
             s.lines.append(("wifi", "none"))
         s.lines.append(("ble", f"{len(ble)} observations, {len({k for x in ble for k in x.rssi_dbm})} beacons" if ble else "none"))
         wp = tr.waypoints
-        s.lines.append(("waypoints", f"{len(wp)} (ground truth)" + (f", {np.linalg.norm(np.diff(wp.pos_enu, axis=0), axis=1).sum():.1f} m between marks" if len(wp) > 1 else "")))
+        s.lines.append(
+            (
+                "waypoints",
+                f"{len(wp)} (ground truth)"
+                + (f", {np.linalg.norm(np.diff(wp.pos_enu, axis=0), axis=1).sum():.1f} m between marks" if len(wp) > 1 else ""),
+            )
+        )
         if len(wp) < 2:
             s.problems.append("fewer than two waypoints: cannot be scored")
         if tr.imu is None and not tr.scans:
@@ -125,7 +133,14 @@ def inspect_file(path: str | os.PathLike, fmt: str | None = None, rate_hz: float
             s.lines.append(("truth", f"{len(rec.truth)} positions, {rec.truth.distance_travelled:.1f} m travelled"))
         if "trial_error" in rec.extras:
             te = rec.extras["trial_error"]
-            s.lines.append(("authors", "ARMSE " + ", ".join(f"{d}={e:.3f} m" for d, e in zip(rec.extras["trial_error_detectors"], te)) + f"; best {rec.extras.get('best_detector', '?')}"))
+            s.lines.append(
+                (
+                    "authors",
+                    "ARMSE "
+                    + ", ".join(f"{d}={e:.3f} m" for d, e in zip(rec.extras["trial_error_detectors"], te))
+                    + f"; best {rec.extras.get('best_detector', '?')}",
+                )
+            )
         _report_lines(s, rec.report)
     elif fmt == "ujiindoorloc":
         from .io.uji import read_uji
@@ -135,7 +150,9 @@ def inspect_file(path: str | os.PathLike, fmt: str | None = None, rate_hz: float
         det = np.isfinite(d.rssi_dbm)
         s.lines.append(("rows", f"{len(d)} fingerprints, {len(d.waps)} WAP columns, {int(det.any(0).sum())} ever detected"))
         s.lines.append(("per row", f"median {np.median(det.sum(1)):.0f} APs detected; {int((det.sum(1) == 0).sum())} rows with none"))
-        s.lines.append(("buildings", ", ".join(f"{b}: floors {sorted(set(d.floor[d.building == b].tolist()))}" for b in sorted(set(d.building.tolist())))))
+        s.lines.append(
+            ("buildings", ", ".join(f"{b}: floors {sorted(set(d.floor[d.building == b].tolist()))}" for b in sorted(set(d.building.tolist()))))
+        )
         s.lines.append(("users/phones", f"{len(set(d.user.tolist()))} users, {len(set(d.phone.tolist()))} phones"))
         if (det.sum(1) == 0).any():
             s.problems.append(f"{int((det.sum(1) == 0).sum())} rows detect no access point (cannot be located)")

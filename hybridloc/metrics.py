@@ -11,10 +11,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Sequence
-
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import shapely
@@ -42,7 +43,7 @@ def _frozen_array(a, shape_tail: tuple[int, ...] | None = None, name: str = "arr
     arr = np.array(a, dtype=float, copy=True)
     if ndim is not None and arr.ndim != ndim:
         raise ValueError(f"{name}: expected {ndim}-D array, got shape {arr.shape}")
-    if shape_tail is not None and arr.shape[arr.ndim - len(shape_tail):] != shape_tail:
+    if shape_tail is not None and arr.shape[arr.ndim - len(shape_tail) :] != shape_tail:
         raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, shape_tail))}), got {arr.shape}")
     arr.setflags(write=False)
     return arr
@@ -118,8 +119,9 @@ class ImuBlock:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
-    def saturated(self, plausible_accel: float, plausible_gyro: float, repeats: int = SATURATION_REPEATS,
-                  share: float = SATURATION_SHARE) -> tuple[np.ndarray, np.ndarray]:
+    def saturated(
+        self, plausible_accel: float, plausible_gyro: float, repeats: int = SATURATION_REPEATS, share: float = SATURATION_SHARE
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Per sample, (accelerometer saturated, gyroscope saturated), boolean (N,) each.
 
         With the full scale known, a reading at ``share`` of it or beyond on any axis. Unknown, the same
@@ -158,7 +160,7 @@ class ImuBlock:
             return float("nan")
         return float(1.0 / np.median(np.diff(self.t)))
 
-    def slice(self, t0: float, t1: float) -> "ImuBlock":
+    def slice(self, t0: float, t1: float) -> ImuBlock:
         """Samples with t0 <= t < t1."""
         i0, i1 = np.searchsorted(self.t, [t0, t1], side="left")
         return ImuBlock(
@@ -613,7 +615,7 @@ class FloorPlan:
     floors: tuple[Floor, ...]
     transitions: tuple[FloorTransition, ...] = ()
     #: Geodetic origin of the site frame, when known (needed for NMEA and WGS84 GeoJSON output).
-    origin: "GeodeticOrigin | None" = None
+    origin: GeodeticOrigin | None = None
 
     def floor(self, name: str) -> Floor:
         for f in self.floors:

@@ -104,9 +104,11 @@ def main() -> int:
             shutil.copyfile(a, b)
     (out / "clients.txt").write_text("".join(f"{p.name}\n" for p in clients))
     client_cells = set().union(*(walks[p][1] for p in clients))
-    print(f"{len(clients)} clients ({sum(walks[p][0] for p in clients):.0f} m of waypoint path), {len(surveys)} surveys; "
-          f"{sum(len(data[p]) for p in clients + surveys) / 1e6:.2f} MB; clients' cells covered by surveys "
-          f"{100 * len(client_cells & covered) / len(client_cells):.0f} %")
+    print(
+        f"{len(clients)} clients ({sum(walks[p][0] for p in clients):.0f} m of waypoint path), {len(surveys)} surveys; "
+        f"{sum(len(data[p]) for p in clients + surveys) / 1e6:.2f} MB; clients' cells covered by surveys "
+        f"{100 * len(client_cells & covered) / len(client_cells):.0f} %"
+    )
     return 0
 
 

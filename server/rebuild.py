@@ -67,16 +67,32 @@ def rebuild(store: Store, site: str, cache_dir: str | os.PathLike, progress=None
                             continue
                         wp = Waypoints(np.array([k.t for k in mks]), np.array([[k.x, k.y] for k in mks]), floor)
                         for ls in label_scans(scans, steps, wp, steps[0].t - 1.0, source=dev.id):
-                            rows.append({"t": ls.scan.t, "x": float(ls.pos_enu[0]), "y": float(ls.pos_enu[1]), "sigma": ls.sigma, "floor": floor,
-                                         "rssi": dict(ls.scan.rssi_dbm), "age": dict(ls.scan.age_s)})
+                            rows.append(
+                                {
+                                    "t": ls.scan.t,
+                                    "x": float(ls.pos_enu[0]),
+                                    "y": float(ls.pos_enu[1]),
+                                    "sigma": ls.sigma,
+                                    "floor": floor,
+                                    "rssi": dict(ls.scan.rssi_dbm),
+                                    "age": dict(ls.scan.age_s),
+                                }
+                            )
                 tmp = f.with_suffix(".tmp")
                 tmp.write_text(json.dumps({"last_seq": dev.last_seq, "model": dev.model, "scans": rows}))
                 os.replace(tmp, f)
                 cached = json.loads(f.read_text())
                 relabelled += 1
             for r in cached["scans"]:
-                labelled.append(LabelledScan(RfScan(r["t"], "wifi", r["rssi"], age_s=r.get("age", {}), device_model=cached.get("model", "")),
-                                             np.array([r["x"], r["y"]]), r["sigma"], r["floor"], dev.id))
+                labelled.append(
+                    LabelledScan(
+                        RfScan(r["t"], "wifi", r["rssi"], age_s=r.get("age", {}), device_model=cached.get("model", "")),
+                        np.array([r["x"], r["y"]]),
+                        r["sigma"],
+                        r["floor"],
+                        dev.id,
+                    )
+                )
             if progress:
                 progress(i, len(devices), dev.id)
     if not labelled:

@@ -20,7 +20,6 @@ import threading
 import time
 from collections import Counter
 
-
 import zenoh
 
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
@@ -37,8 +36,9 @@ log = logging.getLogger("hybridloc.server")
 
 
 class Server:
-    def __init__(self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02,
-                 method: str = "knn"):
+    def __init__(
+        self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02, method: str = "knn"
+    ):
         self.endpoint = endpoint
         self.store = Store(db_url)
         self.security = security
@@ -58,7 +58,7 @@ class Server:
         self.method = method
 
     # ------------------------------------------------------------ lifecycle
-    def start(self) -> "Server":
+    def start(self) -> Server:
         self.session = zenoh.open(server_config(self.endpoint, self.security))
         s = self.session
         self._sub = s.declare_subscriber(P.SUB_BATCHES, zenoh.handlers.FifoChannel(20000))
@@ -108,7 +108,11 @@ class Server:
         rmap = RadioMap.load(io.BytesIO(blob))
         # weighted kNN over the map's reference scans by default (calibrated 95 % regions on the
         # Indoor Location Competition data); the cell likelihood when asked or without references
-        loc = _KnnOne(KnnLocator(rmap.references, max_age_s=8.0)) if self.method == "knn" and rmap.references else ProbabilisticLocator(rmap, max_age_s=8.0)
+        loc = (
+            _KnnOne(KnnLocator(rmap.references, max_age_s=8.0))
+            if self.method == "knn" and rmap.references
+            else ProbabilisticLocator(rmap, max_age_s=8.0)
+        )
         with self._lock:
             self.locators[site] = (version, loc, blob)
         return version
@@ -176,8 +180,12 @@ class Server:
         self.counts["batches-persisted"] += written
         by_dev = {b.device: b for b in batches}
         for device, seq in acked.items():
-            self.session.put(P.key_ack(by_dev[device].site, device), C.ACK.encode(Ack(device, seq)), encoding=C.ACK.encoding,
-                             congestion_control=zenoh.CongestionControl.BLOCK)
+            self.session.put(
+                P.key_ack(by_dev[device].site, device),
+                C.ACK.encode(Ack(device, seq)),
+                encoding=C.ACK.encoding,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
         # answer the newest WiFi scan of each batch that brought one: a fix, or "no fix" with the
         # reason (no map for the site, no known transmitter...), so a client always hears back.
         # Only batches stored now are answered: a resent duplicate was answered when it was stored,
@@ -263,5 +271,3 @@ def serve_forever(server: Server) -> None:
             stop.wait(0.5)
             if server.worker_error is not None:
                 raise RuntimeError(f"ingest worker failed: {server.worker_error}")
-
-

@@ -85,9 +85,13 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
-    def persist(self, batches: list[Batch], invalid: Counter | None = None,
-                end_of_walk: Collection[tuple[str, int]] = (), written_ids: list[tuple[str, int]] | None = None,
-                ) -> tuple[dict[str, int], Counter, int]:
+    def persist(
+        self,
+        batches: list[Batch],
+        invalid: Counter | None = None,
+        end_of_walk: Collection[tuple[str, int]] = (),
+        written_ids: list[tuple[str, int]] | None = None,
+    ) -> tuple[dict[str, int], Counter, int]:
         """(highest persisted seq per device, rejections by (device, reason), batches written).
 
         ``written_ids``, when given, receives the (device, seq) of every batch written (not the
@@ -133,19 +137,50 @@ class Store:
                 s.add(row)
                 s.flush()
                 if b.steps:
-                    s.execute(insert(m.Step), [
-                        {"batch_id": row.id, "device_id": b.device, "t": st.t, "length": st.length, "heading": st.heading,
-                         "sigma_length": st.sigma_length, "sigma_heading": st.sigma_heading, "heading_change": st.heading_change,
-                         "sigma_heading_change": st.sigma_heading_change, "height_change": st.height_change,
-                         "sigma_height_change": st.sigma_height_change, "floor_change": st.floor_change, "degraded": st.degraded} for st in b.steps])
+                    s.execute(
+                        insert(m.Step),
+                        [
+                            {
+                                "batch_id": row.id,
+                                "device_id": b.device,
+                                "t": st.t,
+                                "length": st.length,
+                                "heading": st.heading,
+                                "sigma_length": st.sigma_length,
+                                "sigma_heading": st.sigma_heading,
+                                "heading_change": st.heading_change,
+                                "sigma_heading_change": st.sigma_heading_change,
+                                "height_change": st.height_change,
+                                "sigma_height_change": st.sigma_height_change,
+                                "floor_change": st.floor_change,
+                                "degraded": st.degraded,
+                            }
+                            for st in b.steps
+                        ],
+                    )
                 if b.scans:
-                    s.execute(insert(m.Scan), [
-                        {"batch_id": row.id, "device_id": b.device, "t": sc.t, "technology": sc.technology.value,
-                         "readings": {"rssi": dict(sc.rssi_dbm), **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
-                                      **({"age": dict(sc.age_s)} if sc.age_s else {})}}
-                        for sc in b.scans])
+                    s.execute(
+                        insert(m.Scan),
+                        [
+                            {
+                                "batch_id": row.id,
+                                "device_id": b.device,
+                                "t": sc.t,
+                                "technology": sc.technology.value,
+                                "readings": {
+                                    "rssi": dict(sc.rssi_dbm),
+                                    **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
+                                    **({"age": dict(sc.age_s)} if sc.age_s else {}),
+                                },
+                            }
+                            for sc in b.scans
+                        ],
+                    )
                 if b.marks:
-                    s.execute(insert(m.SurveyMark), [{"batch_id": row.id, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for mk in b.marks])
+                    s.execute(
+                        insert(m.SurveyMark),
+                        [{"batch_id": row.id, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for mk in b.marks],
+                    )
                 dev.last_seq = b.seq
                 dev.last_seen = m.utcnow()
                 if b.device_model and not dev.model:
@@ -162,8 +197,9 @@ class Store:
     def _join_walk(s: Session, row: m.Batch, b: Batch, dev: m.Device, open_walks: dict[str, m.Walk | None], ends_walk: bool) -> None:
         """Put the batch ``row`` in its device's open walk, or in a new one after an idle gap (module docstring)."""
         if b.device not in open_walks:
-            open_walks[b.device] = s.execute(select(m.Walk).where(m.Walk.device_id == b.device, m.Walk.end_reason == WalkEnd.OPEN.value)
-                                             .order_by(m.Walk.id.desc()).limit(1)).scalar_one_or_none()
+            open_walks[b.device] = s.execute(
+                select(m.Walk).where(m.Walk.device_id == b.device, m.Walk.end_reason == WalkEnd.OPEN.value).order_by(m.Walk.id.desc()).limit(1)
+            ).scalar_one_or_none()
         w = open_walks[b.device]
         times = [r.t for r in b.steps] + [r.t for r in b.scans] + [r.t for r in b.marks]
         if times:
@@ -171,8 +207,18 @@ class Store:
             if w is None or _span_gap(w, lo, hi) > WALK_IDLE_GAP_S:
                 if w is not None:
                     w.end_reason = WalkEnd.IDLE.value
-                w = m.Walk(site_id=dev.site_id, device_id=b.device, t_start=lo, t_end=hi, device_model=b.device_model or dev.model,
-                           end_reason=WalkEnd.OPEN.value, n_batches=0, n_steps=0, n_scans=0, n_marks=0)
+                w = m.Walk(
+                    site_id=dev.site_id,
+                    device_id=b.device,
+                    t_start=lo,
+                    t_end=hi,
+                    device_model=b.device_model or dev.model,
+                    end_reason=WalkEnd.OPEN.value,
+                    n_batches=0,
+                    n_steps=0,
+                    n_scans=0,
+                    n_marks=0,
+                )
                 s.add(w)
                 s.flush()
             w.t_start, w.t_end = min(w.t_start, lo), max(w.t_end, hi)
@@ -217,19 +263,25 @@ class Store:
         if not fixes:
             return
         with Session(self.engine) as s, s.begin():
-            s.add_all([m.Fix(device_id=d, t=f.t, x=float(f.pos_enu[0]), y=float(f.pos_enu[1]), floor=f.floor, cov=f.cov.tolist(), source=f.source.value)
-                       for d, f in fixes])
+            s.add_all(
+                [
+                    m.Fix(device_id=d, t=f.t, x=float(f.pos_enu[0]), y=float(f.pos_enu[1]), floor=f.floor, cov=f.cov.tolist(), source=f.source.value)
+                    for d, f in fixes
+                ]
+            )
             for d, f in fixes:
                 if not f.floor:
                     continue
-                wid = s.execute(select(m.Walk.id).where(m.Walk.device_id == d, m.Walk.t_start <= f.t, m.Walk.t_end >= f.t)
-                                .order_by(m.Walk.id.desc()).limit(1)).scalar_one_or_none()
+                wid = s.execute(
+                    select(m.Walk.id).where(m.Walk.device_id == d, m.Walk.t_start <= f.t, m.Walk.t_end >= f.t).order_by(m.Walk.id.desc()).limit(1)
+                ).scalar_one_or_none()
                 if wid is not None:
                     _name_floor(s, wid, f.floor, f.t)
 
     # -------------------------------------------------------------- walks
-    def walks(self, site: str, device: str | None = None, floor: str | None = None, since: float | None = None,
-              ended_only: bool = False) -> list[WalkInfo]:
+    def walks(
+        self, site: str, device: str | None = None, floor: str | None = None, since: float | None = None, ended_only: bool = False
+    ) -> list[WalkInfo]:
         """The site's stored walks, by start time: of ``device``, naming ``floor``, with records at or
         after ``since`` (device clock, s: t_end >= since), ended (by a marker or an idle gap) only."""
         cond = [m.Walk.site_id == site]
@@ -244,11 +296,32 @@ class Store:
         with Session(self.engine) as s:
             rows = s.execute(select(m.Walk).where(*cond).order_by(m.Walk.t_start, m.Walk.id)).scalars().all()
             floors: dict[int, list[str]] = {}
-            for wid, fl in s.execute(select(m.WalkFloor.walk_id, m.WalkFloor.floor).join(m.Walk, m.Walk.id == m.WalkFloor.walk_id).where(*cond)
-                                     .order_by(m.WalkFloor.walk_id, m.WalkFloor.t_first, m.WalkFloor.floor)):
+            for wid, fl in s.execute(
+                select(m.WalkFloor.walk_id, m.WalkFloor.floor)
+                .join(m.Walk, m.Walk.id == m.WalkFloor.walk_id)
+                .where(*cond)
+                .order_by(m.WalkFloor.walk_id, m.WalkFloor.t_first, m.WalkFloor.floor)
+            ):
                 floors.setdefault(wid, []).append(fl)
-            return [WalkInfo(w.id, w.site_id, w.device_id, w.device_model, w.t_start, w.t_end, tuple(floors.get(w.id, ())), WalkEnd(w.end_reason),
-                             w.n_batches, w.n_steps, w.n_scans, w.n_marks, w.created_at, w.updated_at) for w in rows]
+            return [
+                WalkInfo(
+                    w.id,
+                    w.site_id,
+                    w.device_id,
+                    w.device_model,
+                    w.t_start,
+                    w.t_end,
+                    tuple(floors.get(w.id, ())),
+                    WalkEnd(w.end_reason),
+                    w.n_batches,
+                    w.n_steps,
+                    w.n_scans,
+                    w.n_marks,
+                    w.created_at,
+                    w.updated_at,
+                )
+                for w in rows
+            ]
 
     def read_walk(self, walk_id: int) -> Walk:
         """A stored walk with its data: every step field, every scan's RSSI, ages and frequencies, the
@@ -266,25 +339,61 @@ class Store:
                 raise KeyError(f"no stored walk {walk_id!r}")
 
             def records(model):
-                return s.execute(select(model).join(m.Batch, m.Batch.id == model.batch_id)
-                                 .where(model.device_id == w.device_id, model.t >= w.t_start, model.t <= w.t_end, m.Batch.walk_id == w.id)
-                                 .order_by(model.t, model.id)).scalars()
+                return s.execute(
+                    select(model)
+                    .join(m.Batch, m.Batch.id == model.batch_id)
+                    .where(model.device_id == w.device_id, model.t >= w.t_start, model.t <= w.t_end, m.Batch.walk_id == w.id)
+                    .order_by(model.t, model.id)
+                ).scalars()
 
-            steps = [StepEvent(r.t, r.length, r.heading, r.sigma_length, r.sigma_heading, r.heading_change, r.sigma_heading_change,
-                               r.height_change, r.sigma_height_change, r.floor_change, r.degraded) for r in records(m.Step)]
-            scans = [RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {}), r.readings.get("age", {}), w.device_model)
-                     for r in records(m.Scan)]
+            steps = [
+                StepEvent(
+                    r.t,
+                    r.length,
+                    r.heading,
+                    r.sigma_length,
+                    r.sigma_heading,
+                    r.heading_change,
+                    r.sigma_heading_change,
+                    r.height_change,
+                    r.sigma_height_change,
+                    r.floor_change,
+                    r.degraded,
+                )
+                for r in records(m.Step)
+            ]
+            scans = [
+                RfScan(r.t, r.technology, r.readings["rssi"], r.readings.get("freq", {}), r.readings.get("age", {}), w.device_model)
+                for r in records(m.Scan)
+            ]
             marks = [SurveyMark(r.t, r.x, r.y, r.floor) for r in records(m.SurveyMark)]
-            floors = s.execute(select(m.WalkFloor.floor).where(m.WalkFloor.walk_id == w.id).order_by(m.WalkFloor.t_first, m.WalkFloor.floor)).scalars().all()
-            return Walk(w.site_id, w.device_id, w.id, w.t_start, w.t_end, w.device_model, tuple(floors), tuple(steps), tuple(scans), tuple(marks), WalkEnd(w.end_reason))
+            floors = (
+                s.execute(select(m.WalkFloor.floor).where(m.WalkFloor.walk_id == w.id).order_by(m.WalkFloor.t_first, m.WalkFloor.floor))
+                .scalars()
+                .all()
+            )
+            return Walk(
+                w.site_id,
+                w.device_id,
+                w.id,
+                w.t_start,
+                w.t_end,
+                w.device_model,
+                tuple(floors),
+                tuple(steps),
+                tuple(scans),
+                tuple(marks),
+                WalkEnd(w.end_reason),
+            )
 
     def close_idle_walks(self, idle_s: float = WALK_IDLE_GAP_S, now: dt.datetime | None = None) -> int:
         """End (``idle``) the open walks whose latest batch arrived more than ``idle_s`` before ``now``
         (server clock); the number ended. For a live server, where no later batch may ever come."""
         cutoff = (now or m.utcnow()) - dt.timedelta(seconds=idle_s)
         with Session(self.engine) as s, s.begin():
-            res = s.execute(update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff)
-                            .values(end_reason=WalkEnd.IDLE.value))
+            res = s.execute(
+                update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff).values(end_reason=WalkEnd.IDLE.value)
+            )
             return int(cast(CursorResult, res).rowcount)
 
     # -------------------------------------------------------------- radio maps
@@ -293,14 +402,20 @@ class Store:
             if s.get(m.Site, site) is None:
                 s.add(m.Site(id=site, name=site))
                 s.flush()
-            last = s.execute(select(m.RadioMapVersion.version).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc())).first()
+            last = s.execute(
+                select(m.RadioMapVersion.version).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc())
+            ).first()
             v = (last[0] if last else 0) + 1
             s.add(m.RadioMapVersion(site_id=site, version=v, n_scans=n_scans, data=data))
             return v
 
     def load_map(self, site: str) -> tuple[int, bytes] | None:
         with Session(self.engine) as s:
-            row = s.execute(select(m.RadioMapVersion).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc())).scalars().first()
+            row = (
+                s.execute(select(m.RadioMapVersion).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc()))
+                .scalars()
+                .first()
+            )
             return (row.version, row.data) if row else None
 
     def status(self) -> dict:
@@ -314,7 +429,12 @@ class Store:
                 "fixes": s.execute(select(func.count()).select_from(m.Fix)).scalar_one(),
                 "walks": s.execute(select(func.count()).select_from(m.Walk)).scalar_one(),
                 "rejections": _rejections(s),
-                "maps": {site: v for site, v in s.execute(select(m.RadioMapVersion.site_id, func.max(m.RadioMapVersion.version)).group_by(m.RadioMapVersion.site_id)).all()},
+                "maps": {
+                    site: v
+                    for site, v in s.execute(
+                        select(m.RadioMapVersion.site_id, func.max(m.RadioMapVersion.version)).group_by(m.RadioMapVersion.site_id)
+                    ).all()
+                },
             }
 
 

@@ -163,31 +163,108 @@ def test_cli_phone_client_with_the_particle_filter_stays_on_the_floor_plan(tmp_p
     assert r.returncode == 0, r.stderr
     site = read_ilc_trace(traces[13]).site
     ep = f"tcp/127.0.0.1:{free_port()}"
-    srv = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    srv = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         assert "listening" in srv.stdout.readline()
         pose = tmp_path / "pose.csv"
-        r = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep",
-                "--filter", "particle", "--floorplan", str(ILC_SITE1_F1), "--spool", str(tmp_path / "spool"), "--pose-out", str(pose))
+        r = run(
+            "client",
+            "phone",
+            "--endpoint",
+            ep,
+            "--site",
+            site,
+            "--replay",
+            str(traces[13]),
+            "--speed",
+            "0",
+            "--lockstep",
+            "--filter",
+            "particle",
+            "--floorplan",
+            str(ILC_SITE1_F1),
+            "--spool",
+            str(tmp_path / "spool"),
+            "--pose-out",
+            str(pose),
+        )
         assert r.returncode == 0, r.stderr
         # the paper's own filter through the same client path (another device, same walk)
         pose_k = tmp_path / "pose-kourogi.csv"
-        rk = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep",
-                 "--filter", "kourogi", "--device", "phone-kourogi", "--spool", str(tmp_path / "spool-k"), "--pose-out", str(pose_k))
+        rk = run(
+            "client",
+            "phone",
+            "--endpoint",
+            ep,
+            "--site",
+            site,
+            "--replay",
+            str(traces[13]),
+            "--speed",
+            "0",
+            "--lockstep",
+            "--filter",
+            "kourogi",
+            "--device",
+            "phone-kourogi",
+            "--spool",
+            str(tmp_path / "spool-k"),
+            "--pose-out",
+            str(pose_k),
+        )
         assert rk.returncode == 0, rk.stderr
         rows_k = list(csv.DictReader(open(pose_k)))
         assert rows_k and all(np.isfinite([float(w["x"]), float(w["y"]), float(w["sigma_x"])]).all() for w in rows_k)
         # a device's step-length calibration: a survey teaches it from its marks, a phone from the
         # step scale its Kalman filter learned from the fixes (when they pinned it)
         cal = tmp_path / "dev.json"
-        rs = run("client", "survey", "--endpoint", ep, "--site", site, "--replay", str(traces[14]), "--speed", "0", "--device", "survey-cal",
-                 "--spool", str(tmp_path / "spool-s"), "--calibration", str(cal), "--update-calibration")
+        rs = run(
+            "client",
+            "survey",
+            "--endpoint",
+            ep,
+            "--site",
+            site,
+            "--replay",
+            str(traces[14]),
+            "--speed",
+            "0",
+            "--device",
+            "survey-cal",
+            "--spool",
+            str(tmp_path / "spool-s"),
+            "--calibration",
+            str(cal),
+            "--update-calibration",
+        )
         assert rs.returncode == 0, rs.stderr
         d = json.loads(cal.read_text())
         assert d["n_segments"] >= 1 and 0.5 <= d["coef"][0] <= 0.9, rs.stdout
-        rp = run("client", "phone", "--endpoint", ep, "--site", site, "--replay", str(traces[13]), "--speed", "0", "--lockstep", "--device", "phone-cal",
-                 "--spool", str(tmp_path / "spool-c"), "--calibration", str(cal), "--update-calibration")
+        rp = run(
+            "client",
+            "phone",
+            "--endpoint",
+            ep,
+            "--site",
+            site,
+            "--replay",
+            str(traces[13]),
+            "--speed",
+            "0",
+            "--lockstep",
+            "--device",
+            "phone-cal",
+            "--spool",
+            str(tmp_path / "spool-c"),
+            "--calibration",
+            str(cal),
+            "--update-calibration",
+        )
         assert rp.returncode == 0, rp.stderr
         assert "calibration" in rp.stdout and json.loads(cal.read_text())["n_segments"] >= d["n_segments"]
     finally:
@@ -231,12 +308,32 @@ def test_cli_phone_client_live_from_a_pipe(tmp_path):
             lines += ["garbage", "1.0,2.0", "wifi,nan,aa=1"]  # three malformed records
     site = tr.site
     ep = f"tcp/127.0.0.1:{free_port()}"
-    srv = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    srv = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(tmp_path / "db.sqlite"), "--map", f"{site}={m}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         assert "listening" in srv.stdout.readline()
-        r = run("client", "phone", "--endpoint", ep, "--site", site, "--live", "-", "--rate", f"{imu.rate_hz:.3f}", "--lockstep",
-                "--spool", str(tmp_path / "spool"), "--pose-out", str(tmp_path / "pose.csv"), input="\n".join(lines) + "\n")
+        r = run(
+            "client",
+            "phone",
+            "--endpoint",
+            ep,
+            "--site",
+            site,
+            "--live",
+            "-",
+            "--rate",
+            f"{imu.rate_hz:.3f}",
+            "--lockstep",
+            "--spool",
+            str(tmp_path / "spool"),
+            "--pose-out",
+            str(tmp_path / "pose.csv"),
+            input="\n".join(lines) + "\n",
+        )
     finally:
         srv.terminate()
         srv.wait(30)
@@ -247,8 +344,21 @@ def test_cli_phone_client_live_from_a_pipe(tmp_path):
     assert steps > 20 and fixes > 0, r.stdout
     # a stream in g is refused with a message naming the unit
     g_lines = [",".join(f"{v:.6g}" for v in [imu.t[i], *(imu.accel_body[i] / 9.80665), *imu.gyro_body[i]]) for i in range(300)]
-    r = run("client", "phone", "--endpoint", ep, "--site", site, "--live", "-", "--rate", "50", "--spool", str(tmp_path / "spool2"),
-            input="\n".join(g_lines) + "\n")
+    r = run(
+        "client",
+        "phone",
+        "--endpoint",
+        ep,
+        "--site",
+        site,
+        "--live",
+        "-",
+        "--rate",
+        "50",
+        "--spool",
+        str(tmp_path / "spool2"),
+        input="\n".join(g_lines) + "\n",
+    )
     assert r.returncode != 0 and "in g" in r.stderr
 
 
@@ -272,8 +382,11 @@ def test_phone_client_carried_turned_estimates_its_walking_offset(tmp_path):
     conf.insert_json5("mode", '"peer"')  # no server: the agent dead-reckons and spools
     heading = {}
     with zenoh.open(conf) as s:
-        for name, trace, cfg in (("held", tr, PhonePdrConfig(estimate_offset=True)), ("turned", turned, PhonePdrConfig(estimate_offset=True)),
-                                 ("turned, no estimate", turned, None)):
+        for name, trace, cfg in (
+            ("held", tr, PhonePdrConfig(estimate_offset=True)),
+            ("turned", turned, PhonePdrConfig(estimate_offset=True)),
+            ("turned, no estimate", turned, None),
+        ):
             ag = Agent(s, "site1", f"p-{len(heading)}", tmp_path / f"spool{len(heading)}", PoseWriter(None), tr.device_model, init=(0.0, 0.0, 1.0))
             pdr = replay_phone(ag, trace, speed=0.0, pdr_config=cfg)
             ag.close(wait=0.1)

@@ -14,7 +14,10 @@ from hybridloc.types import StepEvent
 ROUND = 1e-15
 
 
-def _steps(headings, length=0.5, t0=10.0, dt=0.5, sigma_length=0.05, sigma_heading=math.radians(5.0)):
+SIGMA_HEADING = math.radians(5.0)
+
+
+def _steps(headings, length=0.5, t0=10.0, dt=0.5, sigma_length=0.05, sigma_heading=SIGMA_HEADING):
     return [StepEvent(t0 + dt * (i + 1), length, h, sigma_length, sigma_heading) for i, h in enumerate(headings)]
 
 
@@ -85,8 +88,10 @@ def test_the_copies_arithmetic_is_kept_bit_for_bit():
     """A running sum from any start, cumsum of StepEvent.displacement_enu from zero (the former copies'
     two ways), streaming one step at a time, and lengths/headings given as arrays all agree to the bit."""
     rng = np.random.default_rng(18)
-    steps = [StepEvent(float(t), float(L), float(h), 0.05, 0.1) for t, L, h in
-             zip(np.cumsum(rng.uniform(0.4, 0.7, 300)), rng.uniform(0.5, 0.9, 300), rng.uniform(-math.pi, math.pi, 300))]
+    steps = [
+        StepEvent(float(t), float(L), float(h), 0.05, 0.1)
+        for t, L, h in zip(np.cumsum(rng.uniform(0.4, 0.7, 300)), rng.uniform(0.5, 0.9, 300), rng.uniform(-math.pi, math.pi, 300))
+    ]
     batch = DeadReckoning.from_steps(steps)
     cumsum = np.vstack([[0.0, 0.0], np.cumsum([s.displacement_enu for s in steps], axis=0)])
     np.testing.assert_array_equal(batch.pos_enu, cumsum)

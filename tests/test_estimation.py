@@ -8,8 +8,19 @@ import pytest
 from scipy.stats import chi2
 
 from hybridloc.estimation import (
-    RESAMPLERS, Cauchy, ChiSquareGate, Huber, LinearModel, Measurement, MeasurementModel, UpdateStats, assert_jacobian, correct, jacobian_fd,
-    log_normalise, resampler,
+    RESAMPLERS,
+    Cauchy,
+    ChiSquareGate,
+    Huber,
+    LinearModel,
+    Measurement,
+    MeasurementModel,
+    UpdateStats,
+    assert_jacobian,
+    correct,
+    jacobian_fd,
+    log_normalise,
+    resampler,
 )
 from hybridloc.fusion import measurements as fm
 from hybridloc.ins import measurements as im

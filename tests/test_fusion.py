@@ -17,8 +17,12 @@ def _walk(n, heading, length=0.7, t0=0.0, dt=0.5):
 def _corridor_plan(length=60.0, width=2.0) -> FloorPlan:
     """One floor: a straight corridor along +x, ``width`` m wide, walls along both sides."""
     poly = shapely.box(-2.0, -width / 2, length, width / 2)
-    walls = [[[-2.0, -width / 2], [length, -width / 2]], [[-2.0, width / 2], [length, width / 2]],
-             [[-2.0, -width / 2], [-2.0, width / 2]], [[length, -width / 2], [length, width / 2]]]
+    walls = [
+        [[-2.0, -width / 2], [length, -width / 2]],
+        [[-2.0, width / 2], [length, width / 2]],
+        [[-2.0, -width / 2], [-2.0, width / 2]],
+        [[length, -width / 2], [length, width / 2]],
+    ]
     mp = shapely.MultiPolygon([poly])
     return FloorPlan("test", (Floor("F1", 0, 0.0, mp, mp, np.array(walls)),))
 
@@ -47,7 +51,9 @@ def test_particle_filter_keeps_a_biased_walk_inside_the_corridor():
     steps = _walk(57, math.radians(10.0))  # 57 x 0.7 = 39.9 m
     kf = LocalFusion(init=(0.0, 0.0, 0.3), floor="F1", heading_bias=(0.0, math.radians(20)))
     # step scale known to 3 %: walls tell nothing about it (the cloud keeps the scale of its survivors)
-    pf = ParticleFusion(prior, ParticleConfig(n_particles=500, sigma_scale0=0.03), init=(0.0, 0.0, 0.3), floor="F1", heading_bias=(0.0, math.radians(20)))
+    pf = ParticleFusion(
+        prior, ParticleConfig(n_particles=500, sigma_scale0=0.03), init=(0.0, 0.0, 0.3), floor="F1", heading_bias=(0.0, math.radians(20))
+    )
     for st in steps:
         e_kf = kf.predict(st)
         e_pf = pf.predict(st)
@@ -92,7 +98,11 @@ def test_particle_filter_fixes_gate_reinit_and_reproducibility():
 
 def test_late_fix_is_compared_with_the_position_at_its_scan_time():
     """A fix for a scan 10 steps ago that agrees with where we were then must barely move us."""
-    for make in (lambda: LocalFusion(init=(0.0, 0.0, 2.0)), lambda: ParticleFusion(None, init=(0.0, 0.0, 2.0)), lambda: KourogiFusion(init=(0.0, 0.0, 2.0))):
+    for make in (
+        lambda: LocalFusion(init=(0.0, 0.0, 2.0)),
+        lambda: ParticleFusion(None, init=(0.0, 0.0, 2.0)),
+        lambda: KourogiFusion(init=(0.0, 0.0, 2.0)),
+    ):
         f = make()
         for st in _walk(20, 0.0):
             f.predict(st)
@@ -175,12 +185,14 @@ def test_fixes_csv_and_the_gps_differencer(tmp_path):
     from hybridloc.types import FixSource
 
     p = tmp_path / "f.csv"
-    p.write_text("t,x,y,floor,sigma,source,sigma_random\n"
-                 "2.0,11.0,0.0,F1,3.0,gps,1.5\n"
-                 "1.0,10.0,0.0,F1,3.0,gps,1.5\n"  # out of order: sorted
-                 "3.0,nan,0.0,F1,3.0,gps,1.5\n"  # bad: skipped and reported
-                 "4.0,5.0,5.0,F1,0.4,rfid,\n"
-                 "20.0,30.0,0.0,,3.0,gps,1.0\n")
+    p.write_text(
+        "t,x,y,floor,sigma,source,sigma_random\n"
+        "2.0,11.0,0.0,F1,3.0,gps,1.5\n"
+        "1.0,10.0,0.0,F1,3.0,gps,1.5\n"  # out of order: sorted
+        "3.0,nan,0.0,F1,3.0,gps,1.5\n"  # bad: skipped and reported
+        "4.0,5.0,5.0,F1,0.4,rfid,\n"
+        "20.0,30.0,0.0,,3.0,gps,1.0\n"
+    )
     rows, rep = read_fixes_csv(p)
     assert [f.t for f, _ in rows] == [1.0, 2.0, 4.0, 20.0] and not rep.ok
     assert rows[2][0].source is FixSource.RFID and rows[2][1] is None and rows[3][0].floor is None

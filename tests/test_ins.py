@@ -27,7 +27,17 @@ def test_plus_minus_round_trip():
         np.testing.assert_allclose(x.plus(dx).minus(x), dx, atol=1e-10)
 
 
-@pytest.mark.parametrize("model", [ZeroVelocity(), ZeroAngularRate(np.array([0.01, -0.02, 0.03])), Heading(), Heading((0.3, -0.2, 0.9)), PositionFix(np.eye(2)), PositionFix(np.eye(3))])
+@pytest.mark.parametrize(
+    "model",
+    [
+        ZeroVelocity(),
+        ZeroAngularRate(np.array([0.01, -0.02, 0.03])),
+        Heading(),
+        Heading((0.3, -0.2, 0.9)),
+        PositionFix(np.eye(2)),
+        PositionFix(np.eye(3)),
+    ],
+)
 def test_jacobians_match_finite_differences(model):
     rng = np.random.default_rng(1)
     for _ in range(10):
@@ -127,7 +137,12 @@ def test_detectors_on_still_and_spinning():
     n = 400
     still_a = np.tile([0, 0, G0], (n, 1))
     spin_w = np.tile([0, 0, 3.0], (n, 1))
-    for det in (stance.shoe(still_a, np.zeros((n, 3)))[1], stance.ared(np.zeros((n, 3)))[1], stance.amvd(still_a)[1], stance.adaptive_shoe(still_a, np.zeros((n, 3)), 200.0)[1]):
+    for det in (
+        stance.shoe(still_a, np.zeros((n, 3)))[1],
+        stance.ared(np.zeros((n, 3)))[1],
+        stance.amvd(still_a)[1],
+        stance.adaptive_shoe(still_a, np.zeros((n, 3)), 200.0)[1],
+    ):
         assert det.all()
     assert not stance.shoe(still_a, spin_w)[1].any()
     assert not stance.ared(spin_w)[1].any()
@@ -170,7 +185,15 @@ def test_cli_rejects_g_units_and_wrong_rate(tmp_path):
     imu = _synthetic_walk(np.random.default_rng(5), strides_n=3)
     p = tmp_path / "walk.csv"
     np.savetxt(p, np.column_stack([imu.t, imu.accel_body / G0, imu.gyro_body]), delimiter=",", header="t,ax,ay,az,gx,gy,gz", comments="")
-    run = lambda *a: subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "foot", str(p), "--out", str(tmp_path / "o"), *a], capture_output=True, text=True, timeout=120)  # noqa: E731
+
+    def run(*a):
+        return subprocess.run(
+            [sys.executable, "-m", "hybridloc.cli", "pdr", "foot", str(p), "--out", str(tmp_path / "o"), *a],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+
     r = run()
     assert r.returncode == 2 and "looks like g" in r.stderr
     r = run("--accel-unit", "g", "--rate", "100")

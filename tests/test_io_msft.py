@@ -147,9 +147,11 @@ def test_waypoints_lie_on_their_floor_plan(ilc_site1):
 def test_sensor_full_scale_comes_from_the_header(tmp_path):
     """Android's sensor spec lines give the accelerometer's and gyroscope's full scale (the OPPO of
     site1: 39.22661 m/s^2 = 4 g and 34.906586 rad/s = 2000 deg/s); a trace without them has none."""
-    spec = ("#\ttype:1\tname:BMI160 Accelerometer\tvendor:BOSCH\tresolution:0.0024\tpower:0.18\tmaximumRange:39.22661\n"
-            "#\ttype:4\tname:BMI160 Gyroscope\tvendor:BOSCH\tresolution:0.0011\tpower:0.9\tmaximumRange:34.906586\n"
-            "#\ttype:2\tname:AK09911 Magnetometer\tvendor:AKM\tresolution:0.6\tpower:2.4\tmaximumRange:4911.9995\n")
+    spec = (
+        "#\ttype:1\tname:BMI160 Accelerometer\tvendor:BOSCH\tresolution:0.0024\tpower:0.18\tmaximumRange:39.22661\n"
+        "#\ttype:4\tname:BMI160 Gyroscope\tvendor:BOSCH\tresolution:0.0011\tpower:0.9\tmaximumRange:34.906586\n"
+        "#\ttype:2\tname:AK09911 Magnetometer\tvendor:AKM\tresolution:0.6\tpower:2.4\tmaximumRange:4911.9995\n"
+    )
     tr = read_ilc_trace(_write(tmp_path, HEADER + spec + _sensor_lines(1574559495300, 20)))
     assert tr.imu.accel_range == pytest.approx(39.22661) and tr.imu.gyro_range == pytest.approx(34.906586)
     bare = read_ilc_trace(_write(tmp_path, HEADER + _sensor_lines(1574559495300, 20), name="bare.txt.gz"))
@@ -177,7 +179,9 @@ def test_waypoints_alone_read_as_the_whole_trace_reads_them(tmp_path):
 def test_a_mark_may_carry_its_floor(tmp_path):
     """Our extension of TYPE_WAYPOINT (the simulator's walks change floor): an optional floor name
     after x y, read by both readers; marks without one are on the header's floor."""
-    lines = HEADER + "1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\tF2\n1574559496000\tTYPE_WAYPOINT\t5.0\t6.0\tF3\n1574559497000\tTYPE_WAYPOINT\t5.0\t9.0\n"
+    lines = (
+        HEADER + "1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\tF2\n1574559496000\tTYPE_WAYPOINT\t5.0\t6.0\tF3\n1574559497000\tTYPE_WAYPOINT\t5.0\t9.0\n"
+    )
     p = _write(tmp_path, lines)
     for w in (read_ilc_trace(p).waypoints, read_ilc_waypoints(p)):
         assert w.floor == "F2" and [w.floor_of(i) for i in range(3)] == ["F2", "F3", "F2"]

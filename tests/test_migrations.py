@@ -14,7 +14,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.codecs import BATCH, step_to_dict
 
 T0 = 1.6e9
-NOW = dt.datetime(2024, 5, 1, 12, 0, tzinfo=dt.timezone.utc)
+NOW = dt.datetime(2024, 5, 1, 12, 0, tzinfo=dt.UTC)
 STEP_0001 = ["id", "batch_id", "device_id", "t", "length", "heading", "sigma_length", "sigma_heading", "heading_change", "floor_change"]
 
 
@@ -23,27 +23,72 @@ def _fill_0001(eng) -> dict[str, list[tuple]]:
     md = MetaData()
     md.reflect(eng)
     t = md.tables
-    step = lambda bid, dev, tt: {"batch_id": bid, "device_id": dev, "t": tt, "length": 0.7, "heading": 0.3, "sigma_length": 0.05,  # noqa: E731
-                                 "sigma_heading": 0.1, "heading_change": 0.01, "floor_change": 0}
-    scan = lambda bid, dev, tt: {"batch_id": bid, "device_id": dev, "t": tt, "technology": "wifi",  # noqa: E731
-                                 "readings": {"rssi": {"aa": -60.0}, "freq": {"aa": 2.412e9}, "age": {"aa": 0.5}}}
+
+    def step(bid, dev, tt):
+        return {
+            "batch_id": bid,
+            "device_id": dev,
+            "t": tt,
+            "length": 0.7,
+            "heading": 0.3,
+            "sigma_length": 0.05,
+            "sigma_heading": 0.1,
+            "heading_change": 0.01,
+            "floor_change": 0,
+        }
+
+    def scan(bid, dev, tt):
+        return {
+            "batch_id": bid,
+            "device_id": dev,
+            "t": tt,
+            "technology": "wifi",
+            "readings": {"rssi": {"aa": -60.0}, "freq": {"aa": 2.412e9}, "age": {"aa": 0.5}},
+        }
+
     with eng.begin() as c:
         c.execute(insert(t["site"]), [{"id": "s1", "name": "s1"}])
-        c.execute(insert(t["device"]), [{"id": "dA", "site_id": "s1", "model": "Pixel", "last_seq": 5},
-                                        {"id": "dB", "site_id": "s1", "model": "", "last_seq": 1},
-                                        {"id": "dC", "site_id": "s1", "model": "", "last_seq": 0}])
+        c.execute(
+            insert(t["device"]),
+            [
+                {"id": "dA", "site_id": "s1", "model": "Pixel", "last_seq": 5},
+                {"id": "dB", "site_id": "s1", "model": "", "last_seq": 1},
+                {"id": "dC", "site_id": "s1", "model": "", "last_seq": 0},
+            ],
+        )
         # (id, device, seq, steps, scans, marks), the counts matching the rows written below
-        batches = [(1, "dA", 1, 11, 0, 0), (2, "dA", 2, 0, 8, 0), (3, "dA", 3, 0, 0, 0), (4, "dA", 4, 11, 0, 2), (5, "dA", 5, 0, 2, 0), (6, "dB", 1, 1, 0, 0)]
-        c.execute(insert(t["batch"]), [{"id": i, "device_id": d, "seq": q, "received_at": NOW, "n_steps": ns, "n_scans": nc, "n_marks": nm}
-                                       for i, d, q, ns, nc, nm in batches])
+        batches = [
+            (1, "dA", 1, 11, 0, 0),
+            (2, "dA", 2, 0, 8, 0),
+            (3, "dA", 3, 0, 0, 0),
+            (4, "dA", 4, 11, 0, 2),
+            (5, "dA", 5, 0, 2, 0),
+            (6, "dB", 1, 1, 0, 0),
+        ]
+        c.execute(
+            insert(t["batch"]),
+            [{"id": i, "device_id": d, "seq": q, "received_at": NOW, "n_steps": ns, "n_scans": nc, "n_marks": nm} for i, d, q, ns, nc, nm in batches],
+        )
         # dA: a walk 100-112 s (steps, then its scans, then an empty batch), silence, a walk 500-512 s
-        c.execute(insert(t["step"]), [step(1, "dA", T0 + 100.0 + k) for k in range(11)] + [step(4, "dA", T0 + 500.0 + k) for k in range(11)]
-                  + [step(6, "dB", T0 + 7.0)])
+        c.execute(
+            insert(t["step"]),
+            [step(1, "dA", T0 + 100.0 + k) for k in range(11)] + [step(4, "dA", T0 + 500.0 + k) for k in range(11)] + [step(6, "dB", T0 + 7.0)],
+        )
         c.execute(insert(t["scan"]), [scan(2, "dA", T0 + 105.0 + k) for k in range(8)] + [scan(5, "dA", T0 + 511.0), scan(5, "dA", T0 + 512.0)])
-        c.execute(insert(t["survey_mark"]), [{"batch_id": 4, "device_id": "dA", "t": T0 + 502.0, "x": 1.0, "y": 2.0, "floor": "F1"},
-                                             {"batch_id": 4, "device_id": "dA", "t": T0 + 508.0, "x": 3.0, "y": 2.0, "floor": "F2"}])
-        c.execute(insert(t["fix"]), [{"device_id": "dA", "t": T0 + 505.0, "x": 0.0, "y": 0.0, "floor": "B1", "cov": [[1, 0], [0, 1]], "source": "wifi"},
-                                     {"device_id": "dA", "t": T0 + 50.0, "x": 0.0, "y": 0.0, "floor": "F9", "cov": [[1, 0], [0, 1]], "source": "wifi"}])
+        c.execute(
+            insert(t["survey_mark"]),
+            [
+                {"batch_id": 4, "device_id": "dA", "t": T0 + 502.0, "x": 1.0, "y": 2.0, "floor": "F1"},
+                {"batch_id": 4, "device_id": "dA", "t": T0 + 508.0, "x": 3.0, "y": 2.0, "floor": "F2"},
+            ],
+        )
+        c.execute(
+            insert(t["fix"]),
+            [
+                {"device_id": "dA", "t": T0 + 505.0, "x": 0.0, "y": 0.0, "floor": "B1", "cov": [[1, 0], [0, 1]], "source": "wifi"},
+                {"device_id": "dA", "t": T0 + 50.0, "x": 0.0, "y": 0.0, "floor": "F9", "cov": [[1, 0], [0, 1]], "source": "wifi"},
+            ],
+        )
     return _dump_0001(eng)
 
 
@@ -91,8 +136,9 @@ def test_upgrade_downgrade_upgrade_on_a_filled_database(tmp_path):
     second = st.read_walk(ids[("dA", T0 + 500.0)])
     assert len(second.steps) == 11 and len(second.scans) == 2 and [k.floor for k in second.marks] == ["F1", "F2"]
     with st.engine.connect() as c:
-        assert [r[0] for r in c.execute(select(m.Batch.walk_id).order_by(m.Batch.id))] == \
-               [ids[("dA", T0 + 100.0)]] * 3 + [ids[("dA", T0 + 500.0)]] * 2 + [ids[("dB", T0 + 7.0)]]
+        assert [r[0] for r in c.execute(select(m.Batch.walk_id).order_by(m.Batch.id))] == [ids[("dA", T0 + 100.0)]] * 3 + [
+            ids[("dA", T0 + 500.0)]
+        ] * 2 + [ids[("dB", T0 + 7.0)]]
     st.close()
 
     downgrade(eng, "0001_initial")
@@ -118,8 +164,15 @@ def test_a_migrated_open_walk_takes_the_next_batch(tmp_path):
     _fill_0001(eng)
     eng.dispose()
     st = Store(db)  # upgrades to head
-    msg = {"schema": P.BATCH_SCHEMA, "site": "s1", "device": "dA", "seq": 6, "device_model": "", "sent_at": 0.0,
-           "steps": [step_to_dict(StepEvent(T0 + 515.0, 0.7, 0.0, 0.05, 0.1))]}
+    msg = {
+        "schema": P.BATCH_SCHEMA,
+        "site": "s1",
+        "device": "dA",
+        "seq": 6,
+        "device_model": "",
+        "sent_at": 0.0,
+        "steps": [step_to_dict(StepEvent(T0 + 515.0, 0.7, 0.0, 0.05, 0.1))],
+    }
     assert st.persist([BATCH.decode(json.dumps(msg).encode())])[0] == {"dA": 6}
     last = st.walks("s1", device="dA")[-1]
     assert (last.t_start, last.t_end, last.n_batches, last.n_steps, last.end) == (T0 + 500.0, T0 + 515.0, 3, 12, WalkEnd.OPEN)

@@ -344,7 +344,12 @@ def test_real_traces_give_human_step_lengths(ilc_site1, tmp_path):
         m_per_step.append(D / max(n, 1))
     # Adult walking steps are 0.5-0.9 m; waypoint polylines cut corners, so allow 0.4-1.0 m.
     assert 0.4 <= np.median(m_per_step) <= 1.0
-    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "phone", str(paths[0]), "--out", str(tmp_path), "--start", "3,4,90deg"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "hybridloc.cli", "pdr", "phone", str(paths[0]), "--out", str(tmp_path), "--start", "3,4,90deg"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     d = tmp_path / paths[0].name.replace(".txt.gz", "")
     assert (d / "steps.csv").read_text().splitlines()[0].startswith("t,length,heading,sigma_length,sigma_heading")
@@ -428,8 +433,24 @@ def test_cli_updates_a_device_calibration_from_waypointed_walks(tmp_path):
     cal = tmp_path / "dev.json"
 
     def run(*extra):
-        return subprocess.run([sys.executable, "-m", "hybridloc.cli", "pdr", "phone", *map(str, walks), "--out", str(tmp_path / "o"), "--calibration", str(cal), *extra],
-                              capture_output=True, text=True, timeout=300)
+        return subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "hybridloc.cli",
+                "pdr",
+                "phone",
+                *map(str, walks),
+                "--out",
+                str(tmp_path / "o"),
+                "--calibration",
+                str(cal),
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
 
     r = run()
     assert r.returncode != 0 and "not found" in r.stderr  # no silent default when the file is missing
@@ -490,7 +511,7 @@ def test_a_clipped_gyro_is_flagged_and_widens_the_heading_sigma():
     assert 1 <= len(flagged) <= 3
     before = max(s.sigma_heading for s in steps if s.t < 19.5)
     after = min(s.sigma_heading for s in steps if s.t > 21.0)
-    assert after ** 2 - before ** 2 > 0.3**2
+    assert after**2 - before**2 > 0.3**2
     unknown = PhonePdr(RATE)  # no full scale: the repeated extreme reading is the sign
     unknown.process(ImuBlock(imu.t, imu.accel_body, np.clip(imu.gyro_body, -6.5, 6.5), None))
     assert unknown.stats.saturated == 0  # never reached: nothing repeats at the clip

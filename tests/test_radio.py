@@ -69,7 +69,10 @@ def world():
 
 def test_probabilistic_and_knn_locate_synthetic_world(world):
     refs, rmap, pts, tests = world
-    for name, results in (("prob", [ProbabilisticLocator(rmap, tau=1.0).locate(s) for s in tests]), ("knn", KnnLocator(refs, k=5).locate_many(tests))):
+    for name, results in (
+        ("prob", [ProbabilisticLocator(rmap, tau=1.0).locate(s) for s in tests]),
+        ("knn", KnnLocator(refs, k=5).locate_many(tests)),
+    ):
         err = np.array([np.linalg.norm(r.fix.pos_enu - p) for r, p in zip(results, pts)])
         # 2 dB noise on a 30 dB/decade slope is ~15 % range error per AP; with 5 APs a few metres
         # at most in a 30 m room.
@@ -214,8 +217,9 @@ def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_dat
     val.write_text("\n".join([header] + [r for r in rows if r.split(",")[user] == "11"][::10]) + "\n")
     v = evaluate_uji_split(str(train), str(val))
     assert v["ours"]["n"] > 300 and v["ours"]["building"] >= 0.99  # buildings are 100s of m apart, own APs
-    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""], capture_output=True, text=True, timeout=600
+    )
     assert r.returncode == 0, r.stderr
     assert "standard split" in r.stdout and "ratio of mean error ours/plain" in r.stdout
 
@@ -250,8 +254,15 @@ def test_route_groups_and_folds_hold_a_repeated_route_together():
     def walk(name, xy, floor="F1"):
         return TraceData(name, floor, [], np.arange(len(xy), dtype=float), xy, [])
 
-    traces = [walk("a", line), walk("b", line[::-1] + rng.normal(0, 0.3, line.shape)), walk("c", line, "F2"),
-              walk("d", line + [0.0, 3.0]), walk("e", line + [0.0, 3.2]), walk("f", line + [100.0, 0.0]), walk("g", np.zeros((0, 2)))]
+    traces = [
+        walk("a", line),
+        walk("b", line[::-1] + rng.normal(0, 0.3, line.shape)),
+        walk("c", line, "F2"),
+        walk("d", line + [0.0, 3.0]),
+        walk("e", line + [0.0, 3.2]),
+        walk("f", line + [100.0, 0.0]),
+        walk("g", np.zeros((0, 2))),
+    ]
     g = route_groups(traces)
     assert g[0] == g[1] and g[3] == g[4]
     assert len({g[0], g[2], g[3], g[5], g[6]}) == 5

@@ -165,8 +165,12 @@ def test_locate_queryable_and_pushed_fix(server):
 
 
 def _start_server(ep, db, *extra):
-    proc = subprocess.Popen([sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(db), *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", str(db), *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     line = proc.stdout.readline()
     assert "listening" in line, line
     return proc
@@ -216,7 +220,10 @@ def test_wrong_password_refused_and_devices_confined(tmp_path):
     try:
         with pytest.raises(zenoh.ZError):
             zenoh.open(client_config(ep, Security(user="dev01", password="wrong")))
-        with zenoh.open(client_config(ep, Security(user="dev01", password="pw1"))) as s1, zenoh.open(client_config(ep, Security(user="dev02", password="pw2"))) as s2:
+        with (
+            zenoh.open(client_config(ep, Security(user="dev01", password="pw1"))) as s1,
+            zenoh.open(client_config(ep, Security(user="dev02", password="pw2"))) as s2,
+        ):
             seen = []
             sub = s2.declare_subscriber(P.key_fix(SITE, "dev01"), lambda smp: seen.append(smp))  # dev02 spying on dev01
             # dev01 writes under dev02's key: refused by the ACL, never stored
@@ -289,8 +296,12 @@ def test_map_rebuild_from_stored_surveys_is_incremental(tmp_path):
     v2, n2, relabelled2 = rebuild(st, "mall", tmp_path / "cache")  # nothing changed: all from the cache
     assert v2 == 2 and n2 == n and relabelled2 == 0
     st.close()
-    r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "map", "export", "--site", "mall", "--db", str(tmp_path / "r.db"), "--out", str(tmp_path / "m.npz")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "hybridloc.cli", "map", "export", "--site", "mall", "--db", str(tmp_path / "r.db"), "--out", str(tmp_path / "m.npz")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     from hybridloc.radio.radiomap import RadioMap
 

@@ -47,10 +47,18 @@ def test_file_then_environment(tmp_path):
     assert load_settings(None, {"HYBRIDLOC_CONFIG": str(f)}).site == "site1"
 
 
-@pytest.mark.parametrize("text, key", [('sight = "x"', "sight"), ('[security]\npasword = "x"', "security.pasword"),
-                                       ("endpoint = 7447", "endpoint"), ('[filter]\nspeed = "fast"', "filter.speed"),
-                                       ('[filter]\nkind = "magic"', "filter.kind"), ('security = "x"', "security"),
-                                       ('method = "nearest"', "method")])
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ('sight = "x"', "sight"),
+        ('[security]\npasword = "x"', "security.pasword"),
+        ("endpoint = 7447", "endpoint"),
+        ('[filter]\nspeed = "fast"', "filter.speed"),
+        ('[filter]\nkind = "magic"', "filter.kind"),
+        ('security = "x"', "security"),
+        ('method = "nearest"', "method"),
+    ],
+)
 def test_unknown_keys_and_wrong_types_name_the_key(tmp_path, text, key):
     f = tmp_path / "bad.toml"
     f.write_text(text + "\n")

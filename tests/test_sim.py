@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
+from hybridloc.geo import wall_crossings
 from hybridloc.ins.foot import run_foot_ins
 from hybridloc.io.msft import read_ilc_site, read_ilc_trace
 from hybridloc.pdr.phone import run_phone_pdr
-from hybridloc.geo import wall_crossings
 from hybridloc.sim.building import generate_world
 from hybridloc.sim.imu import GRADES, foot_imu, phone_imu
 from hybridloc.sim.radio import PATH_LOSS_N, SHADOW_LENGTH, SHADOW_SD, make_radio_model, rssi, simulate_radio
@@ -161,7 +161,7 @@ def test_cli_world_and_walk_write_readable_formats(tmp_path):
     assert wps.floors is not None and wps.floor_of(0) == tr.floor
     for i in range(1, len(wps)):
         k = int(np.searchsorted(truth[:, 0], wps.t[i] - 1e-3, side="right")) - 1
-        assert wps.floor_of(i) in set(true_floor[max(k, 0):k + 2]), (i, wps.floor_of(i))
+        assert wps.floor_of(i) in set(true_floor[max(k, 0) : k + 2]), (i, wps.floor_of(i))
     r = run("pdr", "foot", str(tmp_path / "k" / "w0001_foot.csv"), "--out", str(tmp_path / "o"))
     assert r.returncode == 0, r.stderr
 

@@ -24,8 +24,17 @@ SITE = "site1"
 
 
 def _payload(device, seq, steps=(), scans=(), marks=(), model="", site=SITE) -> bytes:
-    msg = {"schema": P.BATCH_SCHEMA, "site": site, "device": device, "seq": seq, "device_model": model, "sent_at": 0.0,
-           "steps": [step_to_dict(s) for s in steps], "scans": list(scans), "marks": [{"t": k.t, "x": k.x, "y": k.y, "floor": k.floor} for k in marks]}
+    msg = {
+        "schema": P.BATCH_SCHEMA,
+        "site": site,
+        "device": device,
+        "seq": seq,
+        "device_model": model,
+        "sent_at": 0.0,
+        "steps": [step_to_dict(s) for s in steps],
+        "scans": list(scans),
+        "marks": [{"t": k.t, "x": k.x, "y": k.y, "floor": k.floor} for k in marks],
+    }
     return json.dumps(msg, allow_nan=False).encode()
 
 
@@ -35,13 +44,29 @@ def _batch(device, seq, steps=(), scans=(), marks=(), model="", site=SITE):
 
 def _full_step(t, k=0):
     """A step with every StepEvent field away from its default (what a foot INS with a barometer sends)."""
-    return StepEvent(t, 0.71 + 0.01 * k, -3.0 + 0.37 * k, 0.043, 0.087, 0.013 * (k - 3), 0.0052, 0.17 * (-1) ** k, 0.021, (k % 3) - 1,
-                     "mag-disturbed" if k % 2 else "gap")
+    return StepEvent(
+        t,
+        0.71 + 0.01 * k,
+        -3.0 + 0.37 * k,
+        0.043,
+        0.087,
+        0.013 * (k - 3),
+        0.0052,
+        0.17 * (-1) ** k,
+        0.021,
+        (k % 3) - 1,
+        "mag-disturbed" if k % 2 else "gap",
+    )
 
 
 def _scan(t, k=0):
-    return {"t": t, "tech": "wifi", "rssi": {"aa:bb": -51.0 - k, "cc:dd": -77.5}, "freq": {"aa:bb": 2.412e9, "cc:dd": 5.18e9},
-            "age": {"aa:bb": 0.25 * k, "cc:dd": 1.5}}
+    return {
+        "t": t,
+        "tech": "wifi",
+        "rssi": {"aa:bb": -51.0 - k, "cc:dd": -77.5},
+        "freq": {"aa:bb": 2.412e9, "cc:dd": 5.18e9},
+        "age": {"aa:bb": 0.25 * k, "cc:dd": 1.5},
+    }
 
 
 def _steps(t0, n, dt_s=0.5):
@@ -60,14 +85,16 @@ def test_every_step_scan_and_mark_field_survives_ingest_to_read_walk(store):
     scans = [_scan(1000.2 + 1.1 * k, k) for k in range(5)]
     marks = [SurveyMark(1000.0, 3.5, -2.25, "F1"), SurveyMark(1005.75, 9.0, 1.5, "F1")]
     # steps, scans and marks in separate batches whose times interleave, as a client sends them
-    acked, rejected, written = store.persist([_batch("dev1", 1, steps=steps[6:], model="Pixel 4"), _batch("dev1", 2, scans=scans, marks=marks),
-                                              _batch("dev1", 3, steps=steps[:6])])
+    acked, rejected, written = store.persist(
+        [_batch("dev1", 1, steps=steps[6:], model="Pixel 4"), _batch("dev1", 2, scans=scans, marks=marks), _batch("dev1", 3, steps=steps[:6])]
+    )
     assert acked == {"dev1": 3} and not rejected and written == 3
     [info] = store.walks(SITE)
     w = store.read_walk(info.walk_id)
     assert w.steps == tuple(steps)  # StepEvent equality: every field, exactly
-    assert [(s.t, s.technology.value, dict(s.rssi_dbm), dict(s.frequency_hz), dict(s.age_s)) for s in w.scans] == \
-           [(s["t"], s["tech"], s["rssi"], s["freq"], s["age"]) for s in scans]
+    assert [(s.t, s.technology.value, dict(s.rssi_dbm), dict(s.frequency_hz), dict(s.age_s)) for s in w.scans] == [
+        (s["t"], s["tech"], s["rssi"], s["freq"], s["age"]) for s in scans
+    ]
     assert all(s.device_model == "Pixel 4" for s in w.scans)
     assert w.marks == tuple(marks)
     assert (w.site, w.device, w.walk_id, w.device_model, w.floors, w.end) == (SITE, "dev1", info.walk_id, "Pixel 4", ("F1",), WalkEnd.OPEN)
@@ -133,9 +160,13 @@ def test_walk_floors_from_marks_and_fixes_in_order_of_first_appearance(store):
 
     marks = [SurveyMark(1.0, 0.0, 0.0, "F1"), SurveyMark(2.0, 1.0, 0.0, "F1"), SurveyMark(9.0, 1.0, 1.0, "F2")]
     store.persist([_batch("dev1", 1, steps=_steps(0.0, 20), marks=marks), _batch("dev2", 1, steps=_steps(0.0, 4))])
-    store.add_fixes([("dev1", AbsoluteFix(5.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="B1")),
-                     ("dev2", AbsoluteFix(1.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="F1")),
-                     ("dev2", AbsoluteFix(99.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="F7"))])  # after every walk: none
+    store.add_fixes(
+        [
+            ("dev1", AbsoluteFix(5.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="B1")),
+            ("dev2", AbsoluteFix(1.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="F1")),
+            ("dev2", AbsoluteFix(99.0, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor="F7")),
+        ]
+    )  # after every walk: none
     by_dev = {w.device: w for w in store.walks(SITE)}
     assert by_dev["dev1"].floors == ("F1", "B1", "F2") and by_dev["dev2"].floors == ("F1",)
     assert [w.device for w in store.walks(SITE, floor="F1")] == ["dev1", "dev2"]
@@ -159,10 +190,16 @@ def test_read_walk_selects_records_through_indexes(store):
     from sqlalchemy import select
 
     for model, index in ((m.Step, "ix_step_device_t"), (m.Scan, "ix_scan_device_t"), (m.SurveyMark, "ix_survey_mark_device_t")):
-        q = select(model).join(m.Batch, m.Batch.id == model.batch_id).where(model.device_id == "d", model.t >= 0.0, model.t <= 1.0, m.Batch.walk_id == 1) \
+        q = (
+            select(model)
+            .join(m.Batch, m.Batch.id == model.batch_id)
+            .where(model.device_id == "d", model.t >= 0.0, model.t <= 1.0, m.Batch.walk_id == 1)
             .order_by(model.t, model.id)
+        )
         with store.engine.connect() as c:
-            plan = " | ".join(r[-1] for r in c.exec_driver_sql("EXPLAIN QUERY PLAN " + str(q.compile(store.engine, compile_kwargs={"literal_binds": True}))))
+            plan = " | ".join(
+                r[-1] for r in c.exec_driver_sql("EXPLAIN QUERY PLAN " + str(q.compile(store.engine, compile_kwargs={"literal_binds": True})))
+            )
         assert f"USING INDEX {index}" in plan and "TEMP B-TREE" not in plan, plan
 
 
@@ -187,6 +224,7 @@ def test_walk_read_after_a_real_zenoh_ingest(tmp_path):
     finally:
         srv.stop()
     assert w.steps == tuple(steps)
-    assert [(s.t, dict(s.rssi_dbm), dict(s.frequency_hz), dict(s.age_s), s.device_model) for s in w.scans] == \
-           [(s["t"], s["rssi"], s["freq"], s["age"], "SM-G960F") for s in scans]
+    assert [(s.t, dict(s.rssi_dbm), dict(s.frequency_hz), dict(s.age_s), s.device_model) for s in w.scans] == [
+        (s["t"], s["rssi"], s["freq"], s["age"], "SM-G960F") for s in scans
+    ]
     assert w.device_model == "SM-G960F" and w.end == WalkEnd.OPEN and math.isclose(w.duration, steps[-1].t - steps[0].t)

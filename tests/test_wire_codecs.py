@@ -33,7 +33,18 @@ from hybridloc.wire.messages import Ack, Batch, LocateRequest, MapInfo, Status
 SETTINGS = settings(derandomize=True, deadline=None, max_examples=60, database=None, suppress_health_check=[HealthCheck.too_slow])
 
 #: Reasons a decoder may give (docs/protocol.md; duplicate, out-of-order, bad-key and bad-locate are the server's).
-REASONS = {"malformed-json", "schema-version", "too-large", "non-finite", "bad-value", "bad-id", "bad-seq", "bad-scan", "rssi-out-of-range", "key-mismatch"}
+REASONS = {
+    "malformed-json",
+    "schema-version",
+    "too-large",
+    "non-finite",
+    "bad-value",
+    "bad-id",
+    "bad-seq",
+    "bad-scan",
+    "rssi-out-of-range",
+    "key-mismatch",
+}
 
 # ---------------------------------------------------------------------------------------------- strategies
 ids = st.from_regex(r"[A-Za-z0-9_.\-]{1,64}", fullmatch=True)
@@ -50,19 +61,34 @@ floor_names = st.text(max_size=32)
 def steps(draw):
     hc = draw(st.none() | st.floats(-10.0, 10.0))
     height = draw(st.floats(-5.0, 5.0))
-    return StepEvent(draw(finite), draw(nonneg), draw(st.floats(-10.0, 10.0)), draw(nonneg), draw(nonneg),
-                     hc, None if hc is None else draw(st.none() | nonneg),
-                     # the wire sends a sigma only with its value (docs/protocol.md)
-                     height, draw(nonneg) if height else 0.0, draw(st.integers(-5, 5)), draw(st.text(max_size=32)))
+    return StepEvent(
+        draw(finite),
+        draw(nonneg),
+        draw(st.floats(-10.0, 10.0)),
+        draw(nonneg),
+        draw(nonneg),
+        hc,
+        None if hc is None else draw(st.none() | nonneg),
+        # the wire sends a sigma only with its value (docs/protocol.md)
+        height,
+        draw(nonneg) if height else 0.0,
+        draw(st.integers(-5, 5)),
+        draw(st.text(max_size=32)),
+    )
 
 
 @st.composite
 def scans(draw, device_model=None, min_readings=1):
     keys = draw(st.lists(tx, min_size=min_readings, max_size=6, unique=True))
     some = st.lists(st.sampled_from(keys), unique=True) if keys else st.just([])
-    return RfScan(draw(finite), draw(st.sampled_from(list(Technology))), {k: draw(rssi) for k in keys},
-                  {k: draw(st.floats(1e8, 1e10)) for k in draw(some)}, {k: draw(finite) for k in draw(some)},
-                  draw(st.text(max_size=64)) if device_model is None else device_model)
+    return RfScan(
+        draw(finite),
+        draw(st.sampled_from(list(Technology))),
+        {k: draw(rssi) for k in keys},
+        {k: draw(st.floats(1e8, 1e10)) for k in draw(some)},
+        {k: draw(finite) for k in draw(some)},
+        draw(st.text(max_size=64)) if device_model is None else device_model,
+    )
 
 
 marks = st.builds(SurveyMark, finite, finite, finite, floor_names)
@@ -71,8 +97,16 @@ marks = st.builds(SurveyMark, finite, finite, finite, floor_names)
 @st.composite
 def batches(draw):
     model = draw(st.text(max_size=64))
-    return Batch(draw(ids), draw(ids), draw(st.integers(1, 2**62)), model, draw(st.lists(steps(), max_size=4)),
-                 draw(st.lists(scans(model), max_size=4)), draw(st.lists(marks, max_size=3)), draw(finite))
+    return Batch(
+        draw(ids),
+        draw(ids),
+        draw(st.integers(1, 2**62)),
+        model,
+        draw(st.lists(steps(), max_size=4)),
+        draw(st.lists(scans(model), max_size=4)),
+        draw(st.lists(marks, max_size=3)),
+        draw(finite),
+    )
 
 
 @st.composite
@@ -85,7 +119,10 @@ def covariances(draw):
 
 @st.composite
 def regions(draw, t):
-    boxes = [shapely.box(x, y, x + w, y + h) for x, y, w, h in draw(st.lists(st.tuples(coord, coord, st.floats(0.5, 50), st.floats(0.5, 50)), min_size=1, max_size=3))]
+    boxes = [
+        shapely.box(x, y, x + w, y + h)
+        for x, y, w, h in draw(st.lists(st.tuples(coord, coord, st.floats(0.5, 50), st.floats(0.5, 50)), min_size=1, max_size=3))
+    ]
     return ContainmentRegion(draw(st.none() | floor_names), shapely.union_all(boxes), draw(st.floats(0.01, 1.0)), t)
 
 
@@ -94,7 +131,9 @@ def fixes(draw):
     if draw(st.booleans()):
         return Fix(None, reason=draw(st.text(max_size=100)), t=draw(st.none() | finite))
     t = draw(finite)
-    fix = AbsoluteFix(t, [draw(coord), draw(coord)], draw(covariances()), draw(st.sampled_from(list(FixSource))), draw(st.none() | floor_names), draw(prob))
+    fix = AbsoluteFix(
+        t, [draw(coord), draw(coord)], draw(covariances()), draw(st.sampled_from(list(FixSource))), draw(st.none() | floor_names), draw(prob)
+    )
     return Fix(fix, draw(st.none() | regions(t)), draw(st.dictionaries(floor_names, prob, max_size=4)))
 
 
@@ -107,8 +146,13 @@ def poses(draw):
 locates = st.builds(LocateRequest, scans(min_readings=0))
 acks = st.builds(Ack, ids, st.integers(0, 2**62))
 db_values = st.integers(0, 10**9) | st.dictionaries(st.text(max_size=16), st.integers(0, 10**9), max_size=4)
-statuses = st.builds(Status, st.lists(ids, max_size=5).map(lambda v: tuple(sorted(v))), st.dictionaries(st.text(max_size=32), st.integers(0, 10**9), max_size=6),
-                     st.dictionaries(st.text(max_size=16), db_values, max_size=6), st.dictionaries(ids, st.integers(1, 10**6), max_size=4))
+statuses = st.builds(
+    Status,
+    st.lists(ids, max_size=5).map(lambda v: tuple(sorted(v))),
+    st.dictionaries(st.text(max_size=32), st.integers(0, 10**9), max_size=6),
+    st.dictionaries(st.text(max_size=16), db_values, max_size=6),
+    st.dictionaries(ids, st.integers(1, 10**6), max_size=4),
+)
 map_infos = st.builds(MapInfo, ids, st.integers(1, 10**9))
 
 MESSAGES = {"batch": batches(), "ack": acks, "fix": fixes(), "pose": poses(), "locate": locates, "status": statuses, "map-info": map_infos}
@@ -189,10 +233,20 @@ GOLDEN_BATCH = (
 
 
 def _golden_batch() -> Batch:
-    steps = [StepEvent(1700000000.5, 0.71, 1.57, 0.06, 0.2, 0.01, 0.02),
-             StepEvent(1700000001.0, 0.65, -3.0, 0.05, 0.25, None, None, 0.3, 0.05, 1, "mag-disturbed")]
-    scans = [RfScan(1700000001.0, "wifi", {"aa:bb:cc:dd:ee:ff": -61.0, "11:22:33:44:55:66": -80.5}, {"aa:bb:cc:dd:ee:ff": 2412000000.0}, {"aa:bb:cc:dd:ee:ff": 1.2}),
-             RfScan(1700000001.5, "ble", {"uuid_1_2_mac": -70.0})]
+    steps = [
+        StepEvent(1700000000.5, 0.71, 1.57, 0.06, 0.2, 0.01, 0.02),
+        StepEvent(1700000001.0, 0.65, -3.0, 0.05, 0.25, None, None, 0.3, 0.05, 1, "mag-disturbed"),
+    ]
+    scans = [
+        RfScan(
+            1700000001.0,
+            "wifi",
+            {"aa:bb:cc:dd:ee:ff": -61.0, "11:22:33:44:55:66": -80.5},
+            {"aa:bb:cc:dd:ee:ff": 2412000000.0},
+            {"aa:bb:cc:dd:ee:ff": 1.2},
+        ),
+        RfScan(1700000001.5, "ble", {"uuid_1_2_mac": -70.0}),
+    ]
     return Batch("site1", "dev01", 17, "OPPO PBCM10", steps, scans, [SurveyMark(1700000002.0, 12.5, 40.0, "F1")], 1700000000.0)
 
 
@@ -204,17 +258,36 @@ FIX_PART = b'"fix": {"t": 1700000001.0, "x": 12.25, "y": 40.5, "cov": [[4.0, 0.5
 GOLDEN = [  # (record, the bytes hybridloc sent before the codecs, and sends now)
     ("batch", _golden_batch, GOLDEN_BATCH),
     ("ack", lambda: Ack("dev01", 17), b'{"schema": "hybridloc.ack/1", "device": "dev01", "acked_seq": 17}'),
-    ("fix", lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.Polygon([(10, 38), (15, 38), (15, 43), (10, 43)]), 0.95, 1700000001.0)),
-     b'{"schema": "hybridloc.fix/1", ' + FIX_PART + b', "region": {"floor": "F1", "mass": 0.95, "geometry": {"type": "MultiPolygon", "coordinates": '
-     b'[[[[10.0, 38.0], [15.0, 38.0], [15.0, 43.0], [10.0, 43.0], [10.0, 38.0]]]]}}}'),
+    (
+        "fix",
+        lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.Polygon([(10, 38), (15, 38), (15, 43), (10, 43)]), 0.95, 1700000001.0)),
+        b'{"schema": "hybridloc.fix/1", '
+        + FIX_PART
+        + b', "region": {"floor": "F1", "mass": 0.95, "geometry": {"type": "MultiPolygon", "coordinates": '
+        b"[[[[10.0, 38.0], [15.0, 38.0], [15.0, 43.0], [10.0, 43.0], [10.0, 38.0]]]]}}}",
+    ),
     ("fix", lambda: Fix(_golden_fix()), b'{"schema": "hybridloc.fix/1", ' + FIX_PART + b"}"),
-    ("fix", lambda: Fix(None, reason="no known transmitter in the scan", t=1700000001.0),
-     b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no known transmitter in the scan", "t": 1700000001.0}'),
-    ("fix", lambda: Fix(None, reason="no radio map for site 'x'"), b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no radio map for site \'x\'"}'),
+    (
+        "fix",
+        lambda: Fix(None, reason="no known transmitter in the scan", t=1700000001.0),
+        b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no known transmitter in the scan", "t": 1700000001.0}',
+    ),
+    (
+        "fix",
+        lambda: Fix(None, reason="no radio map for site 'x'"),
+        b'{"schema": "hybridloc.fix/1", "fix": null, "reason": "no radio map for site \'x\'"}',
+    ),
     ("pose", lambda: Pose(1.5, 2.0, -3.25, "F1"), b'{"schema": "hybridloc.pose/1", "t": 1.5, "x": 2.0, "y": -3.25, "floor": "F1"}'),
-    ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5})), b'{"schema": "hybridloc.locate/1", "scan": {"t": 1.0, "tech": "wifi", "rssi": {"a1": -50.5}}}'),
-    ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2}),
-     b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {"batches-received": 3}, "db": {"devices": 1}, "maps_loaded": {"site1": 2}}'),
+    (
+        "locate",
+        lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5})),
+        b'{"schema": "hybridloc.locate/1", "scan": {"t": 1.0, "tech": "wifi", "rssi": {"a1": -50.5}}}',
+    ),
+    (
+        "status",
+        lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2}),
+        b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {"batches-received": 3}, "db": {"devices": 1}, "maps_loaded": {"site1": 2}}',
+    ),
     ("map-info", lambda: MapInfo("site1", 2), b'{"site": "site1", "version": 2}'),
 ]
 
@@ -264,12 +337,15 @@ def _msg(name) -> dict:
     return json.loads(C.CODECS[name].encode(dict(GOLDEN_RECORDS)[name]()))
 
 
-GOLDEN_RECORDS = [("batch", _golden_batch), ("ack", lambda: Ack("dev01", 17)),
-                  ("fix", lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.box(10, 38, 15, 43), 0.95, 1700000001.0), {"F1": 1.0})),
-                  ("pose", lambda: Pose(1.5, 2.0, -3.25, "F1", [[1.0, 0.0], [0.0, 1.0]])),
-                  ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5}, {"a1": 2.4e9}, {"a1": 0.5}, "pixel"))),
-                  ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2})),
-                  ("map-info", lambda: MapInfo("site1", 2))]
+GOLDEN_RECORDS = [
+    ("batch", _golden_batch),
+    ("ack", lambda: Ack("dev01", 17)),
+    ("fix", lambda: Fix(_golden_fix(), ContainmentRegion("F1", shapely.box(10, 38, 15, 43), 0.95, 1700000001.0), {"F1": 1.0})),
+    ("pose", lambda: Pose(1.5, 2.0, -3.25, "F1", [[1.0, 0.0], [0.0, 1.0]])),
+    ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5}, {"a1": 2.4e9}, {"a1": 0.5}, "pixel"))),
+    ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2})),
+    ("map-info", lambda: MapInfo("site1", 2)),
+]
 
 
 def _dumps(msg) -> bytes:
@@ -349,7 +425,11 @@ def test_any_non_finite_number_is_non_finite(name):
 
 
 @SETTINGS
-@given(st.floats(allow_nan=False, allow_infinity=False).filter(lambda r: not RSSI_MIN_DBM <= r <= RSSI_MAX_DBM), st.integers(0, 1), st.sampled_from(["batch", "locate"]))
+@given(
+    st.floats(allow_nan=False, allow_infinity=False).filter(lambda r: not RSSI_MIN_DBM <= r <= RSSI_MAX_DBM),
+    st.integers(0, 1),
+    st.sampled_from(["batch", "locate"]),
+)
 def test_any_rssi_outside_the_range_is_rssi_out_of_range(value, which, name):
     msg = _msg(name)
     scan = msg["scans"][0] if name == "batch" else msg["scan"]
@@ -359,7 +439,10 @@ def test_any_rssi_outside_the_range_is_rssi_out_of_range(value, which, name):
 
 
 @SETTINGS
-@given(st.sampled_from(["site", "device"]), st.text(max_size=80).filter(lambda s: not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", s)) | st.none() | st.integers())
+@given(
+    st.sampled_from(["site", "device"]),
+    st.text(max_size=80).filter(lambda s: not re.fullmatch(r"[A-Za-z0-9_.\-]{1,64}", s)) | st.none() | st.integers(),
+)
 def test_any_bad_id_is_bad_id(field, value):
     assert _reason(C.BATCH, _dumps({**_msg("batch"), field: value})) == "bad-id"
 
@@ -413,8 +496,11 @@ def test_fix_pose_locate_ack_status_map_rejections():
 
 
 # ---------------------------------------------------------------------------------------------- nothing else escapes
-json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
-                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner, max_size=3), max_leaves=8)
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=8), inner, max_size=3),
+    max_leaves=8,
+)
 
 
 def _paths(obj, path=()):

@@ -34,8 +34,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="hybridloc", description="Crowd-sourced hybrid PDR + WiFi/RF SLAM for indoor positioning.")
     ap.add_argument("--version", action="version", version=f"hybridloc {__version__}")
     ap.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    ap.add_argument("--config", metavar="FILE", help="settings file (TOML: site, endpoint, db, [security], [filter]; see hybridloc.settings); "
-                    "HYBRIDLOC_* environment variables override it, options override both")
+    ap.add_argument(
+        "--config",
+        metavar="FILE",
+        help="settings file (TOML: site, endpoint, db, [security], [filter]; see hybridloc.settings); "
+        "HYBRIDLOC_* environment variables override it, options override both",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
 
     data.register(sub)

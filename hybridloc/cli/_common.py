@@ -61,9 +61,15 @@ def security(args: argparse.Namespace):
     devices = []
     if getattr(args, "acl_devices", None):
         devices = [ln.split(":")[0].strip() for ln in Path(args.acl_devices).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
-    return Security(users_file=getattr(args, "users", None), user=getattr(args, "user", None), password=getattr(args, "password", None),
-                    tls_cert=getattr(args, "tls_cert", None), tls_key=getattr(args, "tls_key", None), tls_ca=getattr(args, "tls_ca", None),
-                    acl_devices=devices)
+    return Security(
+        users_file=getattr(args, "users", None),
+        user=getattr(args, "user", None),
+        password=getattr(args, "password", None),
+        tls_cert=getattr(args, "tls_cert", None),
+        tls_key=getattr(args, "tls_key", None),
+        tls_ca=getattr(args, "tls_ca", None),
+        acl_devices=devices,
+    )
 
 
 def parse_floats(text: str, n: int, what: str) -> tuple[float, ...]:
@@ -164,8 +170,10 @@ def apply_settings(args: argparse.Namespace) -> None:
             setattr(args, dest, settings.get(key))
     for dest in getattr(args, "_required", ()):
         if getattr(args, dest, None) is None:
-            args._parser.error(f"the following arguments are required: --{dest.replace('_', '-')} (or set {dest} in the settings: --config FILE, "
-                               f"HYBRIDLOC_{dest.upper()})")
+            args._parser.error(
+                f"the following arguments are required: --{dest.replace('_', '-')} (or set {dest} in the settings: --config FILE, "
+                f"HYBRIDLOC_{dest.upper()})"
+            )
 
 
 def check_db_driver(url: str) -> None:

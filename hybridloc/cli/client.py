@@ -93,20 +93,32 @@ def _cmd_client(args: argparse.Namespace) -> int:
             finally:
                 if src is not sys.stdin:
                     src.close()
-            print(f"{device}: live input: {ls.samples} IMU samples, {ls.scans} scans, {ls.bad_lines} malformed lines skipped"
-                  + (f" (first: {ls.first_bad})" if ls.first_bad else ""))
+            print(
+                f"{device}: live input: {ls.samples} IMU samples, {ls.scans} scans, {ls.bad_lines} malformed lines skipped"
+                + (f" (first: {ls.first_bad})" if ls.first_bad else "")
+            )
         elif args.kind == "foot":
             agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
             replay_foot(agent, imu, args.speed)
         else:
             agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor)
-            pdr = replay_phone(agent, tr, args.speed, survey=args.kind == "survey", lockstep=args.lockstep, local_fixes=local, length_model=length_model,
-                               pdr_config=pdr_config)
+            pdr = replay_phone(
+                agent,
+                tr,
+                args.speed,
+                survey=args.kind == "survey",
+                lockstep=args.lockstep,
+                local_fixes=local,
+                length_model=length_model,
+                pdr_config=pdr_config,
+            )
         r = agent.close(wait=args.ack_timeout)
     if args.kind != "foot" and args.update_calibration and pdr is not None:
         _client_update_calibration(device, args, cal, cal_path, pdr, agent.fusion, tr if args.replay else None)
-    print(f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
-          f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else ""))
+    print(
+        f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
+        f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else "")
+    )
     return 0
 
 
@@ -132,34 +144,57 @@ def _client_update_calibration(device: str, args: argparse.Namespace, cal, cal_p
         learned, how = False, f"no step scale from the {args.filter} filter"
     if learned:
         cal.save(cal_path)
-    print(f"{device}: calibration {cal_path}: {how}: {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]}"
-          + ("" if learned else " (not updated)"))
+    print(
+        f"{device}: calibration {cal_path}: {how}: {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]}"
+        + ("" if learned else " (not updated)")
+    )
 
 
 def register(sub) -> None:
     cl = sub.add_parser("client", help="client agents: phone, foot or survey, replaying a recording against a server")
     csub = cl.add_subparsers(dest="kind", required=True)
-    for kind, helptext in (("phone", "a phone: step-and-heading PDR, WiFi scans, fused fixes"), ("foot", "a foot-mounted IMU: ZUPT INS strides, fused fixes"),
-                           ("survey", "an operator surveying by walking: steps, scans and survey marks (waypoints)")):
+    for kind, helptext in (
+        ("phone", "a phone: step-and-heading PDR, WiFi scans, fused fixes"),
+        ("foot", "a foot-mounted IMU: ZUPT INS strides, fused fixes"),
+        ("survey", "an operator surveying by walking: steps, scans and survey marks (waypoints)"),
+    ):
         c = csub.add_parser(kind, help=helptext)
         c.add_argument("--endpoint")
         c.add_argument("--site")
         c.add_argument("--device", help="device id (default: from the recording's name)")
         c.add_argument("--replay", metavar="FILE", help="recording to replay (ILC trace for phone/survey; IMU file for foot)")
-        c.add_argument("--live", metavar="SOURCE", help="phone: read live IMU samples and WiFi scans as lines from SOURCE (a pipe or FIFO; - for "
-                       "stdin): 't,ax,ay,az,gx,gy,gz[,mx,my,mz]' and 'wifi,t,BSSID=RSSI;...' (needs --rate)")
+        c.add_argument(
+            "--live",
+            metavar="SOURCE",
+            help="phone: read live IMU samples and WiFi scans as lines from SOURCE (a pipe or FIFO; - for "
+            "stdin): 't,ax,ay,az,gx,gy,gz[,mx,my,mz]' and 'wifi,t,BSSID=RSSI;...' (needs --rate)",
+        )
         c.add_argument("--speed", type=float, help="replay speed factor K (0 = as fast as possible)")
-        c.add_argument("--fixes", metavar="CSV", help="the device's own GPS / RFID fixes for the replay (t,x,y,floor,sigma,source[,sigma_random]; "
-                       "the simulator writes them beside each walk): fused at their times, GPS pairs also in differential mode")
-        c.add_argument("--filter", choices=("kalman", "particle", "kourogi"),
-                       help="local fusion: our Kalman filter (position, heading bias, step scale), a particle filter with the site's walls "
-                            "and walk prior, or Kourogi et al.'s own (position and velocity; the reference) (default kalman)")
-        c.add_argument("--floorplan", metavar="DIR", help="site folder with the floor plans (Indoor Location Competition layout): walls and walk prior "
-                       "for --filter particle; for kalman, each floor's grid direction (heading drift elimination along corridors)")
+        c.add_argument(
+            "--fixes",
+            metavar="CSV",
+            help="the device's own GPS / RFID fixes for the replay (t,x,y,floor,sigma,source[,sigma_random]; "
+            "the simulator writes them beside each walk): fused at their times, GPS pairs also in differential mode",
+        )
+        c.add_argument(
+            "--filter",
+            choices=("kalman", "particle", "kourogi"),
+            help="local fusion: our Kalman filter (position, heading bias, step scale), a particle filter with the site's walls "
+            "and walk prior, or Kourogi et al.'s own (position and velocity; the reference) (default kalman)",
+        )
+        c.add_argument(
+            "--floorplan",
+            metavar="DIR",
+            help="site folder with the floor plans (Indoor Location Competition layout): walls and walk prior "
+            "for --filter particle; for kalman, each floor's grid direction (heading drift elimination along corridors)",
+        )
         c.add_argument("--start", metavar="X,Y,SIGMA", help="known start position in the site frame (m) and its standard deviation")
         c.add_argument("--floor", help="floor at the start (with --start)")
-        c.add_argument("--lockstep", action="store_true",
-                       help="wait for the server's answer to each scan before replaying on (fixes arrive as they would live, whatever K)")
+        c.add_argument(
+            "--lockstep",
+            action="store_true",
+            help="wait for the server's answer to each scan before replaying on (fixes arrive as they would live, whatever K)",
+        )
         c.add_argument("--pose-out", metavar="FILE", help="live pose output: .csv (t,x,y,floor,sigma_x,sigma_y), .jsonl or .nmea")
         c.add_argument("--pose-format", choices=("csv", "jsonl", "nmea"))
         c.add_argument("--spool", help="folder for unacknowledged batches (default .hybridloc-spool/<device>)")
@@ -171,12 +206,32 @@ def register(sub) -> None:
         c.add_argument("--rate", type=float, help="IMU rate: foot files without timestamps, and --live streams")
         if kind != "foot":
             c.add_argument("--offset", type=float, default=0.0, help="walking direction minus the phone's heading, rad (as pdr phone --offset)")
-            c.add_argument("--estimate-offset", action="store_true", help="estimate the walking offset from the gait (as pdr phone --estimate-offset): "
-                           "a phone carried in a pocket or bag")
+            c.add_argument(
+                "--estimate-offset",
+                action="store_true",
+                help="estimate the walking offset from the gait (as pdr phone --estimate-offset): a phone carried in a pocket or bag",
+            )
             c.add_argument("--calibration", metavar="FILE", help="the device's step-length calibration (as pdr phone --calibration)")
-            c.add_argument("--update-calibration", action="store_true",
-                           help="at the end, teach --calibration (created when absent) what this walk showed: a survey from its marks "
-                                "(known distances), a phone from the step-length scale its Kalman filter learned from the fixes")
-        c.set_defaults(func=_cmd_client, _parser=c, _required=("site",), _settings={
-            "endpoint": "endpoint", "site": "site", "speed": "filter.speed", "filter": "filter.kind", "start": "filter.start", "floor": "filter.floor",
-            "floorplan": "floorplan", "user": "security.user", "password": "security.password", "tls_ca": "security.tls_ca"})
+            c.add_argument(
+                "--update-calibration",
+                action="store_true",
+                help="at the end, teach --calibration (created when absent) what this walk showed: a survey from its marks "
+                "(known distances), a phone from the step-length scale its Kalman filter learned from the fixes",
+            )
+        c.set_defaults(
+            func=_cmd_client,
+            _parser=c,
+            _required=("site",),
+            _settings={
+                "endpoint": "endpoint",
+                "site": "site",
+                "speed": "filter.speed",
+                "filter": "filter.kind",
+                "start": "filter.start",
+                "floor": "filter.floor",
+                "floorplan": "floorplan",
+                "user": "security.user",
+                "password": "security.password",
+                "tls_ca": "security.tls_ca",
+            },
+        )

@@ -34,15 +34,21 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     runs, skipped = collect_runs(paths, cfg)
     if not runs:
         raise MissingData(f"{args.dir}: no trace with IMU data and waypoints ({len(skipped)} skipped)")
-    print(f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
-          "lengths calibrated by 2-fold cross-fitting over traces")
-    print(f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}")
+    print(
+        f"phone PDR on {len(runs)} traces of {args.dir} (detector {args.detector}; {len(skipped)} skipped); "
+        "lengths calibrated by 2-fold cross-fitting over traces"
+    )
+    print(
+        f"{'model':<10} {'coef (fold A | B)':<34} {'len p50':>8} {'len p90':>8} {'turn p50':>9} {'turn p90':>9} {'wp p50':>7} {'wp p90':>7} {'segs':>5}"
+    )
 
     def row(name: str, r) -> None:
         coef = " | ".join(",".join(f"{c:.3f}" for c in cf) for cf in r.coefs)
         wp = summarize_errors(r.wp_err)
-        print(f"{name:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
-              f"{np.median(r.turn_err_deg):8.1f}d {np.percentile(r.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {r.n_segments:5d}")
+        print(
+            f"{name:<10} {coef:<34} {100 * np.median(r.length_rel_err):7.1f}% {100 * np.percentile(r.length_rel_err, 90):7.1f}% "
+            f"{np.median(r.turn_err_deg):8.1f}d {np.percentile(r.turn_err_deg, 90):8.1f}d {wp.median:6.2f}m {wp.p90:6.2f}m {r.n_segments:5d}"
+        )
 
     res = {}
     for m in LENGTH_MODELS:
@@ -52,42 +58,68 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
     andr = evaluate_phone_pdr(paths, args.model, cfg, runs=runs, heading="android")
     if andr.n_segments:
         row("+android", andr)
-    print(f"\n{args.model}: segment length error median {100 * np.median(main_m.length_rel_err):.1f}% (goal <= 5%), "
-          f"90th pct {100 * np.percentile(main_m.length_rel_err, 90):.1f}% (goal <= 15%); heading-change error median "
-          f"{np.median(main_m.turn_err_deg):.1f} deg (goal <= 8); error at waypoints from the first one: {summarize_errors(main_m.wp_err)}")
+    print(
+        f"\n{args.model}: segment length error median {100 * np.median(main_m.length_rel_err):.1f}% (goal <= 5%), "
+        f"90th pct {100 * np.percentile(main_m.length_rel_err, 90):.1f}% (goal <= 15%); heading-change error median "
+        f"{np.median(main_m.turn_err_deg):.1f} deg (goal <= 8); error at waypoints from the first one: {summarize_errors(main_m.wp_err)}"
+    )
     if andr.n_segments:
-        print(f"heading against Android's own fused attitude (+android: {args.model} lengths, our steps, heading from TYPE_ROTATION_VECTOR "
-              f"on {andr.n_traces} traces): heading-change error median {np.median(andr.turn_err_deg):.1f} deg, ratio ours/Android "
-              f"{np.median(main_m.turn_err_deg) / np.median(andr.turn_err_deg):.2f}; mean error at waypoints ratio {np.mean(main_m.wp_err) / np.mean(andr.wp_err):.2f}")
+        print(
+            f"heading against Android's own fused attitude (+android: {args.model} lengths, our steps, heading from TYPE_ROTATION_VECTOR "
+            f"on {andr.n_traces} traces): heading-change error median {np.median(andr.turn_err_deg):.1f} deg, ratio ours/Android "
+            f"{np.median(main_m.turn_err_deg) / np.median(andr.turn_err_deg):.2f}; mean error at waypoints ratio {np.mean(main_m.wp_err) / np.mean(andr.wp_err):.2f}"
+        )
     base = np.median(res["constant"].length_rel_err)
     print(f"ratio of median length error {args.model} / constant-length baseline: {np.median(main_m.length_rel_err) / base:.2f}")
     print(f"{main_m.n_steps} steps over {main_m.walked_m:.0f} m of waypoint-to-waypoint walking")
     s_end, s_rel = decompose_segment_errors(main_m.seg_true_m, main_m.seg_err_m)
     d_med = float(np.median(main_m.seg_true_m))
-    print(f"segment errors decompose (robust fit, sigmas) as +-{s_end:.2f} m fixed per segment (waypoint marks, where and "
-          f"when; the track cut at the mark times) and +-{100 * s_rel:.1f}% of length (the PDR's scale); the fixed part alone "
-          f"gives a median relative error of about {100 * 0.6745 * s_end / d_med:.1f}% on the median segment ({d_med:.1f} m)")
+    print(
+        f"segment errors decompose (robust fit, sigmas) as +-{s_end:.2f} m fixed per segment (waypoint marks, where and "
+        f"when; the track cut at the mark times) and +-{100 * s_rel:.1f}% of length (the PDR's scale); the fixed part alone "
+        f"gives a median relative error of about {100 * 0.6745 * s_end / d_med:.1f}% on the median segment ({d_med:.1f} m)"
+    )
     s_turn, s_mark = decompose_turn_errors(main_m.turn_lengths_m, main_m.turn_err_rad)
-    own = (f"+-{math.degrees(s_turn):.1f} deg the PDR's own heading-change error (median {0.6745 * math.degrees(s_turn):.1f} deg)"
-           if s_turn > 1e-3 else "a part independent of segment length not resolvable from 0")
-    print(f"turn errors decompose (robust fit, sigmas) as {own} and +-{s_mark:.2f} m across the segment at each end "
-          f"(the waypoint marks, and the PDR track's sideways position at the mark times): the turn error shrinks as 1/length")
+    own = (
+        f"+-{math.degrees(s_turn):.1f} deg the PDR's own heading-change error (median {0.6745 * math.degrees(s_turn):.1f} deg)"
+        if s_turn > 1e-3
+        else "a part independent of segment length not resolvable from 0"
+    )
+    print(
+        f"turn errors decompose (robust fit, sigmas) as {own} and +-{s_mark:.2f} m across the segment at each end "
+        f"(the waypoint marks, and the PDR track's sideways position at the mark times): the turn error shrinks as 1/length"
+    )
     straight, n_turns = marks_on_straight_walks(runs, fit_model(runs, args.model))
     if straight.size:
-        print(f"marks on straight walks: where our heading and Android's both see a turn under 5 deg ({straight.size} of {n_turns} turns), the "
-              f"waypoints turn by median {np.median(straight):.1f} deg, p90 {np.percentile(straight, 90):.1f} deg, {100 * np.mean(straight >= 10):.0f}% "
-              "by 10 deg or more: the marks' own direction error, which no PDR removes")
+        print(
+            f"marks on straight walks: where our heading and Android's both see a turn under 5 deg ({straight.size} of {n_turns} turns), the "
+            f"waypoints turn by median {np.median(straight):.1f} deg, p90 {np.percentile(straight, 90):.1f} deg, {100 * np.mean(straight >= 10):.0f}% "
+            "by 10 deg or more: the marks' own direction error, which no PDR removes"
+        )
     rec = offset_recovery(paths[::5])
     share = {r: {a: 100 * float(np.mean(v < math.radians(20))) if len(v) else float("nan") for a, v in d.items()} for r, d in rec.items()}
     angles = list(rec["gait"])
-    print(f"walking-direction offset (phone carried turned by {' / '.join(f'{a:g}' for a in angles)} deg about its screen's normal, "
-          f"{len(rec['gait'][angles[0]])} real walks re-oriented; walk heading within 20 deg of the unturned phone's): ours (sign from the gait) "
-          + " / ".join(f"{share['gait'][a]:.0f}" for a in angles) + " %, the principal axis signed by continuity (textbook) "
-          + " / ".join(f"{share['continuity'][a]:.0f}" for a in angles) + " %")
+    print(
+        f"walking-direction offset (phone carried turned by {' / '.join(f'{a:g}' for a in angles)} deg about its screen's normal, "
+        f"{len(rec['gait'][angles[0]])} real walks re-oriented; walk heading within 20 deg of the unturned phone's): ours (sign from the gait) "
+        + " / ".join(f"{share['gait'][a]:.0f}" for a in angles)
+        + " %, the principal axis signed by continuity (textbook) "
+        + " / ".join(f"{share['continuity'][a]:.0f}" for a in angles)
+        + " %"
+    )
     wp = summarize_errors(main_m.wp_err)
-    print_headline({"segment_length_median_pct": 100 * np.median(main_m.length_rel_err), "segment_length_p90_pct": 100 * np.percentile(main_m.length_rel_err, 90),
-                    "turn_error_median_deg": np.median(main_m.turn_err_deg), "waypoint_error_mean_m": wp.mean, "waypoint_error_median_m": wp.median,
-                    "length_error_ratio_to_constant": np.median(main_m.length_rel_err) / base, "steps": main_m.n_steps, "walked_m": main_m.walked_m})
+    print_headline(
+        {
+            "segment_length_median_pct": 100 * np.median(main_m.length_rel_err),
+            "segment_length_p90_pct": 100 * np.percentile(main_m.length_rel_err, 90),
+            "turn_error_median_deg": np.median(main_m.turn_err_deg),
+            "waypoint_error_mean_m": wp.mean,
+            "waypoint_error_median_m": wp.median,
+            "length_error_ratio_to_constant": np.median(main_m.length_rel_err) / base,
+            "steps": main_m.n_steps,
+            "walked_m": main_m.walked_m,
+        }
+    )
     return 0
 
 
@@ -99,17 +131,23 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
     files = sorted(Path(args.dir).glob("*.mat"))
     if not files:
         raise MissingData(f"no PyShoe .mat trials in {args.dir}")
-    print(f"foot INS (15-state ESKF, ZUPT, default adaptive SHOE detector, one setting for all, strides RTS-smoothed) on {len(files)} PyShoe VICON trials")
-    print("ARMSE: the smoothed track `hybridloc pdr foot` writes; fwd: the forward filter alone (a live client's track, and what the "
-          "authors' figure is); ours@opt: our forward filter on the authors' per-trial-optimal stance labels")
+    print(
+        f"foot INS (15-state ESKF, ZUPT, default adaptive SHOE detector, one setting for all, strides RTS-smoothed) on {len(files)} PyShoe VICON trials"
+    )
+    print(
+        "ARMSE: the smoothed track `hybridloc pdr foot` writes; fwd: the forward filter alone (a live client's track, and what the "
+        "authors' figure is); ours@opt: our forward filter on the authors' per-trial-optimal stance labels"
+    )
     print(f"{'trial':<22} {'ARMSE 2D':>9} {'fwd 2D':>8} {'ARMSE 3D':>9} {'authors':>8} {'ours@opt':>9} {'DEDRIFT-I':>10} {'dist m':>7} {'loop %':>7}")
     rows = []
     for f in files:
         r = evaluate_trial(f)
         rows.append(r)
         loop = f"{r.loop_pct:6.2f}%" if r.loop_pct is not None else "      -"
-        print(f"{r.name:<22} {r.armse_2d:8.3f}m {r.forward_2d:7.3f}m {r.armse_3d:8.3f}m {r.authors_2d:7.3f}m {r.opt_labels_2d:8.3f}m {r.dedrift_2d:9.3f}m "
-              f"{r.distance_m:7.1f} {loop}")
+        print(
+            f"{r.name:<22} {r.armse_2d:8.3f}m {r.forward_2d:7.3f}m {r.armse_3d:8.3f}m {r.authors_2d:7.3f}m {r.opt_labels_2d:8.3f}m {r.dedrift_2d:9.3f}m "
+            f"{r.distance_m:7.1f} {loop}"
+        )
     a2 = np.array([r.armse_2d for r in rows])
     a3 = np.array([r.armse_3d for r in rows])
     au = np.array([r.authors_2d for r in rows])
@@ -119,19 +157,32 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
     print(f"\nmean 2-D ARMSE {a2.mean():.4f} m (median {np.median(a2):.4f}), stride-smoothed; goal <= 0.059 m, the authors' figure on all 56 trials")
     print(f"forward filter alone: mean 2-D ARMSE {fw.mean():.4f} m (median {np.median(fw):.4f}); the authors' figure is a forward filter's")
     print(f"mean 3-D ARMSE {a3.mean():.4f} m (median {np.median(a3):.4f}), stride-smoothed")
-    print(f"authors' per-trial-tuned SHOE on these {len(rows)} trials: mean {au.mean():.4f} m; ratio ours/authors {a2.mean() / au.mean():.2f} smoothed, "
-          f"{fw.mean() / au.mean():.2f} forward")
+    print(
+        f"authors' per-trial-tuned SHOE on these {len(rows)} trials: mean {au.mean():.4f} m; ratio ours/authors {a2.mean() / au.mean():.2f} smoothed, "
+        f"{fw.mean() / au.mean():.2f} forward"
+    )
     op = np.array([r.opt_labels_2d for r in rows])
     if np.isfinite(op).all() and np.isfinite(fw).all():
-        print(f"our forward filter on the authors' per-trial-optimal SHOE stance labels (ours@opt): mean {op.mean():.4f} m; so of the forward gap "
-              f"{fw.mean() - au.mean():+.4f} m to the authors, our one-setting detector accounts for {fw.mean() - op.mean():+.4f} and the filter for "
-              f"{op.mean() - au.mean():+.4f}")
+        print(
+            f"our forward filter on the authors' per-trial-optimal SHOE stance labels (ours@opt): mean {op.mean():.4f} m; so of the forward gap "
+            f"{fw.mean() - au.mean():+.4f} m to the authors, our one-setting detector accounts for {fw.mean() - op.mean():+.4f} and the filter for "
+            f"{op.mean() - au.mean():+.4f}"
+        )
     print(f"plain DEDRIFT-I (Ojeda) in the same run: mean 2-D ARMSE {dd.mean():.3f} m; ratio ours/DEDRIFT-I {a2.mean() / dd.mean():.3f}")
     if loops:
         print(f"closed loops ({len(loops)}): mean return-to-start error {np.mean(loops):.2f}% of distance travelled (Ojeda eq 9)")
-    print_headline({"armse_mean_m": a2.mean(), "armse_median_m": np.median(a2), "armse_forward_mean_m": fw.mean(), "armse_3d_mean_m": a3.mean(),
-                    "authors_armse_mean_m": au.mean(), "dedrift_armse_mean_m": dd.mean(), "loop_error_mean_pct": np.mean(loops) if loops else float("nan"),
-                    "trials": len(rows)})
+    print_headline(
+        {
+            "armse_mean_m": a2.mean(),
+            "armse_median_m": np.median(a2),
+            "armse_forward_mean_m": fw.mean(),
+            "armse_3d_mean_m": a3.mean(),
+            "authors_armse_mean_m": au.mean(),
+            "dedrift_armse_mean_m": dd.mean(),
+            "loop_error_mean_pct": np.mean(loops) if loops else float("nan"),
+            "trials": len(rows),
+        }
+    )
     return 0
 
 
@@ -152,7 +203,9 @@ def _print_uji(results: dict, indent: str) -> None:
 
     for name, label in UJI_METHODS:
         v = results[name]
-        print(f"{indent}{label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}")
+        print(
+            f"{indent}{label:<36} building hit {100 * v['building']:.2f}%  floor hit {100 * v['floor']:.2f}%  2-D error on the right floor: {_fmt(v['errors'])}"
+        )
     print(f"{indent}ratio of mean error ours/plain: {np.nanmean(results['ours']['errors']) / np.nanmean(results['plain']['errors']):.2f}")
 
 
@@ -170,9 +223,17 @@ def print_fingerprint(res) -> None:
             _print_uji(v, "  ")
             print("  (goal: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m)")
         r = res.uji_cv
-        print(f"UJIIndoorLoc {res.uji}: cross-validation grouped by user"
-              + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)"))
-        for subset, title in (("all", "all scans"), ("covered", f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)")):
+        print(
+            f"UJIIndoorLoc {res.uji}: cross-validation grouped by user"
+            + ("" if val is not None else " (no validationData.csv beside it: the standard split is not scored)")
+        )
+        for subset, title in (
+            ("all", "all scans"),
+            (
+                "covered",
+                f"scans inside the map ({100 * r['covered_share']:.0f} %: another user's reference within {UJI_COVERED_M:.0f} m on the floor; nearer the standard split)",
+            ),
+        ):
             print(f"  {title}:")
             _print_uji({name: r[name][subset] for name, _ in UJI_METHODS}, "    ")
         print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
@@ -181,17 +242,21 @@ def print_fingerprint(res) -> None:
         for m in res.ilc_methods:
             s = m.score
             e = np.array(s.errors)
-            print(f"  {m.label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
-                  f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}")
+            print(
+                f"  {m.label:<22} floor hit {100 * np.mean(s.floor_hits):.2f}%  error on the right floor: {_fmt(e)}; "
+                f"95% region holds the truth {100 * np.mean(s.region_hits):.1f}% (mean area {np.mean(s.region_areas):.0f} m^2); no fix {s.no_fix}"
+            )
         ro = res.routes
         s = ro.score
         e = np.array(s.errors)
         rep, rest = ro.repeated_errors, ro.other_errors
-        print(f"  routes held out whole ({ro.n_repeated} of {res.n_ilc_traces} walks follow a route walked more than once, with the same marks; "
-              f"in the folds above {ro.n_seen} of them have a repeat in the map), weighted 5-NN: floor hit {100 * np.mean(s.floor_hits):.2f}%  "
-              f"error on the right floor: {_fmt(e)}; on the repeated routes' walks {np.nanmean(rep) if rep.size else float('nan'):.2f} m, "
-              f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
-              f"(mean area {np.mean(s.region_areas):.0f} m^2)")
+        print(
+            f"  routes held out whole ({ro.n_repeated} of {res.n_ilc_traces} walks follow a route walked more than once, with the same marks; "
+            f"in the folds above {ro.n_seen} of them have a repeat in the map), weighted 5-NN: floor hit {100 * np.mean(s.floor_hits):.2f}%  "
+            f"error on the right floor: {_fmt(e)}; on the repeated routes' walks {np.nanmean(rep) if rep.size else float('nan'):.2f} m, "
+            f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
+            f"(mean area {np.mean(s.region_areas):.0f} m^2)"
+        )
         print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
 
 
@@ -251,21 +316,27 @@ def print_sim_realism(res) -> None:
     print("    sim  " + "  ".join(f"{v:6.3f}" for v in res.sim_similarity))
     if res.have_real:
         print("    real " + "  ".join(f"{v:6.3f}" for v in res.real_similarity))
-        print(f"    rms difference sim - real {_similarity_rms(res):.3f} (the radio model's n, shadowing and noise are set on it; "
-              "the real scans carry survey-label error, the simulated ones their true positions)")
+        print(
+            f"    rms difference sim - real {_similarity_rms(res):.3f} (the radio model's n, shadowing and noise are set on it; "
+            "the real scans carry survey-label error, the simulated ones their true positions)"
+        )
     r, plain = res.pdr, res.plain
 
     def rate(k: int, minutes: float) -> str:
         per_min, lo, hi = poisson_rate(k, minutes)
         return f"{per_min:.2f}/min (95 % interval {lo:.2f}-{hi:.2f}; {minutes:.1f} min)"
 
-    print(f"phone PDR on the simulated walks (consumer IMU, phone in hand): {r['n_detected']} steps detected for {r['n_true']} true "
-          f"(count error {100 * r['count_error']:+.2f}%; goal within 1 %); false steps standing {rate(r['false_standing'], r['standing_min'])}, "
-          f"handling {rate(r['false_handling'], r['handling_min'])}; goal <= 1/min")
+    print(
+        f"phone PDR on the simulated walks (consumer IMU, phone in hand): {r['n_detected']} steps detected for {r['n_true']} true "
+        f"(count error {100 * r['count_error']:+.2f}%; goal within 1 %); false steps standing {rate(r['false_standing'], r['standing_min'])}, "
+        f"handling {rate(r['false_handling'], r['handling_min'])}; goal <= 1/min"
+    )
     h, hp = np.degrees(r["heading_errors"]), np.degrees(plain["heading_errors"])
-    print(f"heading on the simulated walks (relative to the first step, straight walking, {res.minutes:g} min walks with raw consumer gyros "
-          f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
-          f"{np.median(hp):.1f} / {np.percentile(hp, 90):.1f} deg (ratio of medians ours/plain {np.median(h) / np.median(hp):.2f})")
+    print(
+        f"heading on the simulated walks (relative to the first step, straight walking, {res.minutes:g} min walks with raw consumer gyros "
+        f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
+        f"{np.median(hp):.1f} / {np.percentile(hp, 90):.1f} deg (ratio of medians ours/plain {np.median(h) / np.median(hp):.2f})"
+    )
 
 
 def _similarity_rms(res) -> float:
@@ -280,8 +351,12 @@ def sim_realism_headline(res) -> dict:
 
     r = res.pdr
     h = np.degrees(r["heading_errors"])
-    out = {"step_count_error_pct": 100 * r["count_error"], "false_steps_standing_per_min": r["false_per_min_standing"],
-           "false_steps_handling_per_min": r["false_per_min_handling"], "heading_error_median_deg": float(np.median(h))}
+    out = {
+        "step_count_error_pct": 100 * r["count_error"],
+        "false_steps_standing_per_min": r["false_per_min_standing"],
+        "false_steps_handling_per_min": r["false_per_min_handling"],
+        "heading_error_median_deg": float(np.median(h)),
+    }
     if res.have_real:
         out["similarity_rms_diff"] = _similarity_rms(res)
     return out
@@ -310,8 +385,11 @@ def register(sub) -> None:
 
     efp = esub.add_parser("fingerprint", help="fingerprint positioning on UJIIndoorLoc and Indoor Location Competition data")
     efp.add_argument("--uji", default="../shared/data/ujiindoorloc/trainingData.csv.gz", help="UJIIndoorLoc CSV ('' to skip)")
-    efp.add_argument("--uji-validation", metavar="CSV", help="UJIIndoorLoc validation file for the standard split (default: validationData.csv "
-                     "beside --uji when present; '' to skip)")
+    efp.add_argument(
+        "--uji-validation",
+        metavar="CSV",
+        help="UJIIndoorLoc validation file for the standard split (default: validationData.csv beside --uji when present; '' to skip)",
+    )
     efp.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="Indoor Location Competition site folder ('' to skip)")
     efp.add_argument("--folds", type=int, default=4, help="trace folds for the ILC leave-traces-out test")
     efp.add_argument("--every", type=int, default=1, help="use every N-th ILC trace")
@@ -319,7 +397,9 @@ def register(sub) -> None:
 
     esr = esub.add_parser("sim-realism", help="simulated statistics beside real ones; phone PDR step counts on simulated walks")
     esr.add_argument("--ilc", default="../shared/data/msft-ilc/site1", help="real Indoor Location Competition site folder ('' to skip)")
-    esr.add_argument("--walkers", type=int, default=60, help="simulated walkers (default 60: ~11 min of phone handling, for a steady false-step rate)")
+    esr.add_argument(
+        "--walkers", type=int, default=60, help="simulated walkers (default 60: ~11 min of phone handling, for a steady false-step rate)"
+    )
     esr.add_argument("--minutes", type=float, default=5.0)
     esr.add_argument("--every", type=int, default=3, help="use every N-th real trace")
     esr.add_argument("--seed", type=int, default=1, help="simulated building and walkers (1 is the default; others are fresh samples)")

@@ -53,7 +53,19 @@ def _cmd_locate(args: argparse.Namespace) -> int:
                     b, f_ = fl[1:].split("_f")
                     fl, extra = f_, [b]
                 sx, sy = (math.sqrt(v) for v in (res.fix.cov[0, 0], res.fix.cov[1, 1]))
-                w.writerow([f"{s.t:.3f}", f"{res.fix.pos_enu[0]:.3f}", f"{res.fix.pos_enu[1]:.3f}", fl, f"{sx:.3f}", f"{sy:.3f}", f"{res.fix.floor_prob:.4f}", *extra, ""])
+                w.writerow(
+                    [
+                        f"{s.t:.3f}",
+                        f"{res.fix.pos_enu[0]:.3f}",
+                        f"{res.fix.pos_enu[1]:.3f}",
+                        fl,
+                        f"{sx:.3f}",
+                        f"{sy:.3f}",
+                        f"{res.fix.floor_prob:.4f}",
+                        *extra,
+                        "",
+                    ]
+                )
                 if res.region is not None:
                     feats.append(region_feature(res.region))
         write_geojson(out / f"{stem}.geojson", feats)
@@ -69,7 +81,11 @@ def register(sub) -> None:
     lo.add_argument("--out", required=True, metavar="DIR")
     lo.add_argument("--method", choices=("knn", "prob"), default="knn", help="weighted kNN (default) or the probabilistic cell likelihood")
     lo.add_argument("--k", type=int, default=5)
-    lo.add_argument("--metric", choices=("sorensen", "euclidean"), default="sorensen",
-                    help="kNN distance on powed fingerprints: Sorensen / Bray-Curtis (default) or Euclidean")
+    lo.add_argument(
+        "--metric",
+        choices=("sorensen", "euclidean"),
+        default="sorensen",
+        help="kNN distance on powed fingerprints: Sorensen / Bray-Curtis (default) or Euclidean",
+    )
     lo.add_argument("--max-age", type=float, default=8.0, help="ignore readings older than this at scan time, s (default 8)")
     lo.set_defaults(func=_cmd_locate)

@@ -44,8 +44,10 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
         st = pdr.stats
         degraded = sum(1 for s in steps if s.degraded)
         rej = ", ".join(f"{k} x{v}" for k, v in st.rejected_samples.items()) or "none"
-        print(f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {coef_used}), "
-              f"{degraded} with degraded heading, gaps {st.gaps}, saturated samples {st.saturated}, rejected samples: {rej}; input: {report.summary()} -> {d}")
+        print(
+            f"{p}: {len(steps)} steps over {imu.duration:.1f} s ({model.name} {coef_used}), "
+            f"{degraded} with degraded heading, gaps {st.gaps}, saturated samples {st.saturated}, rejected samples: {rej}; input: {report.summary()} -> {d}"
+        )
     return status
 
 
@@ -63,8 +65,10 @@ def _update_calibration(path: str, cal, cal_path: Path, steps, features, marks) 
     n = calibrate_from_marks(cal, np.array([s.t for s in steps]), features, marks.t, marks.pos_enu)
     if n:
         cal.save(cal_path)
-    print(f"{path}: calibration {cal_path}: {n} waypoint segments, {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]} "
-          f"({cal.n_segments} segments in all)")
+    print(
+        f"{path}: calibration {cal_path}: {n} waypoint segments, {cal.model.name} {before} -> {[float(c) for c in cal.model.coef]} "
+        f"({cal.n_segments} segments in all)"
+    )
 
 
 def _cmd_pdr_foot(args: argparse.Namespace) -> int:
@@ -101,9 +105,11 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         st = strides(res)
         write_steps_csv(d / "steps.csv", st)
         s = res.stats
-        print(f"{p}: {len(res.t)} samples at {imu.rate_hz:.1f} Hz, {len(st)} strides, {s['stance_samples']} stance samples, "
-              f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']}, re-initialisations {s['reinit']}; "
-              f"input: {report.summary()} -> {d}")
+        print(
+            f"{p}: {len(res.t)} samples at {imu.rate_hz:.1f} Hz, {len(st)} strides, {s['stance_samples']} stance samples, "
+            f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']}, re-initialisations {s['reinit']}; "
+            f"input: {report.summary()} -> {d}"
+        )
     return status
 
 
@@ -118,22 +124,37 @@ def register(sub) -> None:
     ph.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
     ph.add_argument("--model", choices=LENGTH_MODELS, default="height", help="step length model (default height: Kim's on the bounce height)")
     ph.add_argument("--calibration", help="a per-device calibration JSON (LengthCalibrator.save) to use instead of --model defaults")
-    ph.add_argument("--update-calibration", action="store_true",
-                    help="after each input, update --calibration from its waypoint segments (known distances; robust to a mis-marked one) and save it; "
-                         "created from --model when absent")
+    ph.add_argument(
+        "--update-calibration",
+        action="store_true",
+        help="after each input, update --calibration from its waypoint segments (known distances; robust to a mis-marked one) and save it; "
+        "created from --model when absent",
+    )
     ph.add_argument("--detector", choices=("peak", "autocorr"), default="peak", help="step detector family (default peak)")
     ph.add_argument("--offset", type=float, default=0.0, help="walking direction minus device heading, rad (phone in pocket/bag)")
-    ph.add_argument("--estimate-offset", action="store_true", help="estimate the walking offset from the gait (horizontal acceleration's principal axis, "
-                    "its forward half the one rising with the vertical): for a phone in a pocket or bag; held in front, leave it off")
+    ph.add_argument(
+        "--estimate-offset",
+        action="store_true",
+        help="estimate the walking offset from the gait (horizontal acceleration's principal axis, "
+        "its forward half the one rising with the vertical): for a phone in a pocket or bag; held in front, leave it off",
+    )
     ph.set_defaults(func=_cmd_pdr_phone)
 
     ft = psub.add_parser("foot", help="foot-mounted INS (ZUPT-aided error-state EKF): trajectory.csv and steps.csv per input")
     ft.add_argument("files", nargs="+", metavar="FILE")
     ft.add_argument("--out", required=True, help="output folder; writes <out>/<input-stem>/{trajectory,steps}.csv")
     ft.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="input format (detected by default)")
-    ft.add_argument("--rate", type=float, metavar="HZ", help="sample rate for files without timestamps (OpenShoe); checked against timestamps otherwise")
+    ft.add_argument(
+        "--rate", type=float, metavar="HZ", help="sample rate for files without timestamps (OpenShoe); checked against timestamps otherwise"
+    )
     ft.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
-    ft.add_argument("--detector", choices=("adaptive", "shoe", "ared", "amvd", "mbgtd"), default="adaptive", help="stance detector (default adaptive SHOE)")
+    ft.add_argument(
+        "--detector", choices=("adaptive", "shoe", "ared", "amvd", "mbgtd"), default="adaptive", help="stance detector (default adaptive SHOE)"
+    )
     ft.add_argument("--threshold", type=float, help="the detector's threshold in its units (see hybridloc.ins.stance)")
-    ft.add_argument("--forward", action="store_true", help="write the forward filter's track (what a live client has at each sample) instead of the default track smoothed back over each stride from its stance (RTS)")
+    ft.add_argument(
+        "--forward",
+        action="store_true",
+        help="write the forward filter's track (what a live client has at each sample) instead of the default track smoothed back over each stride from its stance (RTS)",
+    )
     ft.set_defaults(func=_cmd_pdr_foot)

@@ -59,6 +59,9 @@ def register(msub) -> None:
     ms.add_argument("map", metavar="MAP")
     ms.add_argument("--out", required=True, metavar="PNG")
     ms.add_argument("--tx", help="transmitter to draw (default: the most widely seen)")
-    ms.add_argument("--floorplan", metavar="GEOJSON", help="floor plan to draw under the maps: a site folder (Indoor Location Competition layout) "
-                    "or a simulated world's folder, as for map build")
+    ms.add_argument(
+        "--floorplan",
+        metavar="GEOJSON",
+        help="floor plan to draw under the maps: a site folder (Indoor Location Competition layout) or a simulated world's folder, as for map build",
+    )
     ms.set_defaults(func=_cmd_map_show)

@@ -116,8 +116,19 @@ def register(sub) -> None:
     sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
     sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
     sv.add_argument("--tls-key", help="server private key (PEM)")
-    sv.set_defaults(func=_cmd_serve, _settings={"endpoint": "endpoint", "db": "db", "site": "site[]", "method": "method", "users": "security.users",
-                                                "acl_devices": "security.acl_devices", "tls_cert": "security.tls_cert", "tls_key": "security.tls_key"})
+    sv.set_defaults(
+        func=_cmd_serve,
+        _settings={
+            "endpoint": "endpoint",
+            "db": "db",
+            "site": "site[]",
+            "method": "method",
+            "users": "security.users",
+            "acl_devices": "security.acl_devices",
+            "tls_cert": "security.tls_cert",
+            "tls_key": "security.tls_key",
+        },
+    )
 
     dbp = sub.add_parser("db", help="database maintenance")
     dbsub = dbp.add_subparsers(dest="db_command", required=True)
@@ -131,7 +142,9 @@ def register(sub) -> None:
     stp.add_argument("--password")
     stp.add_argument("--tls-ca")
     stp.add_argument("--timeout", type=float, default=5.0)
-    stp.set_defaults(func=_cmd_status, _settings={"endpoint": "endpoint", "user": "security.user", "password": "security.password", "tls_ca": "security.tls_ca"})
+    stp.set_defaults(
+        func=_cmd_status, _settings={"endpoint": "endpoint", "user": "security.user", "password": "security.password", "tls_ca": "security.tls_ca"}
+    )
 
 
 def register_map(msub) -> None:

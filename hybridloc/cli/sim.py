@@ -11,8 +11,10 @@ def _cmd_sim_world(args: argparse.Namespace) -> int:
     from ..sim.run import make_world
 
     w = make_world(args.seed, args.floors, args.out, args.floorplan)
-    print(f"world {args.seed}{' on ' + args.floorplan if args.floorplan else ''}: {w.n_floors} floors of {w.width - w.x_min:.1f} m x {w.depth - w.y_min:.1f} m, {len(w.rooms)} rooms, {len(w.aps)} WiFi APs, "
-          f"{len(w.beacons)} BLE beacons, {len(w.rfid)} RFID readers -> {args.out}")
+    print(
+        f"world {args.seed}{' on ' + args.floorplan if args.floorplan else ''}: {w.n_floors} floors of {w.width - w.x_min:.1f} m x {w.depth - w.y_min:.1f} m, {len(w.rooms)} rooms, {len(w.aps)} WiFi APs, "
+        f"{len(w.beacons)} BLE beacons, {len(w.rfid)} RFID readers -> {args.out}"
+    )
     return 0
 
 
@@ -33,8 +35,12 @@ def register(sub) -> None:
     sw = ssub.add_parser("world", help="generate a multi-floor building with WiFi, BLE and RFID infrastructure")
     sw.add_argument("--seed", type=int, required=True)
     sw.add_argument("--floors", type=int, default=3, help="floors of a generated building (default 3)")
-    sw.add_argument("--floorplan", metavar="DIR", help="build the world on a real floor plan instead: a site folder in the Indoor Location "
-                    "Competition layout (<floor>/geojson_map.json); walkers route through its corridors")
+    sw.add_argument(
+        "--floorplan",
+        metavar="DIR",
+        help="build the world on a real floor plan instead: a site folder in the Indoor Location "
+        "Competition layout (<floor>/geojson_map.json); walkers route through its corridors",
+    )
     sw.add_argument("--out", required=True)
     sw.set_defaults(func=_cmd_sim_world)
     sk = ssub.add_parser("walk", help="simulate walkers in a world: traces in the ILC format, foot IMU CSV, truth")

@@ -13,6 +13,25 @@ from .models import Cauchy, Huber, LinearModel, Measurement, MeasurementModel, R
 from .resampling import RESAMPLERS, log_normalise, multinomial, resampler, residual, stratified, systematic
 from .update import ChiSquareGate, UpdateInfo, UpdateStats, chi2_threshold, correct
 
-__all__ = ["assert_jacobian", "jacobian_fd", "Cauchy", "Huber", "LinearModel", "Measurement", "MeasurementModel", "RobustKernel",
-           "RESAMPLERS", "log_normalise", "multinomial", "resampler", "residual", "stratified", "systematic",
-           "ChiSquareGate", "UpdateInfo", "UpdateStats", "chi2_threshold", "correct"]
+__all__ = [
+    "assert_jacobian",
+    "jacobian_fd",
+    "Cauchy",
+    "Huber",
+    "LinearModel",
+    "Measurement",
+    "MeasurementModel",
+    "RobustKernel",
+    "RESAMPLERS",
+    "log_normalise",
+    "multinomial",
+    "resampler",
+    "residual",
+    "stratified",
+    "systematic",
+    "ChiSquareGate",
+    "UpdateInfo",
+    "UpdateStats",
+    "chi2_threshold",
+    "correct",
+]

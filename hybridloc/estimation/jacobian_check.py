@@ -53,5 +53,10 @@ def jacobian_error(model, x, eps: float = 1e-6) -> float:
 def assert_jacobian(model, x, atol: float = 1e-6, rtol: float = 1e-4, eps: float = 1e-6) -> None:
     """Raise AssertionError when the analytic Jacobian departs from finite differences (navlie's
     tolerances: ``atol=1e-6, rtol=1e-4``, well above the ~1e-10 error of the differences)."""
-    np.testing.assert_allclose(model.jacobian(x), jacobian_fd(model, x, eps), atol=atol, rtol=rtol,
-                               err_msg=f"{type(model).__name__}: analytic Jacobian differs from finite differences")
+    np.testing.assert_allclose(
+        model.jacobian(x),
+        jacobian_fd(model, x, eps),
+        atol=atol,
+        rtol=rtol,
+        err_msg=f"{type(model).__name__}: analytic Jacobian differs from finite differences",
+    )

@@ -8,7 +8,7 @@ of many small likelihoods never underflows to an all-zero cloud.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.special import logsumexp

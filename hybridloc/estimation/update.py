@@ -122,8 +122,9 @@ def _as_gate(gate: ChiSquareGate | float | None) -> ChiSquareGate | None:
     return ChiSquareGate(float(gate))
 
 
-def correct(x, P: np.ndarray, z, model: MeasurementModel, gate: ChiSquareGate | float | None = None,
-            stats: UpdateStats | None = None) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
+def correct(
+    x, P: np.ndarray, z, model: MeasurementModel, gate: ChiSquareGate | float | None = None, stats: UpdateStats | None = None
+) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
     """One gated Kalman update (module docstring); returns (dx, P+, info).
 
     ``gate``: a :class:`ChiSquareGate`, a probability (shorthand for ``ChiSquareGate(p)``), or None

@@ -20,4 +20,15 @@ from .particle import ParticleConfig, ParticleFusion
 from .runner import run_fusion
 from .walkprior import WalkPrior
 
-__all__ = ["GpsDifferencer", "Estimate", "FusionConfig", "KourogiConfig", "KourogiFusion", "LocalFusion", "ParticleConfig", "ParticleFusion", "WalkPrior", "run_fusion"]
+__all__ = [
+    "GpsDifferencer",
+    "Estimate",
+    "FusionConfig",
+    "KourogiConfig",
+    "KourogiFusion",
+    "LocalFusion",
+    "ParticleConfig",
+    "ParticleFusion",
+    "WalkPrior",
+    "run_fusion",
+]

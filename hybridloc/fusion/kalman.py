@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..estimation import ChiSquareGate, Measurement, UpdateInfo, UpdateStats, correct as gated_update
+from ..estimation import ChiSquareGate, Measurement, UpdateInfo, UpdateStats
+from ..estimation import correct as gated_update
 from ..pdr.deadreckoning import DeadReckoning
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
@@ -79,8 +80,14 @@ class Estimate:
 
 
 class LocalFusion:
-    def __init__(self, config: FusionConfig | None = None, init: tuple[float, float, float] | None = None, floor: str | None = None,
-                 heading_bias: tuple[float, float] | None = None, corridor_axes: dict[str, float] | None = None):
+    def __init__(
+        self,
+        config: FusionConfig | None = None,
+        init: tuple[float, float, float] | None = None,
+        floor: str | None = None,
+        heading_bias: tuple[float, float] | None = None,
+        corridor_axes: dict[str, float] | None = None,
+    ):
         """``init`` = (x, y, sigma) of a known start; ``heading_bias`` = (mean, sigma) rad of the PDR's
         heading bias when known (e.g. aligned on a known first leg), else 0 +- ``sigma_bias0``;
         ``corridor_axes``: floor name -> its dominant grid direction, rad mod pi/2

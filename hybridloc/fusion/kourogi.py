@@ -36,7 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..estimation import Measurement, correct as gated_update
+from ..estimation import Measurement
+from ..estimation import correct as gated_update
 from ..types import DisplacementFix, StepEvent
 from .kalman import Estimate, FusionConfig, LocalFusion
 from .measurements import CloneStep, Velocity
@@ -58,8 +59,13 @@ class KourogiConfig(FusionConfig):
 class KourogiFusion(LocalFusion):
     """State (x, y, v_x, v_y); ``predict(step)`` / ``correct(fix)`` like the other filters."""
 
-    def __init__(self, config: KourogiConfig | None = None, init: tuple[float, float, float] | None = None, floor: str | None = None,
-                 heading_bias: tuple[float, float] | None = None):
+    def __init__(
+        self,
+        config: KourogiConfig | None = None,
+        init: tuple[float, float, float] | None = None,
+        floor: str | None = None,
+        heading_bias: tuple[float, float] | None = None,
+    ):
         cfg = config or KourogiConfig()
         super().__init__(cfg, init, floor)
         self.cfg: KourogiConfig = cfg

@@ -40,7 +40,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..estimation import UpdateStats, chi2_threshold, log_normalise, resampler as make_resampler
+from ..estimation import UpdateStats, chi2_threshold, log_normalise
+from ..estimation import resampler as make_resampler
 from ..estimation.resampling import Resampler
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
@@ -120,10 +121,18 @@ class ParticleConfig:
 class ParticleFusion:
     """Particle filter with the :class:`~.kalman.LocalFusion` interface (``predict``, ``correct``, ``estimate``)."""
 
-    def __init__(self, prior: WalkPrior | None = None, config: ParticleConfig | None = None, init: tuple[float, float, float] | None = None,
-                 floor: str | None = None, rng: np.random.Generator | None = None, heading_bias: tuple[float, float] | None = None,
-                 corridor_axes: dict[str, float] | None = None, constraint: MapConstraint | None = None,
-                 resampler: str | Resampler = "systematic"):
+    def __init__(
+        self,
+        prior: WalkPrior | None = None,
+        config: ParticleConfig | None = None,
+        init: tuple[float, float, float] | None = None,
+        floor: str | None = None,
+        rng: np.random.Generator | None = None,
+        heading_bias: tuple[float, float] | None = None,
+        corridor_axes: dict[str, float] | None = None,
+        constraint: MapConstraint | None = None,
+        resampler: str | Resampler = "systematic",
+    ):
         """``init`` = (x, y, sigma) of a known start; ``heading_bias`` = (mean, sigma) rad of the PDR's
         heading bias when known, else 0 +- ``config.sigma_bias0``; ``corridor_axes`` as for
         :class:`~.kalman.LocalFusion` (heuristic drift elimination); ``constraint`` the map's hook
@@ -319,7 +328,9 @@ class ParticleFusion:
         p_then = self._positions_at(fix.t)
         m, nis = self._nis(z, p_then, R)
         # outside the cloud's 50 % region and behind a wall from its mean: sensor resetting (reset_share)
-        beyond_wall = self.cfg.reset_share > 0.0 and nis > self._half and bool(self.constraint.log_transition(self.floor, m[None, :], z[None, :])[0] == -np.inf)
+        beyond_wall = (
+            self.cfg.reset_share > 0.0 and nis > self._half and bool(self.constraint.log_transition(self.floor, m[None, :], z[None, :])[0] == -np.inf)
+        )
         if nis > self._gate:
             self.n_rejected += 1
             self.stats.rejected["position"] += 1
@@ -385,7 +396,9 @@ class ParticleFusion:
         k2 = self.cfg.outlier_scale**2
         eps = self.cfg.outlier_prob
         with np.errstate(divide="ignore"):
-            return np.logaddexp(math.log(1.0 - eps) - 0.5 * e if eps < 1.0 else -np.inf, (math.log(eps / k2) if eps > 0.0 else -np.inf) - 0.5 * e / k2)
+            return np.logaddexp(
+                math.log(1.0 - eps) - 0.5 * e if eps < 1.0 else -np.inf, (math.log(eps / k2) if eps > 0.0 else -np.inf) - 0.5 * e / k2
+            )
 
     def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
         """Kourogi eq 17 (GPS differential mode): each particle's own displacement between t0 and t1,

@@ -11,7 +11,8 @@ time plus ``latency`` seconds.
 
 from __future__ import annotations
 
-from typing import Protocol, Sequence
+from collections.abc import Sequence
+from typing import Protocol
 
 from ..types import AbsoluteFix, StepEvent
 from .kalman import Estimate
@@ -25,8 +26,9 @@ class StepFilter(Protocol):
     def correct(self, fix: AbsoluteFix) -> tuple[bool, Estimate]: ...
 
 
-def run_fusion(filt: StepFilter, steps: Sequence[StepEvent], fixes: Sequence[AbsoluteFix], arrivals: Sequence[int] | None = None,
-               latency: float = 0.0) -> list[Estimate]:
+def run_fusion(
+    filt: StepFilter, steps: Sequence[StepEvent], fixes: Sequence[AbsoluteFix], arrivals: Sequence[int] | None = None, latency: float = 0.0
+) -> list[Estimate]:
     """Estimates as a live agent writes them: one per step once initialised, one per accepted fix."""
     if arrivals is not None and len(arrivals) != len(fixes):
         raise ValueError("one arrival step count per fix is needed")

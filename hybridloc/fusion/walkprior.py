@@ -67,9 +67,18 @@ class WalkPrior:
         self.floors = floors
 
     @classmethod
-    def from_points(cls, points_by_floor: dict[str, np.ndarray], plan: FloorPlan | None = None, cell: float = 0.5,
-                    bandwidth: float = 1.5, eps: float = 1.0, saturation: float = 0.5, margin: float = 10.0,
-                    door_piece: float = 1.0, door_share: float = 0.1) -> "WalkPrior":
+    def from_points(
+        cls,
+        points_by_floor: dict[str, np.ndarray],
+        plan: FloorPlan | None = None,
+        cell: float = 0.5,
+        bandwidth: float = 1.5,
+        eps: float = 1.0,
+        saturation: float = 0.5,
+        margin: float = 10.0,
+        door_piece: float = 1.0,
+        door_share: float = 0.1,
+    ) -> WalkPrior:
         """Build from walked positions (per floor name, (N, 2) m) and an optional floor plan
         (``door_piece``, ``door_share``: the entrances learned from outdoor walks, module docstring)."""
         if not 0.0 <= eps <= 1.0:
@@ -102,10 +111,13 @@ class WalkPrior:
             nx, ny = int(np.ceil((bx1 - bx0) / cell)) + 1, int(np.ceil((by1 - by0) / cell)) + 1
             if nx * ny > 50_000_000:
                 raise ValueError(f"floor {name}: a {nx} x {ny} raster at {cell} m is too large; use a coarser cell")
-            def binned(p: np.ndarray) -> np.ndarray:  # points per raster cell (those beyond it in the edge cells)
+
+            def binned(p: np.ndarray, nx=nx, ny=ny, bx0=bx0, by0=by0) -> np.ndarray:  # points per raster cell (beyond it: edge cells)
                 c = np.zeros((ny, nx))
                 if len(p):
-                    np.add.at(c, (np.clip(((p[:, 1] - by0) / cell).astype(int), 0, ny - 1), np.clip(((p[:, 0] - bx0) / cell).astype(int), 0, nx - 1)), 1.0)
+                    np.add.at(
+                        c, (np.clip(((p[:, 1] - by0) / cell).astype(int), 0, ny - 1), np.clip(((p[:, 0] - bx0) / cell).astype(int), 0, nx - 1)), 1.0
+                    )
                 return c
 
             counts = binned(pts)
@@ -133,7 +145,7 @@ class WalkPrior:
         return cls(floors)
 
     @classmethod
-    def from_radio_map(cls, rmap, plan: FloorPlan | None = None, **kw) -> "WalkPrior":
+    def from_radio_map(cls, rmap, plan: FloorPlan | None = None, **kw) -> WalkPrior:
         """The positions of a radio map's labelled reference scans are where people walked."""
         by_floor: dict[str, list] = {}
         for r in rmap.references:
@@ -152,7 +164,9 @@ class WalkPrior:
         return wall_crossings(fp.walls, p, q) > 0
 
 
-def _open_doors(walls: np.ndarray, footprint, walked_outdoors: np.ndarray, x0: float, y0: float, cell: float, piece: float, share: float) -> np.ndarray:
+def _open_doors(
+    walls: np.ndarray, footprint, walked_outdoors: np.ndarray, x0: float, y0: float, cell: float, piece: float, share: float
+) -> np.ndarray:
     """The wall segments with the outer wall cut into ``piece``-m pieces, those where people walked
     outdoors (``walked_outdoors`` >= ``share`` at the piece's middle) left out: entrances."""
     outer = footprint.boundary

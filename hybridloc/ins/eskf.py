@@ -139,8 +139,15 @@ class ErrorStateEkf:
         # Timestamps jitter, so this runs at almost every sample: no allocation here.
         if self._qd_rate is None:
             n = self.noise
-            self._qd_rate = np.concatenate([np.zeros(3), np.full(3, n.accel_density**2), np.full(3, n.gyro_density**2),
-                                            np.full(3, n.accel_bias_rw**2), np.full(3, n.gyro_bias_rw**2)])
+            self._qd_rate = np.concatenate(
+                [
+                    np.zeros(3),
+                    np.full(3, n.accel_density**2),
+                    np.full(3, n.gyro_density**2),
+                    np.full(3, n.accel_bias_rw**2),
+                    np.full(3, n.gyro_bias_rw**2),
+                ]
+            )
         self._dt = dt
         self._Phi[0, 3] = self._Phi[1, 4] = self._Phi[2, 5] = dt
         np.multiply(self._qd_rate, dt, out=self._qd)

@@ -66,5 +66,16 @@ def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> Tri
         cfg_opt = replace(config or FootInsConfig(), vet=False, smooth=False)
         e_opt, g_opt = pyshoe_align(run_foot_ins(rec.imu, cfg_opt, stance=labels).pos_enu, rec.truth.pos_enu)
         opt = pyshoe_armse(e_opt, g_opt, 2)
-    return TrialResult(Path(path).stem, pyshoe_armse(est, gt, 2), pyshoe_armse(est, gt, 3), float(te[0]) if te is not None else float("nan"),
-                       pyshoe_armse(dd_a, gt_a, 2), dist, loop, rec.imu.duration, float(res.stance.mean()), opt, fwd)
+    return TrialResult(
+        Path(path).stem,
+        pyshoe_armse(est, gt, 2),
+        pyshoe_armse(est, gt, 3),
+        float(te[0]) if te is not None else float("nan"),
+        pyshoe_armse(dd_a, gt_a, 2),
+        dist,
+        loop,
+        rec.imu.duration,
+        float(res.stance.mean()),
+        opt,
+        fwd,
+    )

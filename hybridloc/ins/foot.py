@@ -49,7 +49,6 @@ from .measurements import ZeroAngularRate, ZeroVelocity
 from .smoother import IntervalRts
 from .strapdown import NominalState, level_from_accel, quat_to_dcm
 
-
 #: Full scale unknown: identical readings on 3 samples beyond these are a clipped plateau (a foot
 #: reaches 10 g at heel strike and 10 rad/s in the swing; a live signal does not repeat exactly there).
 PLATEAU_ACCEL = 5.0 * G0
@@ -153,7 +152,14 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     gate = gentle | weak | cfg.gate_zupt
     reinit_after = max(1, int(round(cfg.reinit_after_s * rate)))
     nz = cfg.noise
-    P0 = np.diag([1e-8] * 3 + [1e-6] * 3 + [(0.5 * math.pi / 180) ** 2] * 2 + [(0.1 * math.pi / 180) ** 2] + [nz.accel_bias_sigma0**2] * 3 + [nz.gyro_bias_sigma0**2] * 3)
+    P0 = np.diag(
+        [1e-8] * 3
+        + [1e-6] * 3
+        + [(0.5 * math.pi / 180) ** 2] * 2
+        + [(0.1 * math.pi / 180) ** 2]
+        + [nz.accel_bias_sigma0**2] * 3
+        + [nz.gyro_bias_sigma0**2] * 3
+    )
     P0[8, 8] = 1e-10  # heading is defined as heading0: no uncertainty at the start
     kf = ErrorStateEkf(x0, P0, nz, g)
     zupt = ZeroVelocity(cfg.zupt_sigma)
@@ -164,8 +170,16 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
     Ppos = np.zeros((n, 3, 3))
     quat[0] = x0.q
     Ppos[0] = kf.P[:3, :3]
-    stats = {"nan_samples": int((~finite).sum()), "saturated_samples": int((sat_a | sat_g).sum()), "gaps": 0, "zupt_rejected": 0, "reinit": 0, "stance_samples": int(stance.sum()),
-             "vetted_samples": int((gate & stance).sum()), "weak_samples": int(weak.sum())}
+    stats = {
+        "nan_samples": int((~finite).sum()),
+        "saturated_samples": int((sat_a | sat_g).sum()),
+        "gaps": 0,
+        "zupt_rejected": 0,
+        "reinit": 0,
+        "stance_samples": int(stance.sum()),
+        "vetted_samples": int((gate & stance).sum()),
+        "weak_samples": int(weak.sum()),
+    }
     rejected_run = 0
     reinit_pending = False
     last_i = 0
@@ -306,11 +320,18 @@ def strides(res: FootInsResult) -> list[StepEvent]:
         var_c = max(float(v @ dC @ v), 1e-6)
         sig_h = math.atan2(math.sqrt(var_c), L)
         dz_var = max(float(res.P_pos[b][2, 2] - res.P_pos[a][2, 2]), 1e-6)
-        out.append(StepEvent(
-            t=float(res.t[b]), length=L, heading=psi, sigma_length=math.sqrt(var_l), sigma_heading=sig_h,
-            heading_change=None if prev_heading is None else wrap_angle(psi - prev_heading),
-            sigma_heading_change=None if prev_heading is None else math.sqrt(2) * sig_h,
-            height_change=float(d[2]), sigma_height_change=math.sqrt(dz_var),
-        ))
+        out.append(
+            StepEvent(
+                t=float(res.t[b]),
+                length=L,
+                heading=psi,
+                sigma_length=math.sqrt(var_l),
+                sigma_heading=sig_h,
+                heading_change=None if prev_heading is None else wrap_angle(psi - prev_heading),
+                sigma_heading_change=None if prev_heading is None else math.sqrt(2) * sig_h,
+                height_change=float(d[2]),
+                sigma_height_change=math.sqrt(dz_var),
+            )
+        )
         prev_heading = psi
     return out

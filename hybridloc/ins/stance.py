@@ -21,7 +21,7 @@ mask (True = foot on the ground). Thresholds are in stated units. Windows are ce
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import median_filter, maximum_filter1d, minimum_filter1d, uniform_filter1d
+from scipy.ndimage import maximum_filter1d, median_filter, minimum_filter1d, uniform_filter1d
 
 from ..units import DEG, G0
 
@@ -65,9 +65,21 @@ def gyro_minimum(gyr: np.ndarray, omega: float = 60 * DEG, n: int = 100):
     return w, mask
 
 
-def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, sigma_a: float = 0.00098, sigma_w: float = 8.7266463e-5, g: float = G0,
-                  window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9,
-                  context: float = 4.0, context_decades: float | None = 1.0):
+def adaptive_shoe(
+    acc: np.ndarray,
+    gyr: np.ndarray,
+    rate_hz: float,
+    W: int = 5,
+    sigma_a: float = 0.00098,
+    sigma_w: float = 8.7266463e-5,
+    g: float = G0,
+    window: float = 1.2,
+    decades: float = 0.5,
+    gamma_still: float = 1e6,
+    gamma_max: float = 1e9,
+    context: float = 4.0,
+    context_decades: float | None = 1.0,
+):
     """SHOE with a threshold that follows the gait: stance where log10 T is within ``decades`` of its
     minimum over the surrounding ``window`` seconds (and T < ``gamma_max``), or where T < ``gamma_still``.
 
@@ -91,8 +103,16 @@ def adaptive_shoe(acc: np.ndarray, gyr: np.ndarray, rate_hz: float, W: int = 5, 
     return T, adaptive_mask(T, rate_hz, window, decades, gamma_still, gamma_max, context, context_decades)
 
 
-def adaptive_mask(T: np.ndarray, rate_hz: float, window: float = 1.2, decades: float = 0.5, gamma_still: float = 1e6, gamma_max: float = 1e9,
-                  context: float = 4.0, context_decades: float | None = 1.0) -> np.ndarray:
+def adaptive_mask(
+    T: np.ndarray,
+    rate_hz: float,
+    window: float = 1.2,
+    decades: float = 0.5,
+    gamma_still: float = 1e6,
+    gamma_max: float = 1e9,
+    context: float = 4.0,
+    context_decades: float | None = 1.0,
+) -> np.ndarray:
     """The stance mask of :func:`adaptive_shoe` from a SHOE statistic ``T`` already computed."""
     logT = np.log10(np.maximum(T, 1e-30))
     n = max(3, int(round(window * rate_hz)) | 1)
@@ -115,8 +135,9 @@ def adaptive_mask(T: np.ndarray, rate_hz: float, window: float = 1.2, decades: f
 WEAK_WINDOW_S = 0.6
 
 
-def weak_stance(T: np.ndarray, rate_hz: float, strong: np.ndarray, window: float = WEAK_WINDOW_S, decades: float = 0.5,
-                gamma_max: float = 1e9) -> np.ndarray:
+def weak_stance(
+    T: np.ndarray, rate_hz: float, strong: np.ndarray, window: float = WEAK_WINDOW_S, decades: float = 0.5, gamma_max: float = 1e9
+) -> np.ndarray:
     """Stance-like dips the adaptive test leaves out: within ``decades`` of the local minimum over a
     shorter ``window``, with no context test, and not already in ``strong``.
 

@@ -37,12 +37,14 @@ def skew(v) -> np.ndarray:
 def quat_mult(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     aw, ax, ay, az = a
     bw, bx, by, bz = b
-    return np.array([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
 
 
 def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
@@ -57,11 +59,13 @@ def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
 def quat_to_dcm(q: np.ndarray) -> np.ndarray:
     """R_body_to_nav of a unit quaternion (w, x, y, z)."""
     w, x, y, z = float(q[0]), float(q[1]), float(q[2]), float(q[3])
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def dcm_to_quat(R: np.ndarray) -> np.ndarray:
@@ -110,14 +114,14 @@ class NominalState:
     b_a: np.ndarray
     b_g: np.ndarray
 
-    def copy(self) -> "NominalState":
+    def copy(self) -> NominalState:
         return NominalState(self.p.copy(), self.v.copy(), self.q.copy(), self.b_a.copy(), self.b_g.copy())
 
     @property
     def R(self) -> np.ndarray:
         return quat_to_dcm(self.q)
 
-    def plus(self, dx: np.ndarray) -> "NominalState":
+    def plus(self, dx: np.ndarray) -> NominalState:
         """Inject an error state dx = (dp, dv, dtheta, db_a, db_g) (closed loop).
 
         The attitude error is a rotation in the nav frame: R_true = exp([dtheta]x) R.
@@ -130,7 +134,7 @@ class NominalState:
             self.b_g + dx[12:15],
         )
 
-    def minus(self, other: "NominalState") -> np.ndarray:
+    def minus(self, other: NominalState) -> np.ndarray:
         """The error state taking ``other`` to ``self`` (inverse of :meth:`plus`)."""
         dq = quat_mult(self.q, _conj(other.q))
         if dq[0] < 0:

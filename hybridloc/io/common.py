@@ -17,9 +17,10 @@ import gzip
 import os
 import zlib
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Literal
 
 from ..errors import DataFormatError  # noqa: F401  (defined with the other errors; imported from here too)
 
@@ -128,7 +129,6 @@ def stem_of(path: str | os.PathLike) -> str:
         if name.lower().endswith(ext):
             name = name[: -len(ext)]
     return name
-
 
 
 def sort_unique(t, cols: list, report: ReadReport, name: str):

@@ -47,9 +47,9 @@ import json
 import math
 import os
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import shapely
@@ -338,7 +338,15 @@ def _ble_scans(adverts: list[tuple[float, str, float]], model: str) -> list[RfSc
 
     def flush():
         if group:
-            out.append(RfScan(t_last, Technology.BLE, {k: v[1] for k, v in group.items()}, age_s={k: t_last - v[0] for k, v in group.items()}, device_model=model))
+            out.append(
+                RfScan(
+                    t_last,
+                    Technology.BLE,
+                    {k: v[1] for k, v in group.items()},
+                    age_s={k: t_last - v[0] for k, v in group.items()},
+                    device_model=model,
+                )
+            )
 
     for t, key, rssi in sorted(adverts, key=lambda a: a[0]):
         if t - t_first > BLE_SCAN_WINDOW_S:
@@ -465,6 +473,7 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         g = _map_geometry(shape(f["geometry"]), tf)
         if isinstance(g, Polygon):
             rooms.append((str((f.get("properties") or {}).get("name") or ""), g))
+
     def segments(line) -> list:  # a polyline's consecutive point pairs
         c = np.asarray(line.coords)
         return list(np.stack([c[:-1], c[1:]], axis=1)) if len(c) >= 2 else []
@@ -502,4 +511,6 @@ def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
     root = Path(root)
     if root.is_file():
         return [root]
-    return sorted(p for p in root.rglob("*") if p.is_file() and p.parent.name == "path_data_files" and (p.name.endswith(".txt") or p.name.endswith(".txt.gz")))
+    return sorted(
+        p for p in root.rglob("*") if p.is_file() and p.parent.name == "path_data_files" and (p.name.endswith(".txt") or p.name.endswith(".txt.gz"))
+    )

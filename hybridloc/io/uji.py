@@ -13,8 +13,8 @@ and reported, or raised.
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -23,6 +23,7 @@ from .common import DataFormatError, OnError, ReadReport, iter_lines
 
 NOT_DETECTED = 100.0
 META_COLUMNS = ("LONGITUDE", "LATITUDE", "FLOOR", "BUILDINGID", "SPACEID", "RELATIVEPOSITION", "USERID", "PHONEID", "TIMESTAMP")
+
 
 @dataclass(frozen=True, eq=False)
 class UjiData:
@@ -65,7 +66,13 @@ class UjiData:
         """Row i as an :class:`RfScan` (undetected access points left out)."""
         row = self.rssi_dbm[i]
         ok = np.isfinite(row)
-        return RfScan(float(self.t[i]), Technology.WIFI, {self.waps[j]: float(row[j]) for j in np.flatnonzero(ok)}, device_model=f"uji-phone-{int(self.phone[i])}")
+        return RfScan(
+            float(self.t[i]),
+            Technology.WIFI,
+            {self.waps[j]: float(row[j]) for j in np.flatnonzero(ok)},
+            device_model=f"uji-phone-{int(self.phone[i])}",
+        )
+
 
 def iter_uji_rows(path: str | os.PathLike, report: ReadReport) -> Iterator[tuple[int, list[str], np.ndarray, np.ndarray]]:
     """Stream ``(line, wap_names, rssi_row, meta_row)``; rssi has NaN for "not detected"."""
@@ -95,10 +102,13 @@ def iter_uji_rows(path: str | os.PathLike, report: ReadReport) -> Iterator[tuple
         rssi = vals[:n_wap]
         bad = (rssi != NOT_DETECTED) & ~rssi_in_range(rssi)
         if bad.any():
-            report.problem(lineno, "rssi-out-of-range", f"{int(bad.sum())} values outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}] dBm and not {NOT_DETECTED:g}")
+            report.problem(
+                lineno, "rssi-out-of-range", f"{int(bad.sum())} values outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}] dBm and not {NOT_DETECTED:g}"
+            )
             continue
         rssi = np.where(rssi == NOT_DETECTED, np.nan, rssi)
         yield lineno, header[:n_wap], rssi, vals[n_wap:]
+
 
 def read_uji(path: str | os.PathLike, on_error: OnError = "skip") -> UjiData:
     path = str(path)
@@ -116,10 +126,21 @@ def read_uji(path: str | os.PathLike, on_error: OnError = "skip") -> UjiData:
     M = np.vstack(meta)
     i = lambda k: M[:, META_COLUMNS.index(k)].astype(int)  # noqa: E731
     return UjiData(
-        path, tuple(waps), R, M[:, 0:2].copy(), i("FLOOR"), i("BUILDINGID"), i("SPACEID"), i("RELATIVEPOSITION"), i("USERID"), i("PHONEID"),
-        M[:, META_COLUMNS.index("TIMESTAMP")].astype(float), np.asarray(lines), report,
+        path,
+        tuple(waps),
+        R,
+        M[:, 0:2].copy(),
+        i("FLOOR"),
+        i("BUILDINGID"),
+        i("SPACEID"),
+        i("RELATIVEPOSITION"),
+        i("USERID"),
+        i("PHONEID"),
+        M[:, META_COLUMNS.index("TIMESTAMP")].astype(float),
+        np.asarray(lines),
+        report,
     )
+
 
 def is_uji_header(first_line: str) -> bool:
     return first_line.upper().startswith("WAP001") or first_line.upper().startswith('"WAP001')
-

@@ -17,7 +17,7 @@ import csv
 import json
 import math
 import os
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import shapely
@@ -105,7 +105,10 @@ def floorplan_features(plan: FloorPlan, origin: GeodeticOrigin | None = None) ->
 
 def point_features(t: Sequence[float], pos: np.ndarray, origin: GeodeticOrigin | None = None, **properties) -> list[dict]:
     ll = _to_lonlat(np.asarray(pos), origin)
-    return [{"type": "Feature", "geometry": {"type": "Point", "coordinates": ll[i].round(8).tolist()}, "properties": {"t": float(t[i]), **properties}} for i in range(len(ll))]
+    return [
+        {"type": "Feature", "geometry": {"type": "Point", "coordinates": ll[i].round(8).tolist()}, "properties": {"t": float(t[i]), **properties}}
+        for i in range(len(ll))
+    ]
 
 
 def write_geojson(path: str | os.PathLike, features: Iterable[dict], origin: GeodeticOrigin | None = None) -> None:
@@ -139,7 +142,9 @@ def _dm(value_deg: float, deg_digits: int) -> tuple[str, float]:
     return f"{d:0{deg_digits}d}{m:08.5f}", m
 
 
-def gga_sentence(t_unix: float, lat_deg: float, lon_deg: float, height_m: float, quality: int = 6, n_sats: int = 0, hdop: float = 1.0, talker: str = "GN") -> str:
+def gga_sentence(
+    t_unix: float, lat_deg: float, lon_deg: float, height_m: float, quality: int = 6, n_sats: int = 0, hdop: float = 1.0, talker: str = "GN"
+) -> str:
     """One GGA sentence. ``quality`` 6 = "estimated (dead reckoning)", the honest code for PDR."""
     hh = (t_unix % 86400.0) / 3600.0
     h = int(hh)

@@ -320,9 +320,11 @@ class AttitudeFilter:
             self._acc_avg[i] += a * (acc[i] - self._acc_avg[i])
             self._gyr_avg[i] += a * (gyr[i] - self._gyr_avg[i])
         b = self.bias
-        still = (_norm([acc[i] - self._acc_avg[i] for i in range(3)]) <= cfg.still_acc_tol
-                 and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev
-                 and _norm([gyr[i] - b[i] for i in range(3)]) <= (cfg.still_gyro_max if mag is not None else cfg.still_gyro_max_nomag))
+        still = (
+            _norm([acc[i] - self._acc_avg[i] for i in range(3)]) <= cfg.still_acc_tol
+            and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev
+            and _norm([gyr[i] - b[i] for i in range(3)]) <= (cfg.still_gyro_max if mag is not None else cfg.still_gyro_max_nomag)
+        )
         if mag is not None:  # the field's 0.5 s average: a turn of a few tenths of a degree shows through the noise
             if self._mag_avg is None:
                 self._mag_avg = list(mag)

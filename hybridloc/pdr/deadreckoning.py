@@ -84,8 +84,9 @@ class DeadReckoning:
 
     # ------------------------------------------------------------------ building
     @classmethod
-    def from_steps(cls, steps: Iterable[StepEvent], pos0: Sequence[float] = (0.0, 0.0), t0: float | None = None, cov0=None,
-                   covariance: bool = True) -> DeadReckoning:
+    def from_steps(
+        cls, steps: Iterable[StepEvent], pos0: Sequence[float] = (0.0, 0.0), t0: float | None = None, cov0=None, covariance: bool = True
+    ) -> DeadReckoning:
         """The track of a whole walk, from ``pos0`` at ``t0`` (default :data:`START_BEFORE_FIRST_STEP` s
         before the first step; with no steps and no ``t0``, a track with no rows, which holds ``pos0``)."""
         steps = list(steps)
@@ -96,8 +97,9 @@ class DeadReckoning:
         return dr
 
     @classmethod
-    def from_lengths_headings(cls, t: Sequence[float], lengths: Sequence[float], headings: Sequence[float], pos0: Sequence[float] = (0.0, 0.0),
-                              t0: float | None = None) -> DeadReckoning:
+    def from_lengths_headings(
+        cls, t: Sequence[float], lengths: Sequence[float], headings: Sequence[float], pos0: Sequence[float] = (0.0, 0.0), t0: float | None = None
+    ) -> DeadReckoning:
         """The track of steps given as arrays (s, m, rad): the same steps with other lengths (a length
         model) or headings (another attitude estimator). Positions only: without the steps' sigmas
         there is no covariance. ``t0`` as in :meth:`from_steps`."""
@@ -127,7 +129,9 @@ class DeadReckoning:
             raise ValueError(f"DeadReckoning: step time must be finite, got {t!r}")
         if self._t and t <= self._t[-1]:
             what = "the start time" if self.n_steps == 0 else "the previous step's time"
-            raise ValueError(f"DeadReckoning: steps must come in strictly increasing time: step {self.n_steps} at t={t!r} is not after {what} {self._t[-1]!r}")
+            raise ValueError(
+                f"DeadReckoning: steps must come in strictly increasing time: step {self.n_steps} at t={t!r} is not after {what} {self._t[-1]!r}"
+            )
         x, y = self._xy
         self._xy = (x + length * math.cos(heading), y + length * math.sin(heading))  # eq 12
         if step is not None:

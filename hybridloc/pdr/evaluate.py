@@ -180,7 +180,7 @@ def _turns(run: TraceRun, tracks: list[np.ndarray]):
     at least MIN_SEGMENT_M long, and at least 0.5 m long in every track (positions at the waypoint
     times). A turn is the change of a segment's direction from one segment to the next, rad."""
     dirs = []
-    for k, t0, t1, D, idx in _segments(run):
+    for k, _t0, _t1, D, _idx in _segments(run):
         moves = [w[k + 1] - w[k] for w in [run.wp_xy] + tracks]
         ok = D >= MIN_SEGMENT_M and all(np.linalg.norm(m) > 0.5 for m in moves[1:])
         dirs.append([math.atan2(m[1], m[0]) for m in moves] if ok else None)
@@ -201,14 +201,16 @@ def marks_on_straight_walks(runs: list[TraceRun], model, straight_deg: float = 5
             continue
         L = np.array([model.length(f) for f in r.features])
         tracks = [_track(r, L, h).position_at(r.wp_t) for h in ("ours", "android")]
-        for k, turn_t, turn_ours, turn_android in _turns(r, tracks):
+        for _k, turn_t, turn_ours, turn_android in _turns(r, tracks):
             n += 1
             if max(abs(turn_ours), abs(turn_android)) < math.radians(straight_deg):
                 seen.append(abs(math.degrees(turn_t)))
     return np.array(seen), n
 
 
-def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None, heading: str = "ours") -> tuple[list[float], list[float], list[float]]:
+def score(
+    runs: list[TraceRun], model, seg: list | None = None, turns: list | None = None, heading: str = "ours"
+) -> tuple[list[float], list[float], list[float]]:
     """Relative length errors, turn errors (deg) and waypoint errors (m); ``seg`` collects (D, error in m),
     ``turns`` (D before, D after, error in rad) of each scored turn; ``heading`` as in :func:`_track`."""
     len_err, turn_err, wp_err = [], [], []
@@ -216,7 +218,7 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
         L = np.array([model.length(f) for f in r.features]) if r.features else np.zeros(0)
         wp_est = _track(r, L, heading).position_at(r.wp_t)
         lens = []
-        for k, t0, t1, D, idx in _segments(r):
+        for k, _t0, _t1, D, _idx in _segments(r):
             if D >= MIN_SEGMENT_M:
                 est_len = float(np.linalg.norm(wp_est[k + 1] - wp_est[k]))
                 len_err.append(abs(est_len - D) / D)
@@ -232,7 +234,9 @@ def score(runs: list[TraceRun], model, seg: list | None = None, turns: list | No
     return len_err, turn_err, wp_err
 
 
-def evaluate_phone_pdr(paths: list[Path], model_name: str = "height", config: PhonePdrConfig | None = None, runs=None, heading: str = "ours") -> PhoneEvalResult:
+def evaluate_phone_pdr(
+    paths: list[Path], model_name: str = "height", config: PhonePdrConfig | None = None, runs=None, heading: str = "ours"
+) -> PhoneEvalResult:
     """Scores of one length model, cross-fitted over two halves of the traces. ``heading="android"``
     replaces our heading by Android's rotation vector (same steps and lengths) on the traces that
     have one: the public estimator doing the same job, for the ratio."""
@@ -254,8 +258,23 @@ def evaluate_phone_pdr(paths: list[Path], model_name: str = "height", config: Ph
     walked = sum(float(np.linalg.norm(np.diff(r.wp_xy, axis=0), axis=1).sum()) for r in runs)
     sg = np.array(seg).reshape(-1, 2)
     tn = np.array(turns).reshape(-1, 3)
-    return PhoneEvalResult(model_name, config.detector, coefs, np.array(L), np.array(T), np.array(W), len(runs), len(L), sum(len(r.steps) for r in runs), walked, skipped,
-                           sg[:, 0], sg[:, 1], tn[:, :2], tn[:, 2])
+    return PhoneEvalResult(
+        model_name,
+        config.detector,
+        coefs,
+        np.array(L),
+        np.array(T),
+        np.array(W),
+        len(runs),
+        len(L),
+        sum(len(r.steps) for r in runs),
+        walked,
+        skipped,
+        sg[:, 0],
+        sg[:, 1],
+        tn[:, :2],
+        tn[:, 2],
+    )
 
 
 def turn_in_hand(imu: ImuBlock, angle: float) -> ImuBlock:
@@ -269,8 +288,9 @@ def turn_in_hand(imu: ImuBlock, angle: float) -> ImuBlock:
     return dataclasses.replace(imu, accel_body=turn(imu.accel_body), gyro_body=turn(imu.gyro_body), mag_body=turn(imu.mag_body))
 
 
-def offset_recovery(paths: list[Path], angles_deg: tuple[float, ...] = (90.0, 180.0), sign_rules: tuple[str, ...] = ("gait", "continuity"),
-                    min_steps: int = 10) -> dict[str, dict[float, np.ndarray]]:
+def offset_recovery(
+    paths: list[Path], angles_deg: tuple[float, ...] = (90.0, 180.0), sign_rules: tuple[str, ...] = ("gait", "continuity"), min_steps: int = 10
+) -> dict[str, dict[float, np.ndarray]]:
     """How well the walking-direction offset is recovered when the phone is carried turned.
 
     Each real walk is re-oriented (:func:`turn_in_hand`) by each angle and run with the offset
@@ -299,4 +319,3 @@ def offset_recovery(paths: list[Path], angles_deg: tuple[float, ...] = (90.0, 18
                 if h is not None:
                     out[rule][a].append(abs(wrap_angle(h - h0)))
     return {r: {a: np.array(v) for a, v in d.items()} for r, d in out.items()}
-

@@ -20,9 +20,16 @@ def write_steps_csv(path: str | os.PathLike, steps: list[StepEvent]) -> None:
         w.writerow(STEPS_COLUMNS + STEPS_EXTRA_COLUMNS)
         for s in steps:
             w.writerow(
-                [f"{s.t:.4f}", f"{s.length:.4f}", f"{s.heading:.5f}", f"{s.sigma_length:.4f}", f"{s.sigma_heading:.5f}",
-                 "" if s.heading_change is None else f"{s.heading_change:.5f}",
-                 "" if s.sigma_heading_change is None else f"{s.sigma_heading_change:.5f}", s.degraded]
+                [
+                    f"{s.t:.4f}",
+                    f"{s.length:.4f}",
+                    f"{s.heading:.5f}",
+                    f"{s.sigma_length:.4f}",
+                    f"{s.sigma_heading:.5f}",
+                    "" if s.heading_change is None else f"{s.heading_change:.5f}",
+                    "" if s.sigma_heading_change is None else f"{s.sigma_heading_change:.5f}",
+                    s.degraded,
+                ]
             )
 
 
@@ -32,8 +39,18 @@ def read_steps_csv(path: str | os.PathLike) -> list[StepEvent]:
         for r in csv.DictReader(f):
             hc = r.get("heading_change") or None
             shc = r.get("sigma_heading_change") or None
-            out.append(StepEvent(float(r["t"]), float(r["length"]), float(r["heading"]), float(r["sigma_length"]), float(r["sigma_heading"]),
-                                 None if hc is None else float(hc), None if shc is None else float(shc), degraded=r.get("degraded", "")))
+            out.append(
+                StepEvent(
+                    float(r["t"]),
+                    float(r["length"]),
+                    float(r["heading"]),
+                    float(r["sigma_length"]),
+                    float(r["sigma_heading"]),
+                    None if hc is None else float(hc),
+                    None if shc is None else float(shc),
+                    degraded=r.get("degraded", ""),
+                )
+            )
     return out
 
 

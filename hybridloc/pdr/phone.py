@@ -37,7 +37,6 @@ from .attitude import AttitudeConfig, AttitudeFilter
 from .deadreckoning import DeadReckoning
 from .steplength import BounceHeightLength, LengthModel, StepFeatures
 
-
 #: a one-step NASC peak at least this share of the best (stride) peak is taken as the period
 STEP_PEAK_SHARE = 0.85
 
@@ -99,8 +98,15 @@ class PdrStats:
 class PhonePdr:
     """Streaming step-and-heading PDR for one phone."""
 
-    def __init__(self, rate_hz: float, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = None,
-                 accel_range: float | None = None, gyro_range: float | None = None):
+    def __init__(
+        self,
+        rate_hz: float,
+        length_model: LengthModel | None = None,
+        config: PhonePdrConfig | None = None,
+        heading0: float | None = None,
+        accel_range: float | None = None,
+        gyro_range: float | None = None,
+    ):
         """``accel_range``, ``gyro_range``: the sensors' full scale (m/s^2, rad/s) when known
         (:meth:`process` takes them from the IMU block); see :meth:`_saturation`."""
         if not (5.0 <= rate_hz <= 1000.0):
@@ -369,7 +375,9 @@ class PhonePdr:
             psi = wrap_angle(self._heading0 + psi - self._yaw_ref)
         dpsi = None if self._prev_heading is None else wrap_angle(psi - self._prev_heading)
         since_mag = math.inf if self._mag_clean_t is None else max(0.0, ts - self._mag_clean_t)
-        sig_h = math.hypot(cfg.sigma_mag_heading if since_mag < math.inf else math.pi / 2, cfg.gyro_drift * (since_mag if since_mag < math.inf else 0.0))
+        sig_h = math.hypot(
+            cfg.sigma_mag_heading if since_mag < math.inf else math.pi / 2, cfg.gyro_drift * (since_mag if since_mag < math.inf else 0.0)
+        )
         sig_h = min(math.hypot(sig_h, cfg.sigma_offset, self._sat_angle), math.pi)
         degraded = self._degraded_next
         if not self.att.has_mag:
@@ -482,7 +490,9 @@ class PhonePdr:
         return out
 
 
-def run_phone_pdr(imu: ImuBlock, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = 0.0) -> tuple[list[StepEvent], PdrStats]:
+def run_phone_pdr(
+    imu: ImuBlock, length_model: LengthModel | None = None, config: PhonePdrConfig | None = None, heading0: float | None = 0.0
+) -> tuple[list[StepEvent], PdrStats]:
     """Batch wrapper: all steps of a recording. ``heading0`` makes headings relative to the first step."""
     pdr = PhonePdr(imu.rate_hz, length_model, config, heading0)
     steps = pdr.process(imu)

@@ -197,8 +197,14 @@ class LengthCalibrator:
         return math.sqrt(self.sum_sq_rel / self.n_segments) if self.n_segments else float("nan")
 
     def to_dict(self) -> dict:
-        return {**self.model.to_dict(), "P": self.P.tolist(), "n_segments": self.n_segments, "forgetting": self.forgetting, "sum_sq_rel": self.sum_sq_rel,
-                "huber_rel": self.huber_rel}
+        return {
+            **self.model.to_dict(),
+            "P": self.P.tolist(),
+            "n_segments": self.n_segments,
+            "forgetting": self.forgetting,
+            "sum_sq_rel": self.sum_sq_rel,
+            "huber_rel": self.huber_rel,
+        }
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the calibration (model, coefficients, covariance) as JSON, atomically."""
@@ -208,7 +214,7 @@ class LengthCalibrator:
         os.replace(tmp, path)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "LengthCalibrator":
+    def load(cls, path: str | os.PathLike) -> LengthCalibrator:
         d = json.loads(Path(path).read_text(encoding="utf-8"))
         c = cls(make_model(d["model"], d["coef"]), forgetting=float(d.get("forgetting", 0.98)), huber_rel=d.get("huber_rel", HUBER_REL))
         c.P = np.asarray(d["P"], dtype=float)
@@ -222,8 +228,16 @@ class LengthCalibrator:
 MIN_CALIBRATION_SEGMENT_M = 3.0
 
 
-def calibrate_from_marks(cal: LengthCalibrator, step_t: np.ndarray, features: list[StepFeatures], mark_t: np.ndarray, mark_xy: np.ndarray,
-                         sigma_distance: float = 0.5, rel_scatter: float = 0.08, min_segment_m: float = MIN_CALIBRATION_SEGMENT_M) -> int:
+def calibrate_from_marks(
+    cal: LengthCalibrator,
+    step_t: np.ndarray,
+    features: list[StepFeatures],
+    mark_t: np.ndarray,
+    mark_xy: np.ndarray,
+    sigma_distance: float = 0.5,
+    rel_scatter: float = 0.08,
+    min_segment_m: float = MIN_CALIBRATION_SEGMENT_M,
+) -> int:
     """Update ``cal`` from a walk with marked points (survey waypoints): each pair of consecutive marks
     at least ``min_segment_m`` apart is a known distance (straight line) for the steps between their
     times. Its error against the model is the marks' ``sigma_distance`` (m; two marks of ~0.35 m

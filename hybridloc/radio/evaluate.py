@@ -106,8 +106,15 @@ def route_folds(traces: list[TraceData], folds: int, rng: np.random.Generator) -
     return order[g] % folds
 
 
-def evaluate_ilc(traces: list[TraceData], folds: int = 4, method: str = "prob", params: BuildParams | None = None, plan=None,
-                 fold_of: np.ndarray | None = None, **loc_kw) -> FingerprintScore:
+def evaluate_ilc(
+    traces: list[TraceData],
+    folds: int = 4,
+    method: str = "prob",
+    params: BuildParams | None = None,
+    plan=None,
+    fold_of: np.ndarray | None = None,
+    **loc_kw,
+) -> FingerprintScore:
     """Leave-traces-out: trace i is in fold ``fold_of[i]`` (default i mod ``folds``: walks recorded
     one after the other land in different folds)."""
     score = FingerprintScore()
@@ -197,8 +204,10 @@ def evaluate_uji(path: str, k: int = 5) -> dict:
     out: dict = {"covered_share": float(cov.mean())}
     for n, v in res.items():
         e, fh, bh = np.array(v[0]), np.array(v[1], bool), np.array(v[2], bool)
-        out[n] = {sub: {"errors": e[m], "floor": float(fh[m].mean()), "building": float(bh[m].mean())}
-                  for sub, m in (("all", np.ones(len(e), bool)), ("covered", cov))}
+        out[n] = {
+            sub: {"errors": e[m], "floor": float(fh[m].mean()), "building": float(bh[m].mean())}
+            for sub, m in (("all", np.ones(len(e), bool)), ("covered", cov))
+        }
     return out
 
 

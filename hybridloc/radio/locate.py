@@ -77,9 +77,21 @@ def _logsumexp(x: np.ndarray) -> float:
 
 
 class ProbabilisticLocator:
-    def __init__(self, rmap: RadioMap, sigma_meas: float = 3.0, z_max: float = 3.0, tau: float = 4.0, mass: float = 0.95,
-                 region: bool = True, max_age_s: float | None = None, missing_weight: float = 1.0, min_support: float = 0.0,
-                 prefilter: int | None = 400, n_prefilter_tx: int = 8, tau_region: float | None = 30.0):
+    def __init__(
+        self,
+        rmap: RadioMap,
+        sigma_meas: float = 3.0,
+        z_max: float = 3.0,
+        tau: float = 4.0,
+        mass: float = 0.95,
+        region: bool = True,
+        max_age_s: float | None = None,
+        missing_weight: float = 1.0,
+        min_support: float = 0.0,
+        prefilter: int | None = 400,
+        n_prefilter_tx: int = 8,
+        tau_region: float | None = 30.0,
+    ):
         self.map = rmap
         self.sigma_meas = sigma_meas
         self.z_max = z_max
@@ -99,8 +111,19 @@ class ProbabilisticLocator:
             c0 = np.log(pd) - missing_weight * np.log1p(-pd) - np.log(s)
             col = np.full(len(rmap.transmitters), -1, dtype=np.int64)
             col[f.tx] = np.arange(len(f.tx))
-            self._floors.append(_FloorCache(f.name, col, f.cells, np.ascontiguousarray(f.mu.T, dtype=np.float32), np.ascontiguousarray((1.0 / s).T, dtype=np.float32),
-                                            np.ascontiguousarray(c0.T, dtype=np.float32), missing_weight * np.log1p(-pd).sum(axis=1), math.log(len(f.cells) * f.cell_size**2), f.cell_size))
+            self._floors.append(
+                _FloorCache(
+                    f.name,
+                    col,
+                    f.cells,
+                    np.ascontiguousarray(f.mu.T, dtype=np.float32),
+                    np.ascontiguousarray((1.0 / s).T, dtype=np.float32),
+                    np.ascontiguousarray(c0.T, dtype=np.float32),
+                    missing_weight * np.log1p(-pd).sum(axis=1),
+                    math.log(len(f.cells) * f.cell_size**2),
+                    f.cell_size,
+                )
+            )
 
     def locate(self, scan: RfScan, site: str | None = None) -> LocateResult:
         if site is not None and self.map.site and site != self.map.site:
@@ -161,7 +184,9 @@ class ProbabilisticLocator:
         mean = w @ cells
         dxy = cells - mean
         cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (fc.cell**2 / 12.0)
-        fix = AbsoluteFix(scan.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI if scan.technology.value == "wifi" else FixSource.BLE, fc.name, float(fp[best]))
+        fix = AbsoluteFix(
+            scan.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI if scan.technology.value == "wifi" else FixSource.BLE, fc.name, float(fp[best])
+        )
         region = None
         if self.region:
             # The region may use a higher temperature than the fix (tau_region): the independence
@@ -191,7 +216,9 @@ class FloorMapView:
         self.cells, self.mu, self.sd, self.pd = f.cells[keep], f.mu[keep], f.sd[keep], f.pd[keep]
 
 
-def fingerprint_matrix(scans: list[RfScan], tx_index: dict[str, int], offsets: dict[str, float] | None = None, max_age_s: float | None = None) -> np.ndarray:
+def fingerprint_matrix(
+    scans: list[RfScan], tx_index: dict[str, int], offsets: dict[str, float] | None = None, max_age_s: float | None = None
+) -> np.ndarray:
     """(n, m) matrix of readings in dBm with MISSING_DBM for transmitters not heard (or heard more
     than ``max_age_s`` before the scan: a stale cached reading describes another place)."""
     X = np.full((len(scans), len(tx_index)), MISSING_DBM, dtype=np.float32)
@@ -262,8 +289,15 @@ class KnnLocator:
     2-D Gaussian needs 2.45 sigma; the neighbours' spread already widens it).
     """
 
-    def __init__(self, refs: list[LabelledScan], k: int = 5, representation: str = "auto", tx: list[str] | None = None, max_age_s: float | None = None,
-                 metric: str = "sorensen"):
+    def __init__(
+        self,
+        refs: list[LabelledScan],
+        k: int = 5,
+        representation: str = "auto",
+        tx: list[str] | None = None,
+        max_age_s: float | None = None,
+        metric: str = "sorensen",
+    ):
         if not refs:
             raise ValueError("kNN needs reference scans")
         if representation == "auto":  # several phone models: make fingerprints offset-free

@@ -138,7 +138,7 @@ class RadioMap:
         os.replace(tmp, path)
 
     @classmethod
-    def load(cls, path: str | os.PathLike) -> "RadioMap":
+    def load(cls, path: str | os.PathLike) -> RadioMap:
         try:
             z = np.load(path, allow_pickle=False)
             meta = json.loads(bytes(z["meta"]).decode("utf-8"))
@@ -152,13 +152,32 @@ class RadioMap:
         levels = {}
         for i, fm in enumerate(meta["floors"]):
             k = f"floor{i}"
-            floors[fm["name"]] = FloorMap(fm["name"], z[f"{k}/cells"], z[f"{k}/mu"], z[f"{k}/sd"], z[f"{k}/pd"], z[f"{k}/count"], z[f"{k}/support"],
-                                          float(fm["cell_size"]), z[f"{k}/tx"])
+            floors[fm["name"]] = FloorMap(
+                fm["name"],
+                z[f"{k}/cells"],
+                z[f"{k}/mu"],
+                z[f"{k}/sd"],
+                z[f"{k}/pd"],
+                z[f"{k}/count"],
+                z[f"{k}/support"],
+                float(fm["cell_size"]),
+                z[f"{k}/tx"],
+            )
             if fm.get("level") is not None:
                 levels[fm["name"]] = int(fm["level"])
         txs = list(meta["transmitters"])
-        return cls(meta["site"], meta["technology"], txs, floors, {k: float(v) for k, v in meta["device_offsets"].items()},
-                   z["last_seen"], float(meta["built_at"]), BuildParams(**meta["params"]), levels, _references_from_arrays(z, txs, meta["technology"]))
+        return cls(
+            meta["site"],
+            meta["technology"],
+            txs,
+            floors,
+            {k: float(v) for k, v in meta["device_offsets"].items()},
+            z["last_seen"],
+            float(meta["built_at"]),
+            BuildParams(**meta["params"]),
+            levels,
+            _references_from_arrays(z, txs, meta["technology"]),
+        )
 
 
 def _references_to_arrays(refs: list[LabelledScan], tix: dict[str, int]) -> dict[str, np.ndarray]:
@@ -177,11 +196,17 @@ def _references_to_arrays(refs: list[LabelledScan], tix: dict[str, int]) -> dict
             val.append(v)
             age.append(r.scan.age_s.get(k, 0.0))
     return {
-        "ref/t": np.array([r.scan.t for r in refs], float), "ref/pos": np.array([r.pos_enu for r in refs], float).reshape(-1, 2),
-        "ref/sigma": np.array([r.sigma for r in refs], float), "ref/floor": np.array([fl_idx[r.floor or ""] for r in refs], np.int32),
-        "ref/floor_names": np.frombuffer(json.dumps(fl_names).encode(), np.uint8), "ref/extra_tx": np.frombuffer(json.dumps(list(extra)).encode(), np.uint8),
+        "ref/t": np.array([r.scan.t for r in refs], float),
+        "ref/pos": np.array([r.pos_enu for r in refs], float).reshape(-1, 2),
+        "ref/sigma": np.array([r.sigma for r in refs], float),
+        "ref/floor": np.array([fl_idx[r.floor or ""] for r in refs], np.int32),
+        "ref/floor_names": np.frombuffer(json.dumps(fl_names).encode(), np.uint8),
+        "ref/extra_tx": np.frombuffer(json.dumps(list(extra)).encode(), np.uint8),
         "ref/device": np.frombuffer(json.dumps([r.scan.device_model for r in refs]).encode(), np.uint8),
-        "ref/i": np.array(ri, np.int32), "ref/j": np.array(tj, np.int32), "ref/rssi": np.array(val, np.float32), "ref/age": np.array(age, np.float32),
+        "ref/i": np.array(ri, np.int32),
+        "ref/j": np.array(tj, np.int32),
+        "ref/rssi": np.array(val, np.float32),
+        "ref/age": np.array(age, np.float32),
     }
 
 
@@ -202,7 +227,9 @@ def _references_from_arrays(z, txs: list[str], technology: str) -> list[Labelled
         sel = order[bounds[i] : bounds[i + 1]]
         rssi = {names[j]: float(v) for j, v in zip(tj[sel], val[sel])}
         ages = {names[j]: float(a) for j, a in zip(tj[sel], age[sel])}
-        out.append(LabelledScan(RfScan(float(t[i]), technology, rssi, age_s=ages, device_model=devices[i]), pos[i], float(sig[i]), fl_names[fl[i]] or None))
+        out.append(
+            LabelledScan(RfScan(float(t[i]), technology, rssi, age_s=ages, device_model=devices[i]), pos[i], float(sig[i]), fl_names[fl[i]] or None)
+        )
     return out
 
 
@@ -258,15 +285,22 @@ def _collect(scans: list[LabelledScan], max_age_s: float | None) -> _Readings:
             tj.append(j)
             rv.append(r)
     return _Readings(
-        np.asarray(si, np.int64), np.asarray(tj, np.int64), np.asarray(rv, np.float64),
-        np.array([ls.scan.t for ls in scans]), np.array([ls.pos_enu for ls in scans], float).reshape(-1, 2),
-        np.array([fl.setdefault(ls.floor or "0", len(fl)) for ls in scans]), np.array([dv.setdefault(ls.scan.device_model, len(dv)) for ls in scans]),
-        list(fl), list(dv), list(tix),
+        np.asarray(si, np.int64),
+        np.asarray(tj, np.int64),
+        np.asarray(rv, np.float64),
+        np.array([ls.scan.t for ls in scans]),
+        np.array([ls.pos_enu for ls in scans], float).reshape(-1, 2),
+        np.array([fl.setdefault(ls.floor or "0", len(fl)) for ls in scans]),
+        np.array([dv.setdefault(ls.scan.device_model, len(dv)) for ls in scans]),
+        list(fl),
+        list(dv),
+        list(tix),
     )
 
 
-def build_radio_map(labelled: list[LabelledScan], site: str = "", plan: FloorPlan | None = None, params: BuildParams | None = None,
-                    technology: str = "wifi") -> RadioMap:
+def build_radio_map(
+    labelled: list[LabelledScan], site: str = "", plan: FloorPlan | None = None, params: BuildParams | None = None, technology: str = "wifi"
+) -> RadioMap:
     """Build a radio map from labelled scans of one technology (see the module docstring)."""
     p = params or BuildParams()
     scans = [ls for ls in labelled if ls.scan.technology.value == technology]
@@ -366,7 +400,9 @@ def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: Build
     var = np.float32(p.shadow_sd**2) + var0[None, :] * a / (D_s + a)
     pd = np.clip(pd, 0.005, 0.995)
     cnt = np.bincount(ci_local, minlength=n_cells)
-    return FloorMap(name, cells, mu.astype(np.float32), np.sqrt(var).astype(np.float32), pd.astype(np.float32), cnt, n_eff.astype(np.float32), p.cell, ftx)
+    return FloorMap(
+        name, cells, mu.astype(np.float32), np.sqrt(var).astype(np.float32), pd.astype(np.float32), cnt, n_eff.astype(np.float32), p.cell, ftx
+    )
 
 
 def _device_offsets(floors: dict[str, FloorMap], R: _Readings) -> np.ndarray:

@@ -58,7 +58,7 @@ class ProximityModel:
     clf: LogisticRegression
 
     @classmethod
-    def fit(cls, labelled: list[LabelledScan], radius: float = 5.0, n_pairs: int = 20000, rng: np.random.Generator | None = None) -> "ProximityModel":
+    def fit(cls, labelled: list[LabelledScan], radius: float = 5.0, n_pairs: int = 20000, rng: np.random.Generator | None = None) -> ProximityModel:
         """Fit on random pairs of labelled scans on the same floor, half of them drawn near each other."""
         rng = rng or np.random.default_rng(0)
         if len(labelled) < 10:

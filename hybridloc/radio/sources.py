@@ -92,7 +92,7 @@ def labelled_from_inputs(fmt: str, inputs: list[str], floorplan: str | None = No
 
 
 def read_scans_csv(path: str) -> list[tuple[RfScan, np.ndarray | None, str | None, float]]:
-    groups: "OrderedDict[tuple, dict]" = OrderedDict()
+    groups: OrderedDict[tuple, dict] = OrderedDict()
     with open(path, newline="", encoding="utf-8") as f:
         rd = csv.DictReader(f)
         need = {"t", "x", "y", "floor", "transmitter", "rssi_dbm"}

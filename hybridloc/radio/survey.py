@@ -34,8 +34,9 @@ class LabelledScan:
     source: str = ""
 
 
-def label_scans(scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoints, t_start: float, source: str = "",
-                sigma0: float = 0.5, rel_sigma: float = 0.1) -> list[LabelledScan]:
+def label_scans(
+    scans: list[RfScan], steps: list[StepEvent], waypoints: Waypoints, t_start: float, source: str = "", sigma0: float = 0.5, rel_sigma: float = 0.1
+) -> list[LabelledScan]:
     """Label the scans lying between the first and last waypoint (module docstring)."""
     if len(waypoints) < 2:
         return []

@@ -14,7 +14,6 @@ Every function takes an explicit ``numpy.random.Generator``.
 
 from __future__ import annotations
 
-
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -90,7 +89,10 @@ class World:
     def shortest_path(self, a: int, b: int) -> list[int]:
         if self._dist is None:
             n = len(self.nodes)
-            w = [float(np.linalg.norm(self.nodes[i, :2] - self.nodes[j, :2])) + (STOREY * 2 if self.nodes[i, 2] != self.nodes[j, 2] else 0.0) for i, j in self.edges]
+            w = [
+                float(np.linalg.norm(self.nodes[i, :2] - self.nodes[j, :2])) + (STOREY * 2 if self.nodes[i, 2] != self.nodes[j, 2] else 0.0)
+                for i, j in self.edges
+            ]
             rows = [i for i, _ in self.edges] + [j for _, j in self.edges]
             cols = [j for _, j in self.edges] + [i for i, _ in self.edges]
             g = csr_matrix((w + w, (rows, cols)), shape=(n, n))
@@ -104,8 +106,14 @@ class World:
         return path[::-1]
 
 
-def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, width: float | None = None, depth: float | None = None,
-                   origin: GeodeticOrigin | None = None) -> World:
+def generate_world(
+    rng: np.random.Generator,
+    floors: int = 3,
+    seed: int = 0,
+    width: float | None = None,
+    depth: float | None = None,
+    origin: GeodeticOrigin | None = None,
+) -> World:
     if not 1 <= floors <= 50:
         raise ValueError("floors must be between 1 and 50")
     W = float(width if width is not None else rng.uniform(50.0, 80.0))
@@ -203,7 +211,7 @@ def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, wid
         n_ap = max(2, int(round(W / 15.0)))
         xs = (np.arange(n_ap) + 0.5 + (0.5 if f % 2 else 0.0)) * W / n_ap
         for x in xs:
-            for band, fmhz in (("2g", 2437.0), ("5g", 5180.0)):
+            for _band, fmhz in (("2g", 2437.0), ("5g", 5180.0)):  # one AP id per band at the same place
                 aps.append((float(min(x, W - 0.5)), D / 2 + float(rng.uniform(-1, 1)), f))
                 ap_ids.append(f"02:00:{seed % 256:02x}:{f:02x}:{len(ap_ids) // 256 % 256:02x}:{len(ap_ids) % 256:02x}")
                 freqs.append(fmhz)
@@ -216,8 +224,26 @@ def generate_world(rng: np.random.Generator, floors: int = 3, seed: int = 0, wid
             if r.floor == f:
                 beacons.append((r.centre[0], r.centre[1], f))
     beacon_ids = [f"sim{seed}_{i // 1000}_{i % 1000}" for i in range(len(beacons))]
-    return World(seed, plan, W, D, (cy0, cy1), rooms, np.array(nodes, float), kinds, edges, np.array(aps, float), ap_ids, np.array(freqs),
-                 np.array(beacons, float), beacon_ids, np.array(rfid, float), entrance, outdoor, origin)
+    return World(
+        seed,
+        plan,
+        W,
+        D,
+        (cy0, cy1),
+        rooms,
+        np.array(nodes, float),
+        kinds,
+        edges,
+        np.array(aps, float),
+        ap_ids,
+        np.array(freqs),
+        np.array(beacons, float),
+        beacon_ids,
+        np.array(rfid, float),
+        entrance,
+        outdoor,
+        origin,
+    )
 
 
 def walkable_points(world: World, floor: int, pts: np.ndarray) -> np.ndarray:
@@ -233,8 +259,9 @@ def graph_components(n: int, edges: list[tuple[int, int]]) -> np.ndarray:
     return connected_components(csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n)), directed=False)[1]
 
 
-def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, spacing: float = 2.0, origin: GeodeticOrigin | None = None,
-                    source: str | None = None) -> World:
+def world_from_plan(
+    plan: FloorPlan, rng: np.random.Generator, seed: int = 0, spacing: float = 2.0, origin: GeodeticOrigin | None = None, source: str | None = None
+) -> World:
     """A simulated world on a real floor plan (e.g. an Indoor Location Competition site).
 
     Walkable graph: a grid of nodes every ``spacing`` m over each floor's free space - the walkable area
@@ -371,6 +398,26 @@ def world_from_plan(plan: FloorPlan, rng: np.random.Generator, seed: int = 0, sp
     bx0, by0, bx1, by1 = unary_union([f.outline for f in plan.floors]).bounds
     beacon_ids = [f"simp{seed}_{i // 1000}_{i % 1000}" for i in range(len(beacons))]
     plan2 = FloorPlan(plan.site, plan.floors, plan.transitions, origin)
-    return World(seed, plan2, float(bx1), float(by1), (float(by0), float(by1)), rooms, np.array(nodes, float), kinds, edges,
-                 np.array(aps, float).reshape(-1, 3), ap_ids, np.array(freqs), np.array(beacons, float).reshape(-1, 3), beacon_ids,
-                 np.array(rfid, float).reshape(-1, 3), (float(ent[0]), float(ent[1])), on, origin, x_min=float(bx0), y_min=float(by0), source=source)
+    return World(
+        seed,
+        plan2,
+        float(bx1),
+        float(by1),
+        (float(by0), float(by1)),
+        rooms,
+        np.array(nodes, float),
+        kinds,
+        edges,
+        np.array(aps, float).reshape(-1, 3),
+        ap_ids,
+        np.array(freqs),
+        np.array(beacons, float).reshape(-1, 3),
+        beacon_ids,
+        np.array(rfid, float).reshape(-1, 3),
+        (float(ent[0]), float(ent[1])),
+        on,
+        origin,
+        x_min=float(bx0),
+        y_min=float(by0),
+        source=source,
+    )

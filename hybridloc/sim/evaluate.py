@@ -91,10 +91,18 @@ def pdr_on_sim(walks, imus, attitude: AttitudeConfig | None = None) -> dict:
             else:
                 false_steps += k
                 still_min += (b2 - a2) / 60
-    return {"n_true": n_true, "n_detected": n_det, "count_error": (n_det - n_true) / max(n_true, 1),
-            "false_per_min_standing": false_steps / max(still_min, 1e-9), "false_per_min_handling": handling_steps / max(handling_min, 1e-9),
-            "standing_min": still_min, "handling_min": handling_min, "false_standing": false_steps, "false_handling": handling_steps,
-            "heading_errors": np.concatenate(herr) if herr else np.zeros(0)}
+    return {
+        "n_true": n_true,
+        "n_detected": n_det,
+        "count_error": (n_det - n_true) / max(n_true, 1),
+        "false_per_min_standing": false_steps / max(still_min, 1e-9),
+        "false_per_min_handling": handling_steps / max(handling_min, 1e-9),
+        "standing_min": still_min,
+        "handling_min": handling_min,
+        "false_standing": false_steps,
+        "false_handling": handling_steps,
+        "heading_errors": np.concatenate(herr) if herr else np.zeros(0),
+    }
 
 
 @dataclass
@@ -158,8 +166,8 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
     n_real = real_sim = None
     real_slopes = real_freq = real_peaks = None
     if have_real:
-        from ..radio.evaluate import load_site_surveys
         from ..io.msft import find_ilc_traces, read_ilc_trace
+        from ..radio.evaluate import load_site_surveys
 
         traces = load_site_surveys(ilc, every)
         real_lab = [ls for t in traces for ls in t.labelled]
@@ -178,10 +186,12 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
             peaks += spectrum_peaks(tr.imu)
         real_freq, real_peaks = np.array(freqs), np.array(peaks)
         n_real = len(traces)
-    stats = [RealismStat("RSSI slope vs log10 distance (crowd AP est.)", float(np.median(sim_slopes_crowd)), real_slopes, " dB/dec"),
-             RealismStat("RSSI slope vs log10 distance (true AP pos.)", float(np.median(sim_slopes_true)), None, " dB/dec"),
-             RealismStat("step frequency while walking", float(np.median(sim_freq)), real_freq, " Hz"),
-             RealismStat("|a| spectrum peak while walking", float(np.median(sim_peaks)), real_peaks, " Hz")]
+    stats = [
+        RealismStat("RSSI slope vs log10 distance (crowd AP est.)", float(np.median(sim_slopes_crowd)), real_slopes, " dB/dec"),
+        RealismStat("RSSI slope vs log10 distance (true AP pos.)", float(np.median(sim_slopes_true)), None, " dB/dec"),
+        RealismStat("step frequency while walking", float(np.median(sim_freq)), real_freq, " Hz"),
+        RealismStat("|a| spectrum peak while walking", float(np.median(sim_peaks)), real_peaks, " Hz"),
+    ]
     r = pdr_on_sim(walks, imus)
     # The same walks through a plain heading: gyro integration with no bias estimate and no compass.
     plain = pdr_on_sim(walks, imus, AttitudeConfig(k_mag=0.0, ki_acc=0.0, zaru=False))

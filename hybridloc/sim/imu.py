@@ -69,8 +69,10 @@ def apply_errors(t: np.ndarray, acc: np.ndarray, gyr: np.ndarray, grade: SensorG
     n = len(t)
     dt = float(np.median(np.diff(t))) if n > 1 else 0.01
     out = []
-    for x, noise, bias, rw, rng_max in ((acc, grade.accel_noise, grade.accel_bias, grade.accel_bias_rw, grade.accel_range),
-                                        (gyr, grade.gyro_noise, grade.gyro_bias, grade.gyro_bias_rw, grade.gyro_range)):
+    for x, noise, bias, rw, rng_max in (
+        (acc, grade.accel_noise, grade.accel_bias, grade.accel_bias_rw, grade.accel_range),
+        (gyr, grade.gyro_noise, grade.gyro_bias, grade.gyro_bias_rw, grade.gyro_range),
+    ):
         b = bias * rng.standard_normal(3) + np.cumsum(rw * math.sqrt(dt) * rng.standard_normal((n, 3)), axis=0)
         s = 1.0 + grade.scale * rng.standard_normal(3)
         y = x * s + b + noise / math.sqrt(dt) * rng.standard_normal((n, 3))
@@ -86,7 +88,7 @@ def _full_scale(grade: str) -> dict:
 def _smooth_noise(rng: np.random.Generator, n: int, width: int) -> np.ndarray:
     k = np.exp(-0.5 * (np.arange(-3 * width, 3 * width + 1) / width) ** 2)
     k /= np.sqrt((k**2).sum())
-    return np.convolve(rng.standard_normal(n + len(k)), k, mode="same")[: n]
+    return np.convolve(rng.standard_normal(n + len(k)), k, mode="same")[:n]
 
 
 #: s: a walker who stood turns to the next heading in this last moment before walking on
@@ -97,8 +99,17 @@ HANDLING_TIME_S = 0.5
 HANDLING_ACCEL = 2.0
 
 
-def _handle(idx: np.ndarray, t: np.ndarray, psi: np.ndarray, f_nav: np.ndarray, m_nav: np.ndarray,
-            acc: np.ndarray, gyr: np.ndarray, mag: np.ndarray, rng: np.random.Generator) -> None:
+def _handle(
+    idx: np.ndarray,
+    t: np.ndarray,
+    psi: np.ndarray,
+    f_nav: np.ndarray,
+    m_nav: np.ndarray,
+    acc: np.ndarray,
+    gyr: np.ndarray,
+    mag: np.ndarray,
+    rng: np.random.Generator,
+) -> None:
     """One handling interval (samples ``idx``), written into acc, gyr and mag in place (module docstring).
 
     theta(t) = w(t) n(t): n smooth unit noise per axis, w = HANDLING_ANGLE sin^2 of the interval's phase,
@@ -198,8 +209,14 @@ class FootTruth:
     stance: np.ndarray  # (N,) bool
 
 
-def foot_imu(walk: Walk, rng: np.random.Generator, rate: float = 200.0, grade: str | None = "industrial",
-             stride_stance: float = 0.6, max_pitch: float = 25 * DEG) -> tuple[ImuBlock, FootTruth]:
+def foot_imu(
+    walk: Walk,
+    rng: np.random.Generator,
+    rate: float = 200.0,
+    grade: str | None = "industrial",
+    stride_stance: float = 0.6,
+    max_pitch: float = 25 * DEG,
+) -> tuple[ImuBlock, FootTruth]:
     """The right foot's IMU and its truth (see module docstring). Strides join every second step."""
     dt = 1.0 / rate
     t = np.arange(walk.t0, walk.t1, dt)

@@ -44,11 +44,21 @@ from .walker import Walk
 
 def world_to_json(world: World) -> dict:
     return {
-        "format": "hybridloc-sim-world", "version": 1, "seed": world.seed, "floors": world.n_floors,
-        "width": world.width, "depth": world.depth, "floorplan": world.source,
+        "format": "hybridloc-sim-world",
+        "version": 1,
+        "seed": world.seed,
+        "floors": world.n_floors,
+        "width": world.width,
+        "depth": world.depth,
+        "floorplan": world.source,
         "origin_deg": [world.origin.lat / DEG, world.origin.lon / DEG, world.origin.height],
-        "aps": [{"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2])), "freq_mhz": float(f)} for i, p, f in zip(world.ap_ids, world.aps, world.ap_freq_mhz)],
-        "beacons": [{"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2]))} for i, p in zip(world.beacon_ids, world.beacons)],
+        "aps": [
+            {"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2])), "freq_mhz": float(f)}
+            for i, p, f in zip(world.ap_ids, world.aps, world.ap_freq_mhz)
+        ],
+        "beacons": [
+            {"id": i, "x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2]))} for i, p in zip(world.beacon_ids, world.beacons)
+        ],
         "rfid_readers": [{"x": float(p[0]), "y": float(p[1]), "floor": world.floor_name(int(p[2]))} for p in world.rfid],
         "rooms": [{"name": r.name, "floor": world.floor_name(r.floor), "door": list(r.door)} for r in world.rooms],
     }
@@ -63,8 +73,13 @@ def write_world(world: World, out: str | os.PathLike) -> None:
     for fl in world.plan.floors:
         d = out / fl.name
         d.mkdir(exist_ok=True)
-        feats = [{"type": "Feature", "geometry": mapping(_to_lonlat(fl.outline, o)),
-                  "properties": {"category": "floor", "name": fl.name, "floor_num": fl.level + 1, "type": "floor"}}]
+        feats = [
+            {
+                "type": "Feature",
+                "geometry": mapping(_to_lonlat(fl.outline, o)),
+                "properties": {"category": "floor", "name": fl.name, "floor_num": fl.level + 1, "type": "floor"},
+            }
+        ]
         for name, poly in fl.rooms:
             feats.append({"type": "Feature", "geometry": mapping(_to_lonlat(poly, o)), "properties": {"name": name, "category": ["room"]}})
         # the walls themselves, doors and entrances left open (our extension of the format: the ILC
@@ -128,7 +143,13 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
         tm = ms(s.t)
         for k, r in s.rssi_dbm.items():
             uuid, major, minor = k.split("_")
-            lines.append((tm, 4, f"{tm}\tTYPE_BEACON\t{uuid.upper()}\t{major}\t{minor}\t-59\t{int(r)}\t{10 ** ((-59 - r) / 20):.3f}\tSIM:{major}:{minor}\t{tm}"))
+            lines.append(
+                (
+                    tm,
+                    4,
+                    f"{tm}\tTYPE_BEACON\t{uuid.upper()}\t{major}\t{minor}\t-59\t{int(r)}\t{10 ** ((-59 - r) / 20):.3f}\tSIM:{major}:{minor}\t{tm}",
+                )
+            )
     for t, x, y, floor in _waypoints(walk):  # each mark with its floor (the format's extension): walks take the stairs
         lines.append((ms(t), 5, f"{ms(t)}\tTYPE_WAYPOINT\t{x:.4f}\t{y:.4f}\t{world.floor_name(floor)}"))
     lines.sort(key=lambda r: (r[0], r[1]))
@@ -164,11 +185,30 @@ def write_truth(prefix: Path, walk: Walk, radio: WalkRadio | None, foot: FootTru
             w.writerow(["t", "x", "y", "floor", "sigma", "source", "sigma_random"])
             rows = [(fx, sr) for fx, sr in zip(radio.gps, radio.gps_sigma_random or [None] * len(radio.gps))] + [(fx, None) for fx in radio.rfid]
             for fx, sr in sorted(rows, key=lambda a: a[0].t):
-                w.writerow([f"{fx.t:.3f}", f"{fx.pos_enu[0]:.3f}", f"{fx.pos_enu[1]:.3f}", fx.floor or "", f"{math.sqrt(fx.cov[0, 0]):.3f}", fx.source.value,
-                            "" if sr is None else f"{sr:.3f}"])
-    meta = {"walker": walk.walker, "speed": walk.speed, "step_length": walk.step_length, "length_k": walk.length_k, "t0": walk.t0, "t1": walk.t1,
-            "loop": walk.loop, "outdoor_start": walk.outdoor_start, "n_steps": len(walk.steps), "start": list(walk.start),
-            "pauses": [list(p) for p in walk.pauses]}
+                w.writerow(
+                    [
+                        f"{fx.t:.3f}",
+                        f"{fx.pos_enu[0]:.3f}",
+                        f"{fx.pos_enu[1]:.3f}",
+                        fx.floor or "",
+                        f"{math.sqrt(fx.cov[0, 0]):.3f}",
+                        fx.source.value,
+                        "" if sr is None else f"{sr:.3f}",
+                    ]
+                )
+    meta = {
+        "walker": walk.walker,
+        "speed": walk.speed,
+        "step_length": walk.step_length,
+        "length_k": walk.length_k,
+        "t0": walk.t0,
+        "t1": walk.t1,
+        "loop": walk.loop,
+        "outdoor_start": walk.outdoor_start,
+        "n_steps": len(walk.steps),
+        "start": list(walk.start),
+        "pauses": [list(p) for p in walk.pauses],
+    }
     Path(f"{prefix}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
 

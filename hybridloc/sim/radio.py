@@ -125,8 +125,15 @@ def rssi(model: RadioModel, tx_idx: np.ndarray, xy: np.ndarray, floor, rng: np.r
             shadow[:, k] = np.cos(xy @ model.w[j].T + model.b[j]) @ model.c[j]
             fw = model.world.plan.floors[int(model.tx_pos[j, 2])].walls
             walls[:, k] = WALL_DB * wall_crossings(fw, np.repeat(model.tx_pos[j : j + 1, :2], len(xy), axis=0), xy)
-    r = (model.p0[tx_idx][None] - 10 * PATH_LOSS_N * np.log10(np.maximum(d, 1.0)) - walls - FLOOR_DB * np.abs(fl[:, None] - tx[None, :, 2])
-         + shadow + TEMPORAL_SD * rng.standard_normal(d.shape) + offset)
+    r = (
+        model.p0[tx_idx][None]
+        - 10 * PATH_LOSS_N * np.log10(np.maximum(d, 1.0))
+        - walls
+        - FLOOR_DB * np.abs(fl[:, None] - tx[None, :, 2])
+        + shadow
+        + TEMPORAL_SD * rng.standard_normal(d.shape)
+        + offset
+    )
     return r[0] if single else r
 
 
@@ -139,8 +146,15 @@ class WalkRadio:
     gps_sigma_random: list[float] = field(default_factory=list)  # per GPS fix: sigma of its random part e_r, m
 
 
-def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, device_model: str = "SIM PHONE", device_offset: float = 0.0,
-                   wifi_period: float = 3.5, gps_indoor_reach: float = 3.0) -> WalkRadio:
+def simulate_radio(
+    model: RadioModel,
+    walk: Walk,
+    rng: np.random.Generator,
+    device_model: str = "SIM PHONE",
+    device_offset: float = 0.0,
+    wifi_period: float = 3.5,
+    gps_indoor_reach: float = 3.0,
+) -> WalkRadio:
     world = model.world
     n_ap = len(world.aps)
     ap_idx = np.arange(n_ap)
@@ -158,7 +172,16 @@ def simulate_radio(model: RadioModel, walk: Walk, rng: np.random.Generator, devi
         freq = (world.ap_freq_mhz * 1e6).tolist()
         for t, row, age in zip(ts.tolist(), R.tolist(), ages.tolist()):
             heard = [j for j, v in enumerate(row) if v > -92.0]
-            wifi.append(RfScan(t, Technology.WIFI, {ids[j]: row[j] for j in heard}, {ids[j]: freq[j] for j in heard}, {ids[j]: age[j] for j in heard}, device_model))
+            wifi.append(
+                RfScan(
+                    t,
+                    Technology.WIFI,
+                    {ids[j]: row[j] for j in heard},
+                    {ids[j]: freq[j] for j in heard},
+                    {ids[j]: age[j] for j in heard},
+                    device_model,
+                )
+            )
     # BLE: one report per second of the beacons heard
     tb = np.arange(walk.t0 + 0.5, walk.t1, 1.0)
     if len(tb):

@@ -22,7 +22,6 @@ import numpy as np
 
 from .building import STOREY, World
 
-
 #: steps of one stair flight; a storey is two flights joined by a landing (16 steps of 0.22 m rise)
 STEPS_PER_FLIGHT = 8
 
@@ -85,8 +84,9 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     comp = world.component
     size = np.bincount(comp)
     # destinations in parts of the building big enough to walk in (a real plan's grid leaves islands)
-    rooms_all = [i for i, k in enumerate(world.node_kind) if k == "room" and size[comp[i]] >= 0.05 * len(comp)] or \
-        [i for i, k in enumerate(world.node_kind) if k == "room"]
+    rooms_all = [i for i, k in enumerate(world.node_kind) if k == "room" and size[comp[i]] >= 0.05 * len(comp)] or [
+        i for i, k in enumerate(world.node_kind) if k == "room"
+    ]
     outdoor = rng.random() < 0.2
     start_node = world.outdoor_node if outdoor else int(rng.choice(rooms_all))
     rooms = [i for i in rooms_all if comp[i] == comp[start_node]] or rooms_all  # reachable from the start
@@ -168,5 +168,17 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         pauses.append((t, t + pause, bool(rng.random() < 0.3)))
         t += pause
     steps = [s for s in steps if s.t <= t_end]
-    return Walk(walker, speed, L, K, t0, min(t, t_end) if math.isfinite(t_end) else t, steps, tuple(float(v) for v in world.nodes[start_node][:2]) + (int(world.nodes[start_node][2]),),
-                pauses, lifts, loop, outdoor)
+    return Walk(
+        walker,
+        speed,
+        L,
+        K,
+        t0,
+        min(t, t_end) if math.isfinite(t_end) else t,
+        steps,
+        tuple(float(v) for v in world.nodes[start_node][:2]) + (int(world.nodes[start_node][2]),),
+        pauses,
+        lifts,
+        loop,
+        outdoor,
+    )

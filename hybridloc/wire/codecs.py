@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, Generic, Mapping, TypeVar
+from collections.abc import Mapping
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
@@ -249,8 +250,9 @@ class BatchCodec(Codec[Batch]):
         def items():
             steps = tuple(_step_from(s) for s in steps_in)
             scans = tuple(_scan_from(s, model) for s in scans_in)
-            marks = tuple(SurveyMark(_finite(m["t"], "mark t"), _finite(m["x"], "x"), _finite(m["y"], "y"), _text(m.get("floor", ""), 32))
-                          for m in marks_in)
+            marks = tuple(
+                SurveyMark(_finite(m["t"], "mark t"), _finite(m["x"], "x"), _finite(m["y"], "y"), _text(m.get("floor", ""), 32)) for m in marks_in
+            )
             return steps, scans, marks
 
         steps, scans, marks = _structure(items)
@@ -285,8 +287,18 @@ class FixCodec(Codec[Fix]):
             if a.t is not None:
                 d["t"] = float(a.t)
             return _dumps(d)
-        d = {"schema": FIX_SCHEMA, "fix": {"t": fix.t, "x": float(fix.pos_enu[0]), "y": float(fix.pos_enu[1]), "cov": fix.cov[:2, :2].tolist(),
-                                           "floor": fix.floor, "floor_prob": fix.floor_prob, "source": fix.source.value}}
+        d = {
+            "schema": FIX_SCHEMA,
+            "fix": {
+                "t": fix.t,
+                "x": float(fix.pos_enu[0]),
+                "y": float(fix.pos_enu[1]),
+                "cov": fix.cov[:2, :2].tolist(),
+                "floor": fix.floor,
+                "floor_prob": fix.floor_prob,
+                "source": fix.source.value,
+            },
+        }
         if a.region is not None:
             from shapely.geometry import mapping
 
@@ -306,8 +318,14 @@ class FixCodec(Codec[Fix]):
     @staticmethod
     def _fix(f: dict, msg: dict) -> Fix:
         t = _finite(f["t"], "fix t")
-        fix = AbsoluteFix(t, np.array([_finite(f["x"], "x"), _finite(f["y"], "y")]), _matrix2(f["cov"], "cov"), f["source"], _floor(f.get("floor")),
-                          _finite(f.get("floor_prob", 1.0), "floor_prob"))
+        fix = AbsoluteFix(
+            t,
+            np.array([_finite(f["x"], "x"), _finite(f["y"], "y")]),
+            _matrix2(f["cov"], "cov"),
+            f["source"],
+            _floor(f.get("floor")),
+            _finite(f.get("floor_prob", 1.0), "floor_prob"),
+        )
         region = None
         if msg.get("region") is not None:
             r = _object(msg["region"], "region")
@@ -380,7 +398,9 @@ class StatusCodec(Codec[Status]):
     schema = STATUS_SCHEMA
 
     def encode(self, s: Status) -> bytes:
-        return _dumps({"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)})
+        return _dumps(
+            {"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)}
+        )
 
     def decode(self, payload: bytes) -> Status:
         msg = _load(payload, STATUS_SCHEMA)

@@ -8,8 +8,9 @@ live in :mod:`hybridloc.types`; :mod:`.codecs` turns all of them into bytes and 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from ..types import RfScan, StepEvent, SurveyMark
 

@@ -88,21 +88,52 @@ def client_config(endpoint: str, security: Security | None = None) -> zenoh.Conf
 def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
     """Access control: deny by default; each device confined to its own keys; the server may do all."""
     rules, subjects, policies = [], [], []
-    rules.append({"id": "all", "messages": ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
-                                            "liveliness_query", "declare_liveliness_subscriber"], "flows": ["ingress", "egress"],
-                  "permission": "allow", "key_exprs": ["**"]})
+    rules.append(
+        {
+            "id": "all",
+            "messages": [
+                "put",
+                "delete",
+                "declare_subscriber",
+                "query",
+                "reply",
+                "declare_queryable",
+                "liveliness_token",
+                "liveliness_query",
+                "declare_liveliness_subscriber",
+            ],
+            "flows": ["ingress", "egress"],
+            "permission": "allow",
+            "key_exprs": ["**"],
+        }
+    )
     subjects.append({"id": "srv", "usernames": [server_user]})
     policies.append({"rules": ["all"], "subjects": ["srv"]})
     for d in devices:
         P.check_id(d, "device")
         rid, sid = f"r_{d}", f"s_{d}"
         rules += [
-            {"id": f"{rid}_pub", "messages": ["put", "liveliness_token"], "flows": ["ingress"], "permission": "allow",
-             "key_exprs": [f"{P.PREFIX}/*/{d}/batch", f"{P.PREFIX}/*/{d}/pose", f"{P.PREFIX}/*/{d}/alive"]},
-            {"id": f"{rid}_sub", "messages": ["declare_subscriber", "put"], "flows": ["ingress", "egress"], "permission": "allow",
-             "key_exprs": [f"{P.PREFIX}/*/{d}/ack", f"{P.PREFIX}/*/{d}/fix"]},
-            {"id": f"{rid}_query", "messages": ["query", "reply"], "flows": ["ingress", "egress"], "permission": "allow",
-             "key_exprs": [f"{P.PREFIX}/*/{d}/locate", f"{P.PREFIX}/*/map", P.KEY_STATUS]},
+            {
+                "id": f"{rid}_pub",
+                "messages": ["put", "liveliness_token"],
+                "flows": ["ingress"],
+                "permission": "allow",
+                "key_exprs": [f"{P.PREFIX}/*/{d}/batch", f"{P.PREFIX}/*/{d}/pose", f"{P.PREFIX}/*/{d}/alive"],
+            },
+            {
+                "id": f"{rid}_sub",
+                "messages": ["declare_subscriber", "put"],
+                "flows": ["ingress", "egress"],
+                "permission": "allow",
+                "key_exprs": [f"{P.PREFIX}/*/{d}/ack", f"{P.PREFIX}/*/{d}/fix"],
+            },
+            {
+                "id": f"{rid}_query",
+                "messages": ["query", "reply"],
+                "flows": ["ingress", "egress"],
+                "permission": "allow",
+                "key_exprs": [f"{P.PREFIX}/*/{d}/locate", f"{P.PREFIX}/*/map", P.KEY_STATUS],
+            },
         ]
         subjects.append({"id": sid, "usernames": [d]})
         policies.append({"rules": [f"{rid}_pub", f"{rid}_sub", f"{rid}_query"], "subjects": [sid]})

@@ -115,16 +115,32 @@ def _split_into_walks(conn: sa.Connection) -> None:
     sequence order (lightweight table stubs: a migration never imports the models, which move on)."""
     md = sa.MetaData()
     device = sa.Table("device", md, sa.Column("id"), sa.Column("site_id"), sa.Column("model"))
-    batch = sa.Table("batch", md, sa.Column("id"), sa.Column("device_id"), sa.Column("seq"), sa.Column("n_steps"), sa.Column("n_scans"),
-                     sa.Column("n_marks"), sa.Column("walk_id"))
+    batch = sa.Table(
+        "batch",
+        md,
+        sa.Column("id"),
+        sa.Column("device_id"),
+        sa.Column("seq"),
+        sa.Column("n_steps"),
+        sa.Column("n_scans"),
+        sa.Column("n_marks"),
+        sa.Column("walk_id"),
+    )
     step = sa.Table("step", md, sa.Column("batch_id"), sa.Column("t"))
     scan = sa.Table("scan", md, sa.Column("batch_id"), sa.Column("t"))
     mark = sa.Table("survey_mark", md, sa.Column("batch_id"), sa.Column("t"), sa.Column("floor"))
     fix = sa.Table("fix", md, sa.Column("device_id"), sa.Column("t"), sa.Column("floor"))
-    walk = sa.Table("walk", md, sa.Column("id", sa.Integer(), primary_key=True), sa.Column("created_at", sa.DateTime(timezone=True)),
-                    sa.Column("updated_at", sa.DateTime(timezone=True)),
-                    *(sa.Column(c) for c in ("site_id", "device_id", "t_start", "t_end", "device_model", "end_reason",
-                                             "n_batches", "n_steps", "n_scans", "n_marks")))
+    walk = sa.Table(
+        "walk",
+        md,
+        sa.Column("id", sa.Integer(), primary_key=True),
+        sa.Column("created_at", sa.DateTime(timezone=True)),
+        sa.Column("updated_at", sa.DateTime(timezone=True)),
+        *(
+            sa.Column(c)
+            for c in ("site_id", "device_id", "t_start", "t_end", "device_model", "end_reason", "n_batches", "n_steps", "n_scans", "n_marks")
+        ),
+    )
     walk_floor = sa.Table("walk_floor", md, sa.Column("walk_id"), sa.Column("floor"), sa.Column("t_first"))
 
     # each batch's record time span, over its steps, scans and marks
@@ -140,12 +156,13 @@ def _split_into_walks(conn: sa.Connection) -> None:
     for dev, t, floor in conn.execute(sa.select(fix.c.device_id, fix.c.t, fix.c.floor).where(fix.c.floor.is_not(None), fix.c.floor != "")):
         fix_floors.setdefault(dev, []).append((t, floor))
 
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     for dev_id, site_id, model in conn.execute(sa.select(device.c.id, device.c.site_id, device.c.model).order_by(device.c.id)).all():
         walks: list[dict] = []  # in the order opened; the last one is the device's open walk
         members: list[list[int]] = []
-        for bid, n_steps, n_scans, n_marks in conn.execute(sa.select(batch.c.id, batch.c.n_steps, batch.c.n_scans, batch.c.n_marks)
-                                                           .where(batch.c.device_id == dev_id).order_by(batch.c.seq)).all():
+        for bid, n_steps, n_scans, n_marks in conn.execute(
+            sa.select(batch.c.id, batch.c.n_steps, batch.c.n_scans, batch.c.n_marks).where(batch.c.device_id == dev_id).order_by(batch.c.seq)
+        ).all():
             sp = span.get(bid)
             if sp is None:  # no records: joins the open walk, if any
                 if walks:
@@ -156,8 +173,21 @@ def _split_into_walks(conn: sa.Connection) -> None:
             if w is None or max(sp[0] - w["t_end"], w["t_start"] - sp[1]) > IDLE_GAP_S:
                 if w is not None:
                     w["end_reason"] = "idle"
-                w = {"site_id": site_id, "device_id": dev_id, "t_start": sp[0], "t_end": sp[1], "device_model": model or "", "end_reason": "open",
-                     "n_batches": 0, "n_steps": 0, "n_scans": 0, "n_marks": 0, "created_at": now, "updated_at": now, "floors": {}}
+                w = {
+                    "site_id": site_id,
+                    "device_id": dev_id,
+                    "t_start": sp[0],
+                    "t_end": sp[1],
+                    "device_model": model or "",
+                    "end_reason": "open",
+                    "n_batches": 0,
+                    "n_steps": 0,
+                    "n_scans": 0,
+                    "n_marks": 0,
+                    "created_at": now,
+                    "updated_at": now,
+                    "floors": {},
+                }
                 walks.append(w)
                 members.append([])
             w["t_start"], w["t_end"] = min(w["t_start"], sp[0]), max(w["t_end"], sp[1])
