@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from ..errors import BadInput, MissingData
@@ -145,6 +146,16 @@ def input_error_status(exc: BaseException) -> int | None:
     if isinstance(exc, RuntimeError):
         return 1
     return None
+
+
+def report_input_error(path, exc: BaseException) -> int:
+    """One line on stderr for an input a per-file command could not use, and its exit status
+    (:func:`input_error_status`); a bug is re-raised with its traceback."""
+    code = input_error_status(exc)
+    if code is None:
+        raise exc
+    print(f"{path}: error: {one_line(exc)}", file=sys.stderr)
+    return code
 
 
 def one_line(exc: BaseException) -> str:

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
-from ._common import input_error_status, one_line
+from ._common import report_input_error
 
 
 def _cmd_data_inspect(args: argparse.Namespace) -> int:
@@ -16,11 +15,7 @@ def _cmd_data_inspect(args: argparse.Namespace) -> int:
         try:
             print(inspect_file(p, args.format, args.rate).render())
         except Exception as exc:  # one line per unreadable input, then the next input
-            code = input_error_status(exc)
-            if code is None:
-                raise
-            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
-            status = max(status, code)
+            status = max(status, report_input_error(p, exc))
         print()
     return status
 

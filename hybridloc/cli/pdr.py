@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import BadInput
-from ._common import LENGTH_MODELS, input_error_status, load_imu, one_line, open_calibration
+from ._common import LENGTH_MODELS, load_imu, open_calibration, report_input_error
 
 
 def _cmd_pdr_phone(args: argparse.Namespace) -> int:
@@ -24,11 +24,7 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
         try:
             imu, report, device, marks = load_imu(p, args.format, None, args.accel_unit)
         except Exception as exc:  # one line per unreadable input, then the next input
-            code = input_error_status(exc)
-            if code is None:
-                raise
-            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
-            status = max(status, code)
+            status = max(status, report_input_error(p, exc))
             continue
         model = cal.model if cal is not None else make_model(args.model)
         cfg = PhonePdrConfig(detector=args.detector, walking_offset=args.offset, estimate_offset=args.estimate_offset)
@@ -88,11 +84,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             if not 50.0 <= imu.rate_hz <= 2000.0:
                 raise BadInput(f"sample rate {imu.rate_hz:.1f} Hz is implausible for a foot-mounted IMU (50-2000 Hz)")
         except Exception as exc:  # one line per unreadable input, then the next input
-            code = input_error_status(exc)
-            if code is None:
-                raise
-            print(f"{p}: error: {one_line(exc)}", file=sys.stderr)
-            status = max(status, code)
+            status = max(status, report_input_error(p, exc))
             continue
         res = run_foot_ins(imu, FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward))
         d = out / stem_of(p)
