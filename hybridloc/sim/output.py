@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import gzip
+import io
 import json
 import math
 import os
@@ -154,7 +155,8 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
         lines.append((ms(t), 5, f"{ms(t)}\tTYPE_WAYPOINT\t{x:.4f}\t{y:.4f}\t{world.floor_name(floor)}"))
     lines.sort(key=lambda r: (r[0], r[1]))
     fl = world.floor_name(walk.start[2])
-    with gzip.open(path, "wt", encoding="utf-8", compresslevel=3) as f:
+    # mtime=0: the same walk gives the same bytes (gzip otherwise stamps the wall-clock time in its header)
+    with io.TextIOWrapper(gzip.GzipFile(path, "wb", compresslevel=3, mtime=0), encoding="utf-8") as f:
         f.write(f"#\tstartTime:{ms(walk.t0)}\n#\tSiteID:sim-{world.seed}\tSiteName:simulated building {world.seed}\tFloorId:{fl}\tFloorName:{fl}\n")
         f.write(f"#\tBrand:{brand}\tModel:{model}\tAndroidName:sim\tAPILevel:0\n")
         # the sensors' full scale, as Android reports it (type 1 accelerometer, 4 gyroscope)
