@@ -127,6 +127,14 @@ def _dumps(msg: dict, compact: bool = False) -> bytes:
 
 
 # ---------------------------------------------------------------------------------------------- shared parts
+def _id(value: object, what: str) -> str:
+    """A site or device id (:func:`~.protocol.check_id`), refused as ``bad-id``."""
+    try:
+        return check_id(value, what)
+    except ValueError as exc:
+        raise Rejected("bad-id", str(exc)) from None
+
+
 def step_to_dict(s: StepEvent) -> dict:
     """A step as the wire writes it (optional fields only when set)."""
     d: dict[str, Any] = {"t": s.t, "length": s.length, "heading": s.heading, "sigma_length": s.sigma_length, "sigma_heading": s.sigma_heading}
@@ -231,10 +239,7 @@ class BatchCodec(Codec[Batch]):
     def decode(self, payload: bytes, site: str | None = None, device: str | None = None) -> Batch:
         """The batch in ``payload``; ``site``/``device``: the ids its key names (``key-mismatch`` otherwise)."""
         msg = _load(payload, BATCH_SCHEMA, MAX_BATCH_BYTES)
-        try:
-            b_site, b_device = check_id(msg.get("site"), "site"), check_id(msg.get("device"), "device")
-        except ValueError as exc:
-            raise Rejected("bad-id", str(exc)) from None
+        b_site, b_device = _id(msg.get("site"), "site"), _id(msg.get("device"), "device")
         if (site is not None and b_site != site) or (device is not None and b_device != device):
             raise Rejected("key-mismatch", f"payload says {b_site}/{b_device}, key says {site}/{device}")
         seq = msg.get("seq")
@@ -267,10 +272,7 @@ class AckCodec(Codec[Ack]):
 
     def decode(self, payload: bytes) -> Ack:
         msg = _load(payload, ACK_SCHEMA)
-        try:
-            device = check_id(msg.get("device"), "device")
-        except ValueError as exc:
-            raise Rejected("bad-id", str(exc)) from None
+        device = _id(msg.get("device"), "device")
         seq = msg.get("acked_seq")
         if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
             raise Rejected("bad-seq", repr(seq))
@@ -422,10 +424,7 @@ class MapInfoCodec(Codec[MapInfo]):
 
     def decode(self, payload: bytes) -> MapInfo:
         msg = _load(payload, None)
-        try:
-            site = check_id(msg.get("site"), "site")
-        except ValueError as exc:
-            raise Rejected("bad-id", str(exc)) from None
+        site = _id(msg.get("site"), "site")
         v = msg.get("version")
         if not isinstance(v, int) or isinstance(v, bool) or v < 1:
             raise Rejected("bad-value", f"map version {v!r}")
