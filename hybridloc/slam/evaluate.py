@@ -105,6 +105,12 @@ def _peak_mb() -> float:
     return max(self_kb, child_kb) / 1024.0
 
 
+def _load_walks(paths: list[Path], marks: list[bool], workers: int, progress) -> list:
+    from .walkgraph import walks_from_files
+
+    return walks_from_files(paths, marks=marks, workers=workers, progress=progress)
+
+
 def run_slam_eval(
     site_dir: str,
     survey_fraction: float = 0.1,
@@ -117,7 +123,6 @@ def run_slam_eval(
     from .. import geo
     from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_waypoints
     from ..progress import Progress
-    from .walkgraph import walks_from_files
 
     if not 0.0 <= survey_fraction <= 1.0 or not 0.0 < data_fraction <= 1.0:
         raise ValueError("--survey-fraction must be in [0, 1] and --data-fraction in (0, 1]")
@@ -149,7 +154,7 @@ def run_slam_eval(
                 roles[p] = "crowd"
     order = [p for p in sorted(roles, key=lambda p: p.name)]
     bar = Progress("[eval slam] reading walks (phone PDR)", len(order))
-    loaded = walks_from_files(order, marks=[roles[p] == "survey" for p in order], workers=workers, progress=lambda i, n: bar.update(i))
+    loaded = _load_walks(order, [roles[p] == "survey" for p in order], workers, lambda i, n: bar.update(i))
     bar.close()
     W = []
     for p, (walk, wp) in zip(order, loaded):
@@ -178,7 +183,7 @@ def run_slam_eval(
             w = crowd_side[pc.walk]
             if w.role != "crowd":
                 continue
-            n_sc = int((pc.scan >= 0).sum())
+            n_sc = len(pc.scans)
             c = cover.setdefault(fname, [0, 0])
             c[1] += n_sc
             if fs.status[k] == RELATIVE:

@@ -4,7 +4,8 @@ Files in the output folder:
 
 * ``tracks.csv``: ``walk,t,x,y,floor,sigma_x,sigma_y,anchored`` - every step and node of every walk,
   corrected (m, site frame, s); ``anchored`` is how the walk is tied to the site frame: ``marks``
-  (survey marks), ``map`` (radio-map fixes), ``plan`` (placed on the floor plan) or ``relative`` (no
+  (survey marks), ``map`` (radio-map fixes), ``loops`` (loops to walks that have either), ``plan``
+  (its group placed on the floor plan) or ``relative`` (no
   absolute position: x, y are in the walk group's own frame and must not be used as positions);
 * ``raw.csv``: the same columns for the dead-reckoned walks as recorded (each in its own frame, started
   at its first corrected position), for drawing raw against corrected;

@@ -29,10 +29,14 @@ import numpy as np
 
 from ..radio.survey import LabelledScan
 from ..types import FloorPlan, RfScan, Walk
+from .register import RegisterConfig, register_walk
 from .walkgraph import KIND_SCAN, WalkGraphConfig, WalkPiece, walk_pieces
 
-#: anchored-status of a walk piece (tracks.csv "anchored" column)
-MARKS, MAP, PLAN, RELATIVE = "marks", "map", "plan", "relative"
+#: two scans of one walk this far apart in time are independent looks at the place (slam.md 4.3: 4 s)
+MIN_PAIR_DT_S = 4.0
+#: anchored-status of a walk piece (tracks.csv "anchored" column): its own survey marks, fixes from a radio
+#: map, loops to walks that have either, the floor plan (a component placed by search), or none
+MARKS, MAP, LOOPS, PLAN, RELATIVE = "marks", "map", "loops", "plan", "relative"
 
 
 @dataclass
@@ -43,6 +47,9 @@ class SlamConfig:
     #: radio-map fixes: their own covariance, at least this sd, under a Cauchy kernel of this width
     fix_sigma_floor_m: float = 3.0
     fix_kernel_c: float = 1.0
+    #: a fix is used only when its scan is as close to the map as this quantile of the map's own
+    #: neighbours where it covers the place (mapped_distance_gate)
+    fix_gate_quantile: float = 0.9
     #: a fix whose map-floor probability is below this is not used
     fix_min_floor_prob: float = 0.6
     #: walkable-area factor: r = max(0, d(p) - margin) / sigma on nodes and edge midpoints
@@ -61,6 +68,7 @@ class SlamConfig:
     #: kNN locator settings of the EM fixes (the server's: k = 5, readings up to 8 s old)
     knn_k: int = 5
     knn_max_age_s: float = 8.0
+    register: RegisterConfig = field(default_factory=RegisterConfig)
     frontend: object | None = None  # FrontendConfig
     solve: object | None = None  # SolveOptions
 
@@ -116,7 +124,7 @@ class FloorSolution:
         ab = self.nuisance[pc.nuisance[seg]]
         a, b = ab[:, 0:1], ab[:, 1:2]
 
-        def M(v):  # (a, b) acting on v: a v + b perp(v)
+        def M(v, a=a, b=b):  # (a, b) acting on v: a v + b perp(v)
             return a * v + b * np.column_stack([-v[:, 1], v[:, 0]])
 
         qi = np.column_stack([np.interp(pc.t[i], pc.step_t, pc.step_q[:, 0]), np.interp(pc.t[i], pc.step_t, pc.step_q[:, 1])])
@@ -126,8 +134,8 @@ class FloorSolution:
         u = np.clip(np.where(dt > 0, (t - pc.t[i]) / np.where(dt > 0, dt, 1.0), 0.0), 0.0, 1.0)[:, None]
         out = P[i] + M(q - qi) + u * close
         before, after = t < pc.t[0], t > pc.t[-1]
-        out[before] = P[0] + M(q[before] - pc.q[0])
-        out[after] = P[-1] + M(q[after] - pc.q[-1])
+        out[before] = P[0] + M(q[before] - pc.q[0], a[before], b[before])
+        out[after] = P[-1] + M(q[after] - pc.q[-1], a[after], b[after])
         return out
 
     def track_sigma(self, k: int, t: np.ndarray) -> np.ndarray:
@@ -211,9 +219,41 @@ class _Anchors:
     fixes: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
 
-def locate_pieces(pieces: list[WalkPiece], locate: Callable[[list[RfScan]], list], cfg: SlamConfig, technology: str = "wifi") -> dict[int, list]:
+def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000) -> float:
+    """The fingerprint distance below which a scan is explained by a map of ``refs`` (no ground truth:
+    the references' own labels). For each reference, the nearest other reference whose label lies within
+    ``radius_m`` - of another walk, or of the same walk at least ``MIN_PAIR_DT_S`` apart (an independent
+    scan of the same place): the distance a scan has to the map where the map covers its place. The
+    gate is the ``cfg.fix_gate_quantile`` quantile of those distances; a scan farther from every
+    reference comes from a place the map does not cover, and its fix (the nearest mapped place,
+    whatever the distance) is not used."""
+    from ..radio.locate import KnnLocator
+
+    if len(refs) < 10:
+        return math.inf
+    loc = KnnLocator(refs, k=min(30, len(refs)), max_age_s=cfg.knn_max_age_s)
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(refs), size=min(n_max, len(refs)), replace=False)
+    dist, nb = loc.nearest([refs[i].scan for i in idx])
+    pos = np.array([r.pos_enu for r in refs])
+    src = np.array([r.source for r in refs])
+    tt = np.array([r.scan.t for r in refs])
+    out = []
+    for row, i in enumerate(idx):
+        other = (src[nb[row]] != src[i]) | (np.abs(tt[nb[row]] - tt[i]) >= MIN_PAIR_DT_S)
+        ok = other & (np.linalg.norm(pos[nb[row]] - pos[i], axis=1) <= radius_m)
+        if ok.any():
+            out.append(float(dist[row][ok][0]))
+    return float(np.quantile(out, cfg.fix_gate_quantile)) if len(out) >= 20 else math.inf
+
+
+def locate_pieces(
+    pieces: list[WalkPiece], locate: Callable[[list[RfScan]], list], cfg: SlamConfig, technology: str = "wifi", nearest=None, gate: float = math.inf
+) -> dict[int, list]:
     """Fixes for the scan nodes of each piece from a locator (``locate_many``-like callable):
-    {piece index: [(node index in piece, pos (2,), cov (2, 2))]}; fixes on another floor are dropped."""
+    {piece index: [(node index in piece, pos (2,), cov (2, 2))]}; fixes on another floor are dropped,
+    and with ``nearest`` (the locator's ``nearest``) those of scans farther than ``gate`` from every
+    reference (:func:`mapped_distance_gate`)."""
     out: dict[int, list] = {}
     batch, where = [], []
     for k, pc in enumerate(pieces):
@@ -224,8 +264,13 @@ def locate_pieces(pieces: list[WalkPiece], locate: Callable[[list[RfScan]], list
                 where.append((k, int(i)))
     if not batch:
         return out
-    for (k, i), res in zip(where, locate(batch)):
+    far = np.zeros(len(batch), bool)
+    if nearest is not None and math.isfinite(gate):
+        far = nearest(batch)[0][:, 0] > gate
+    for (k, i), res, too_far in zip(where, locate(batch), far):
         fx = getattr(res, "fix", None)
+        if too_far:
+            continue
         if fx is None or (fx.floor and fx.floor != pieces[k].floor) or fx.floor_prob < cfg.fix_min_floor_prob:
             continue
         out.setdefault(k, []).append((i, np.asarray(fx.pos_enu, float)[:2], _fix_cov(fx.cov, cfg.fix_sigma_floor_m)))
@@ -247,6 +292,7 @@ class FloorSlam:
         self.loops: list = []
         self.map_fixes: dict[int, list] = {}
         self.em_fixes: dict[int, list] = {}
+        self.registrations: dict = {}
 
     # -------------------------------------------------------------- front end
     def _walk_scans(self) -> list:
@@ -294,20 +340,25 @@ class FloorSlam:
             ids = g.add_nodes(init[k])
             local0[k] = int(ids[0])
         nuis: dict[int, np.ndarray] = {}
+        ii, jj, DD, SS, KK = [], [], [], [], []
+        wc = cfg.walk
         for k in pieces_idx:
             pc = self.pieces[k]
-            T0 = init.get(("T", k), np.eye(2)) if isinstance(init.get(("T", k)), np.ndarray) else np.eye(2)
-            ab0 = (float(T0[0, 0]), float(T0[1, 0]))
-            ks = np.array([g.add_nuisance(ab0) for _ in range(pc.n_segments)], dtype=np.int64)
+            T0 = init.get(("T", k)) if isinstance(init.get(("T", k)), np.ndarray) else np.eye(2)
+            ks = np.asarray(g.add_nuisances(np.tile([float(T0[0, 0]), float(T0[1, 0])], (pc.n_segments, 1))), dtype=np.int64)
             nuis[k] = ks
-            wc = cfg.walk
             g.add_nuisance_prior(int(ks[0]), (1.0, 0.0), np.diag([wc.scale_sd**2, wc.bias_sd**2]))
-            for m in range(1, len(ks)):
-                g.add_nuisance_link(int(ks[m - 1]), int(ks[m]), np.diag([wc.scale_drift_sd**2, wc.bias_drift_sd**2]))
+            if len(ks) > 1:
+                g.add_nuisance_links_many(ks[:-1], ks[1:], np.tile(np.diag([wc.scale_drift_sd**2, wc.bias_drift_sd**2]), (len(ks) - 1, 1, 1)))
             D, S = pc.odometry()
             base = local0[k]
-            for e in range(pc.n - 1):
-                g.add_odometry(base + e, base + e + 1, D[e], S[e], int(ks[pc.segment[e]]))
+            ii.append(base + np.arange(pc.n - 1))
+            jj.append(base + np.arange(1, pc.n))
+            DD.append(D)
+            SS.append(S)
+            KK.append(ks[pc.segment])
+        if ii:
+            g.add_odometry_many(np.concatenate(ii), np.concatenate(jj), np.concatenate(DD), np.concatenate(SS), np.concatenate(KK))
         priors: list[tuple[int, str]] = []
         for k in pieces_idx:
             base = local0[k]
@@ -332,13 +383,13 @@ class FloorSlam:
             gid = g.add_loop(ia, ib, np.eye(2) * lp.sigma_in**2, kernel=Kernel("gm", cfg.loop_kernel_c))
             loop_ids.append((li, gid))
         if with_field and self.field is not None:
-            for k in pieces_idx:
-                pc = self.pieces[k]
-                nodes = local0[k] + np.arange(pc.n)
-                g.add_field(nodes, self.field, cfg.field_sigma_m, cfg.field_margin_m)
-                for e in range(pc.n - 1):
-                    if np.hypot(*(pc.q[e + 1] - pc.q[e])) > 1.0:
-                        g.add_edge_field(int(nodes[e]), int(nodes[e + 1]), self.field, cfg.field_sigma_m, cfg.field_margin_m, fractions=(0.5,))
+            nodes = np.concatenate([local0[k] + np.arange(self.pieces[k].n) for k in pieces_idx])
+            g.add_field(nodes, self.field, cfg.field_sigma_m, cfg.field_margin_m)
+            # the middle of every edge longer than 1 m (a wall between two nodes is what it catches)
+            ei = [local0[k] + e for k in pieces_idx for e in np.flatnonzero(np.linalg.norm(np.diff(self.pieces[k].q, axis=0), axis=1) > 1.0)]
+            if ei:
+                ei = np.asarray(ei, dtype=np.int64)
+                g.add_edge_field(ei, ei + 1, self.field, cfg.field_sigma_m, cfg.field_margin_m, fractions=(0.5,))
         return g, local0, nuis, loop_ids
 
     def _piece_of_node(self, node: int) -> int:
@@ -354,13 +405,22 @@ class FloorSlam:
         self._number()
         n_p = len(self.pieces)
         anchors = _Anchors()
+        self.registrations = {}
         for k, pc in enumerate(self.pieces):
             mk = [(int(i), np.array([pc.marks[int(pc.mark[i])].x, pc.marks[int(pc.mark[i])].y])) for i in np.flatnonzero(pc.mark >= 0)]
             if mk:
                 anchors.marks[k] = mk
             fx = self.map_fixes.get(k, []) + self.em_fixes.get(k, [])
-            if fx:
-                anchors.fixes[k] = fx
+            if fx and k not in anchors.marks:
+                # a walk is placed by its fixes only when they agree on one placement (register.py)
+                qf = np.array([pc.q[i] for i, _, _ in fx])
+                zf = np.array([z for _, z, _ in fx])
+                sd = np.array([math.sqrt(float(np.linalg.eigvalsh(R).max())) for _, _, R in fx])
+                reg = register_walk(qf, zf, sd, pc.step_q, self.field, cfg.register)
+                self.registrations[k] = reg
+                if reg.placed:
+                    near = np.linalg.norm(qf @ reg.T.T + reg.t - zf, axis=1) <= 2.0 * cfg.register.support_m
+                    anchors.fixes[k] = [f for f, ok in zip(fx, near) if ok]
         comp = _components(n_p, [(self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)) for lp in self.loops if lp.accepted])
         status = [RELATIVE] * n_p
         init: dict = {}
@@ -377,18 +437,15 @@ class FloorSlam:
                     src = [self.pieces[k].q[i] for i, _ in pts]
                     dst = [z for _, z in pts]
                     if not pts and anchors.fixes.get(k):
-                        src = [self.pieces[k].q[i] for i, _, _ in anchors.fixes[k]]
-                        dst = [z for _, z, _ in anchors.fixes[k]]
-                        # fixes are noisy: translation only, by the median offset
-                        off = np.median(np.asarray(dst) - np.asarray(src), axis=0)
-                        own[k] = (np.eye(2), off)
+                        reg = self.registrations[k]
+                        own[k] = (reg.T, reg.t)
                         continue
                     if pts:
                         own[k] = _similarity_fit(np.asarray(src), np.asarray(dst))
                 rel = self._relative_layout(members, own)
                 for k in members:
                     init[k] = rel[k]
-                    status[k] = MARKS if k in anchors.marks else MAP if k in anchors.fixes else MAP
+                    status[k] = MARKS if k in anchors.marks else MAP if k in anchors.fixes else LOOPS
                 continue
             rel = self._relative_layout(members, {})
             if self.field is None:
@@ -506,18 +563,31 @@ class FloorSlam:
 
 
 # ------------------------------------------------------------------------------------------ site level
-def _labels(fs: FloorSolution, walk_of_piece: list[int]) -> tuple[list[LabelledScan], list[int], list[np.ndarray]]:
-    out, wk, moved = [], [], []
+def _labels(fs: FloorSolution, walk_of_piece: list[int]) -> tuple[list[LabelledScan], list[int]]:
+    """Every scan of every anchored piece with its position and sd: node scans from their node (position
+    and marginal covariance), the others (BLE) from the corrected track at their time."""
+    out, wk = [], []
     for k, pc in enumerate(fs.pieces):
         if not fs.anchored(k):
             continue
-        for i in np.flatnonzero(pc.scan >= 0):
-            n = pc.node0 + int(i)
-            c = fs.cov[n]
-            sig = float(math.sqrt(max(0.5 * (c[0, 0] + c[1, 1]), 0.0))) if np.all(np.isfinite(c)) else 5.0
-            out.append(LabelledScan(pc.scans[int(pc.scan[i])], fs.pos[n].copy(), sig, fs.floor, pc.name))
+        at_node = {int(pc.scan[i]): pc.node0 + int(i) for i in np.flatnonzero(pc.scan >= 0)}
+        rest = [j for j in range(len(pc.scans)) if j not in at_node]
+        if rest:
+            tr = np.array([pc.scans[j].t for j in rest])
+            xy, sd = fs.track(k, tr), fs.track_sigma(k, tr)
+        for j, s in enumerate(pc.scans):
+            if j in at_node:
+                n = at_node[j]
+                c = fs.cov[n]
+                sig = float(math.sqrt(max(0.5 * (c[0, 0] + c[1, 1]), 0.0))) if np.all(np.isfinite(c)) else 5.0
+                pos = fs.pos[n].copy()
+            else:
+                r = rest.index(j)
+                pos = xy[r]
+                sig = float(np.sqrt(0.5 * (sd[r] ** 2).sum())) if np.all(np.isfinite(sd[r])) else 5.0
+            out.append(LabelledScan(s, pos, sig, fs.floor, pc.name))
             wk.append(walk_of_piece[k])
-    return out, wk, moved
+    return out, wk
 
 
 def run_slam(
@@ -553,6 +623,7 @@ def run_slam(
     locator = None
     if radio_map is not None and radio_map.references:
         locator = KnnLocator(radio_map.references, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
+        map_gate = mapped_distance_gate(radio_map.references, cfg)
     total = len(by_floor)
     for n_done, (fname, pieces) in enumerate(sorted(by_floor.items())):
         if progress:
@@ -561,7 +632,7 @@ def run_slam(
         fsl._number()
         fsl.detect_loops()
         if locator is not None:
-            fsl.map_fixes = locate_pieces(pieces, locator.locate_many, cfg, radio_map.technology)
+            fsl.map_fixes = locate_pieces(pieces, locator.locate_many, cfg, radio_map.technology, locator.nearest, map_gate)
         if progress:
             progress("solve", fname, n_done, total)
         fs = fsl.solve()
@@ -572,7 +643,7 @@ def run_slam(
     for rnd in range(cfg.em_rounds):
         labels, label_walk = [], []
         for fname, fs in floors.items():
-            lb, wk, _ = _labels(fs, walk_of[fname])
+            lb, wk = _labels(fs, walk_of[fname])
             labels += lb
             label_walk += wk
         wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
@@ -587,11 +658,12 @@ def run_slam(
             if len(refs) < 10:
                 continue
             loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
+            gate = mapped_distance_gate(refs, cfg)
             for fsl in slams.values():
                 sel = [k for k, pc in enumerate(fsl.pieces) if folds[pc.walk] == f]
                 if not sel:
                     continue
-                got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi")
+                got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi", loc.nearest, gate)
                 for j, v in got.items():
                     fsl.em_fixes[sel[j]] = v
         for n_done, (fname, fsl) in enumerate(sorted(slams.items())):
@@ -610,7 +682,7 @@ def run_slam(
             break
     labels, label_walk = [], []
     for fname, fs in floors.items():
-        lb, wk, _ = _labels(fs, walk_of[fname])
+        lb, wk = _labels(fs, walk_of[fname])
         labels += lb
         label_walk += wk
     if progress:

@@ -1,6 +1,7 @@
 """A walk as part of the crowd graph: its nodes, their dead-reckoned positions and odometry.
 
-Nodes (slam.md 4.2): one per RF scan (at the scan's time), one at each sharp turn (the heading
+Nodes (slam.md 4.2): one per WiFi scan (at the scan's time; other technologies are labelled from the
+corrected track), one at each sharp turn (the heading
 changes by more than ``turn_deg`` within ``turn_window`` steps), one at each survey mark, and one at
 the walk's start and end. A walk that changes floor is cut into pieces, one per floor (the stairs
 between them carry no node: their horizontal motion is not what the floor graph models).
@@ -59,6 +60,9 @@ class WalkGraphConfig:
     bias_drift_sd: float = 0.05
     #: readings older than this at scan time are stale (slam.md 3.1: 4 s on site1)
     max_age_s: float = 4.0
+    #: scans of these technologies are graph nodes (loops and fixes act on them); the others (BLE
+    #: adverts, several per second) are labelled from the corrected track at their time
+    node_technologies: tuple[str, ...] = ("wifi",)
 
 
 @dataclass
@@ -175,7 +179,8 @@ def _piece(walk: Walk, index: int, name: str, floor: str, steps: list[StepEvent]
     marks = [m for m in walk.marks if t_lo <= m.t <= t_hi and (not m.floor or m.floor == floor)]
     times: list[tuple[float, int, int, int]] = [(t_lo, KIND_END, -1, -1), (float(st[-1]), KIND_END, -1, -1)]
     for i, s in enumerate(scans):
-        times.append((min(max(scan_node_time(s, cfg.max_age_s), t_lo), t_hi), KIND_SCAN, i, -1))
+        if s.technology.value in cfg.node_technologies:
+            times.append((min(max(scan_node_time(s, cfg.max_age_s), t_lo), t_hi), KIND_SCAN, i, -1))
     for i, m in enumerate(marks):
         times.append((m.t, KIND_MARK, -1, i))
     # sharp turns: heading change over turn_window steps beyond turn_deg; one node per turn (its middle step)
