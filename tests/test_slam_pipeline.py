@@ -218,7 +218,7 @@ def test_slam_run_and_show_write_their_files(small_site, tmp_path):
     assert main(["slam", "run", str(small_site), "--out", str(out2), "--marks", "strip", "--workers", "1"]) == 0
     with open(out2 / "tracks.csv") as fh:
         kinds = {r["anchored"] for r in csv.DictReader(fh)}
-    assert kinds <= {"plan", "relative", "loops"}
+    assert "marks" not in kinds and kinds <= {"plan", "relative", "loops", "map"}
 
 
 def test_slam_show_refuses_a_missing_floor(small_site, tmp_path):

@@ -196,6 +196,7 @@ def run_slam_eval(
     # ---------------------------------------------------------------------------- loops
     name_to = {w.path.name.split(".")[0]: w for w in crowd_side}
     loop_ok: dict[str, list[bool]] = {}
+    loop_kind: dict[str, list[str]] = {}
     n_wifi: dict[str, int] = {}
     for fname, fs in res.floors.items():
         n_wifi[fname] = sum(1 for pc in fs.pieces for i in np.flatnonzero(pc.scan >= 0) if pc.scans[int(pc.scan[i])].technology.value == "wifi")
@@ -205,6 +206,7 @@ def run_slam_eval(
             a, b = name_to[lp.walk_a], name_to[lp.walk_b]
             d = float(np.linalg.norm(_truth_at(a.wp, np.array([lp.t_a]))[0] - _truth_at(b.wp, np.array([lp.t_b]))[0]))
             loop_ok.setdefault(fname, []).append(d <= LOOP_TRUE_M)
+            loop_kind.setdefault(fname, []).append(lp.kind)
     # ---------------------------------------------------------------------------- fused test clients
     axes = geo.corridor_axes(plan)
     crowd_refs = [ls for ls in res.labels if ls.scan.technology.value == "wifi"]
@@ -231,12 +233,14 @@ def run_slam_eval(
             ce = _summ(np.concatenate([np.asarray(v, float) for v in crowd_err.values()]) if crowd_err else np.zeros(0))
             cv = [sum(c[0] for c in cover.values()), sum(c[1] for c in cover.values())]
             lk = [x for v in loop_ok.values() for x in v]
+            kinds = [x for v in loop_kind.values() for x in v]
             nw = sum(n_wifi.values())
             sel = np.ones(len(test_floor), bool)
         else:
             ce = _summ(np.asarray(crowd_err.get(fname, []), float))
             cv = cover.get(fname, [0, 0])
             lk = loop_ok.get(fname, [])
+            kinds = loop_kind.get(fname, [])
             nw = n_wifi.get(fname, 0)
             sel = test_floor == fname
         cov_share = cv[0] / cv[1] if cv[1] else float("nan")
@@ -256,7 +260,10 @@ def run_slam_eval(
             f"coverage {100 * cov_share:.1f} % of crowd scans labelled",
             file=out,
         )
-        print(f"    loops: {len(lk)} accepted ({len(lk) / nw if nw else float('nan'):.3f} per WiFi scan), precision at 5 m {prec:.3f}", file=out)
+        by_kind = ", ".join(
+            f"{kd} {sum(1 for x in kinds if x == kd)} at {np.mean([ok for ok, x in zip(lk, kinds) if x == kd]):.3f}" for kd in sorted(set(kinds))
+        )
+        print(f"    loops: {len(lk)} accepted ({len(lk) / nw if nw else float('nan'):.3f} per WiFi scan), precision at 5 m {prec:.3f} ({by_kind})", file=out)
         for k, label in (("survey_only", "survey only"), ("crowd", "survey + crowd"), ("all_marks", "all marks (upper anchor)")):
             s = fs[k]
             print(

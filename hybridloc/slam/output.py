@@ -11,8 +11,10 @@ Files in the output folder:
   at its first corrected position), for drawing raw against corrected;
 * ``tracks.geojson``: one LineString per anchored walk piece (site frame; WGS84 when the plan has a
   geodetic origin);
-* ``loops.csv``: ``walk_a,t_a,walk_b,t_b,similarity,weight,accepted`` plus ``floor,p_inlier,reason`` -
-  every loop candidate, with its final robust weight (the audit trail);
+* ``loops.csv``: ``walk_a,t_a,walk_b,t_b,similarity,weight,accepted`` plus ``floor,p_inlier,reason,kind`` -
+  every loop candidate, with its final robust weight (the audit trail). ``kind`` ``wifi``: a fingerprint
+  loop (``similarity`` in [0, 1]); ``ble``: both walks passed the same beacon (``similarity`` = the
+  weaker of the two peak readings, dBm);
 * ``crowdmap_<technology>.npz``: the crowd radio map of each technology (docs/radiomap.md format).
 """
 
@@ -28,7 +30,7 @@ import numpy as np
 from .pipeline import RELATIVE, LoopRecord, SlamResult
 
 TRACK_COLUMNS = ("walk", "t", "x", "y", "floor", "sigma_x", "sigma_y", "anchored")
-LOOP_COLUMNS = ("walk_a", "t_a", "walk_b", "t_b", "similarity", "weight", "accepted", "floor", "p_inlier", "reason")
+LOOP_COLUMNS = ("walk_a", "t_a", "walk_b", "t_b", "similarity", "weight", "accepted", "floor", "p_inlier", "reason", "kind")
 
 
 def _track_rows(res: SlamResult, raw: bool = False):

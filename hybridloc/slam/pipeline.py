@@ -59,6 +59,10 @@ class SlamConfig:
     plan_anchor_sd_m: float = 3.0
     #: loops: GNC Geman-McClure kernel width (whitened units)
     loop_kernel_c: float = 1.0
+    #: beacon passes (walkgraph): each beacon is an unknown position; a pass puts the walk within this sd
+    #: of it (the spread measured for -65 dBm passes on site1, walkgraph.WalkGraphConfig.beacon_min_dbm),
+    #: under the same GNC kernel as fingerprint loops (a moved or duplicated beacon is an outlier)
+    beacon_sigma_m: float = 3.0
     #: EM rounds with the crowd map, folds of walks left out of each map, stop when labels move less
     em_rounds: int = 2
     em_folds: int = 5
@@ -89,6 +93,7 @@ class LoopRecord:
     reason: str = ""
     node_a: int = -1
     node_b: int = -1
+    kind: str = "wifi"  # "wifi": fingerprint loop; "ble": both walks passed the same beacon
 
 
 @dataclass
@@ -293,6 +298,7 @@ class FloorSlam:
         self.map_fixes: dict[int, list] = {}
         self.em_fixes: dict[int, list] = {}
         self.registrations: dict = {}
+        self.beacons: dict[str, list[tuple[int, int, float]]] = {}
 
     # -------------------------------------------------------------- front end
     def _walk_scans(self) -> list:
@@ -308,6 +314,7 @@ class FloorSlam:
         return out
 
     def detect_loops(self) -> None:
+        self.beacons = self.beacon_passes()
         ws = self._walk_scans()
         self._ws = ws
         if len(ws) >= 2:
@@ -315,6 +322,29 @@ class FloorSlam:
             self.loops = self.detector.detect(ws)
         else:
             self.loops = []
+
+    def beacon_passes(self) -> dict[str, list[tuple[int, int, float]]]:
+        """{beacon id: [(piece, node index in piece, dBm)]} for beacons passed by two or more pieces."""
+        out: dict[str, list] = {}
+        for k, pc in enumerate(self.pieces):
+            for i in np.flatnonzero(pc.beacon >= 0):
+                b = int(pc.beacon[i])
+                out.setdefault(pc.beacons[b], []).append((k, int(i), float(pc.beacon_dbm[b])))
+        return {b: v for b, v in out.items() if len({k for k, _, _ in v}) >= 2}
+
+    def _links(self) -> list[tuple[int, int, int, int]]:
+        """(piece a, node in a, piece b, node in b) of every accepted fingerprint loop and beacon co-pass."""
+        out = []
+        for lp in self.loops:
+            if lp.accepted:
+                ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+                out.append((ka, lp.node_a - self.pieces[ka].node0, kb, lp.node_b - self.pieces[kb].node0))
+        for obs in self.beacons.values():
+            for x in range(len(obs)):
+                for y in range(x + 1, len(obs)):
+                    if obs[x][0] != obs[y][0]:
+                        out.append((obs[x][0], obs[x][1], obs[y][0], obs[y][1]))
+        return out
 
     def _walkable_samples(self) -> np.ndarray | None:
         if self.field is None or not hasattr(self.field, "sample"):
@@ -382,6 +412,17 @@ class FloorSlam:
             ib = local0[kb] + (lp.node_b - self.pieces[kb].node0)
             gid = g.add_loop(ia, ib, np.eye(2) * lp.sigma_in**2, kernel=Kernel("gm", cfg.loop_kernel_c))
             loop_ids.append((li, gid))
+        beacon_ids: list[tuple[str, int, int]] = []  # (beacon, piece, graph loop id)
+        for b, obs in sorted(self.beacons.items()):
+            here = [(k, i) for k, i, _ in obs if k in local0]
+            if len({k for k, _ in here}) < 2:
+                continue
+            init_b = np.mean([init[k][i] for k, i in here], axis=0)
+            bn = int(g.add_nodes(init_b[None, :])[0])
+            for k, i in here:
+                gid = g.add_loop(local0[k] + i, bn, np.eye(2) * cfg.beacon_sigma_m**2, kernel=Kernel("gm", cfg.loop_kernel_c))
+                beacon_ids.append((b, k, gid))
+        self._beacon_loop_ids = beacon_ids
         if with_field and self.field is not None:
             nodes = np.concatenate([local0[k] + np.arange(self.pieces[k].n) for k in pieces_idx])
             g.add_field(nodes, self.field, cfg.field_sigma_m, cfg.field_margin_m)
@@ -421,7 +462,8 @@ class FloorSlam:
                 if reg.placed:
                     near = np.linalg.norm(qf @ reg.T.T + reg.t - zf, axis=1) <= 2.0 * cfg.register.support_m
                     anchors.fixes[k] = [f for f, ok in zip(fx, near) if ok]
-        comp = _components(n_p, [(self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)) for lp in self.loops if lp.accepted])
+        links = self._links()
+        comp = _components(n_p, [(a, b) for a, _, b, _ in links])
         status = [RELATIVE] * n_p
         init: dict = {}
         plan_prior: dict[int, tuple] = {}
@@ -475,6 +517,7 @@ class FloorSlam:
         K = sum(pc.n_segments for pc in self.pieces)
         nuisance = np.tile([1.0, 0.0], (K, 1))
         weights = np.zeros(len(self.loops))
+        beacon_w: dict[tuple[str, int], float] = {}
         k0 = 0
         seg0 = {}
         for k, pc in enumerate(self.pieces):
@@ -504,6 +547,8 @@ class FloorSlam:
                     cov[pc.nodes] = C[local0[k] : local0[k] + pc.n]
             for li, gid in loop_ids:
                 weights[li] = sol.loop_weight[gid]
+            for b, k, gid in self._beacon_loop_ids:
+                beacon_w[(b, k)] = float(sol.loop_weight[gid])
         records = []
         for li, lp in enumerate(self.loops):
             ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
@@ -523,6 +568,21 @@ class FloorSlam:
                     int(lp.node_b),
                 )
             )
+        # beacon co-passes as loops of the audit trail: weight = the smaller of the two passes' weights
+        for b, obs in sorted(self.beacons.items()):
+            for x in range(len(obs)):
+                for y in range(x + 1, len(obs)):
+                    (ka, ia, da), (kb, ib, db) = obs[x], obs[y]
+                    if ka == kb:
+                        continue
+                    w = min(beacon_w.get((b, ka), 0.0), beacon_w.get((b, kb), 0.0))
+                    pa, pb = self.pieces[ka], self.pieces[kb]
+                    records.append(
+                        LoopRecord(
+                            pa.name, float(pa.t[ia]), pb.name, float(pb.t[ib]), min(da, db), w, w >= 0.5, self.floor,
+                            reason="" if w >= 0.5 else "robust-weight", node_a=pa.node0 + ia, node_b=pb.node0 + ib, kind="ble",
+                        )
+                    )
         return FloorSolution(self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0)
 
     def _relative_layout(self, members: list[int], own: dict[int, tuple]) -> dict[int, np.ndarray]:
@@ -538,13 +598,10 @@ class FloorSlam:
             placed[k] = self.pieces[k].q.copy()
         links: dict[int, list] = {}
         mset = set(members)
-        for lp in self.loops:
-            if not lp.accepted:
-                continue
-            ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+        for ka, ia, kb, ib in self._links():
             if ka in mset and kb in mset:
-                links.setdefault(ka, []).append((kb, lp.node_a - self.pieces[ka].node0, lp.node_b - self.pieces[kb].node0))
-                links.setdefault(kb, []).append((ka, lp.node_b - self.pieces[kb].node0, lp.node_a - self.pieces[ka].node0))
+                links.setdefault(ka, []).append((kb, ia, ib))
+                links.setdefault(kb, []).append((ka, ib, ia))
         frontier = list(placed)
         while frontier:
             nxt = []

@@ -37,6 +37,7 @@ KIND_END = 0
 KIND_SCAN = 1
 KIND_TURN = 2
 KIND_MARK = 3
+KIND_BEACON = 4
 #: standard deviation added to every odometry edge, m (nodes at the same time share no step)
 MIN_EDGE_SD_M = 0.05
 
@@ -63,6 +64,11 @@ class WalkGraphConfig:
     #: scans of these technologies are graph nodes (loops and fixes act on them); the others (BLE
     #: adverts, several per second) are labelled from the corrected track at their time
     node_technologies: tuple[str, ...] = ("wifi",)
+    #: beacon passes: a node where a beacon of these technologies is heard strongest, if at least this loud.
+    #: site1 (truth used only to check the physics): beacons heard at >= -65 dBm lie a median 2.2-3.6 m
+    #: from the centre of where all walks heard them so (a -59 dBm-at-1-m iBeacon, path-loss exponent 2-3)
+    beacon_technologies: tuple[str, ...] = ("ble",)
+    beacon_min_dbm: float = -65.0
 
 
 @dataclass
@@ -78,9 +84,12 @@ class WalkPiece:
     C: np.ndarray  # (n, 2, 2) cumulative white dead-reckoning covariance, m^2
     scan: np.ndarray  # (n,) index into ``scans`` of the scan at the node, or -1
     mark: np.ndarray  # (n,) index into ``marks`` of the mark at the node, or -1
+    beacon: np.ndarray  # (n,) index into ``beacons`` of the beacon heard strongest at the node, or -1
     segment: np.ndarray  # (n - 1,) nuisance segment (0, 1, ...) of each odometry edge
     scans: list[RfScan]
     marks: list[SurveyMark]
+    beacons: list[str]  # ids of the beacons this piece passed (heard at >= beacon_min_dbm)
+    beacon_dbm: list[float]  # the strongest reading of each
     step_t: np.ndarray  # (m,) the piece's step times, s
     step_q: np.ndarray  # (m, 2) dead-reckoned positions after each step, walk frame
     device_model: str = ""
@@ -177,12 +186,25 @@ def _piece(walk: Walk, index: int, name: str, floor: str, steps: list[StepEvent]
     st, sq, sC, psi = _step_arrays(steps, cfg, t_lo)
     scans = [s for s in walk.scans if t_lo <= s.t <= t_hi + 5.0 and len(s)]
     marks = [m for m in walk.marks if t_lo <= m.t <= t_hi and (not m.floor or m.floor == floor)]
-    times: list[tuple[float, int, int, int]] = [(t_lo, KIND_END, -1, -1), (float(st[-1]), KIND_END, -1, -1)]
+    times: list[tuple] = [(t_lo, KIND_END, -1, -1), (float(st[-1]), KIND_END, -1, -1)]
     for i, s in enumerate(scans):
         if s.technology.value in cfg.node_technologies:
             times.append((min(max(scan_node_time(s, cfg.max_age_s), t_lo), t_hi), KIND_SCAN, i, -1))
     for i, m in enumerate(marks):
         times.append((m.t, KIND_MARK, -1, i))
+    # beacon passes: for each beacon heard at >= beacon_min_dbm, a node at its strongest advert (the
+    # closest approach; UnLoc's organic landmarks - a strong fixed BLE beacon is heard that loud only
+    # within metres of it)
+    peak: dict[str, tuple[float, float]] = {}
+    for s in scans:
+        if s.technology.value not in cfg.beacon_technologies:
+            continue
+        for b, r in s.rssi_dbm.items():
+            if r >= cfg.beacon_min_dbm and (b not in peak or r > peak[b][1]):
+                peak[b] = (s.t, r)
+    beacons = sorted(peak)
+    for bi, b in enumerate(beacons):
+        times.append((min(max(peak[b][0], t_lo), t_hi), KIND_BEACON, -1, -1, bi))
     # sharp turns: heading change over turn_window steps beyond turn_deg; one node per turn (its middle step)
     w = cfg.turn_window
     if len(psi) > w:
@@ -217,9 +239,12 @@ def _piece(walk: Walk, index: int, name: str, floor: str, steps: list[StepEvent]
         C=C,
         scan=np.array([r[2] for r in merged], dtype=np.int64),
         mark=np.array([r[3] for r in merged], dtype=np.int64),
+        beacon=np.array([r[4] if len(r) > 4 else -1 for r in merged], dtype=np.int64),
         segment=seg.astype(np.int64),
         scans=scans,
         marks=marks,
+        beacons=beacons,
+        beacon_dbm=[peak[b][1] for b in beacons],
         step_t=st,
         step_q=sq,
         device_model=walk.device_model,
@@ -266,6 +291,7 @@ def walk_from_ilc(path: str | Path, marks: bool = True, technologies: tuple[str,
 
 
 __all__ = [
+    "KIND_BEACON",
     "KIND_END",
     "KIND_MARK",
     "KIND_SCAN",
