@@ -1,0 +1,1 @@
+"""Crowd SLAM: loop front end, factor graph, floor plan anchoring and pipeline (issue #20)."""
