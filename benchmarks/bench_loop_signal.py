@@ -12,7 +12,12 @@ inverted index, mutual top-k, the within-walk distance model, PCM) and prints:
   ``P_model`` at the same rate.
 * **truth figures** (printed for the report; never used to choose or fit anything): P(d < 5 m) of the
   candidates at each rate and of the loops PCM accepted, with d the distance between the two scans'
-  waypoint-interpolated positions; accepted loops per scan.
+  waypoint-interpolated positions; accepted loops per scan; the share of accepted loops within the
+  99 % radius ``3.03 sigma_in`` of their own model; and the error of each linked walk pair's clique-mean
+  translation (``pair_translations``) against the translation the waypoints imply over the clique's scans.
+
+The choice: the highest no-truth score; the per-walk offset removal only if it adds >= 0.01 to it.
+Figures and the choice are written in the docstring of :mod:`hybridloc.slam.frontend`.
 
 Positions in each walk's own frame: phone PDR (``PhonePdr(rate, make_model("height"), heading0=None)``,
 absolute heading) and :class:`hybridloc.pdr.deadreckoning.DeadReckoning` (positions and covariance) at
@@ -42,6 +47,7 @@ from hybridloc.pdr.deadreckoning import DeadReckoning
 from hybridloc.pdr.phone import PhonePdr
 from hybridloc.pdr.steplength import make_model
 from hybridloc.slam.frontend import (
+    CHI2_2_99,
     MEASURES,
     FrontendConfig,
     LoopDetector,
@@ -49,12 +55,15 @@ from hybridloc.slam.frontend import (
     fit_mixture,
     index_pairs,
     pair_similarity,
+    pair_translations,
     scan_time,
     top_k,
 )
 
 SITE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "msft-ilc" / "site1"
 RATES = (0.05, 0.1, 0.2)
+#: The per-walk offset removal is chosen only if it raises the no-truth score by at least this much.
+OFFSET_MARGIN = 0.01
 
 
 def load_site(site: Path, cache: str | None) -> list[dict]:
@@ -159,12 +168,25 @@ def evaluate(walks: list[WalkScans], truth: dict[int, np.ndarray], cfg: Frontend
         for i, n in enumerate(w.node):
             node_row[int(n)] = (w.walk, i)
     acc = [lp for lp in loops if lp.accepted]
+
+    def node_row_of(lp):
+        return node_row[lp.node_a][1], node_row[lp.node_b][1]
+
     d_acc = np.array([np.linalg.norm(truth[lp.walk_a][node_row[lp.node_a][1]] - truth[lp.walk_b][node_row[lp.node_b][1]]) for lp in acc])
     reasons: dict[str, int] = {}
     for lp in loops:
         reasons[lp.reason or "accepted"] = reasons.get(lp.reason or "accepted", 0) + 1
     linked = len({lp.walk_a for lp in acc} | {lp.walk_b for lp in acc})
-    del by_walk
+    # walk-pair translations (clique means) against the truth: with each walk's frame taken as a shift of
+    # the site frame over the clique's scans, t_true = mean_j (p_B - q_B) - mean_i (p_A - q_A)
+    t_err = []
+    for pt in pair_translations(loops, walks):
+        mem = [node_row_of(lp) for lp in acc if (lp.walk_a, lp.walk_b) == (pt.walk_a, pt.walk_b)]
+        A, B = by_walk[pt.walk_a], by_walk[pt.walk_b]
+        ia = np.unique([m[0] for m in mem])
+        jb = np.unique([m[1] for m in mem])
+        t_true = (truth[B.walk][jb] - B.q[jb]).mean(axis=0) - (truth[A.walk][ia] - A.q[ia]).mean(axis=0)
+        t_err.append(float(np.linalg.norm(pt.t - t_true)))
     return dict(
         scans=n_scans,
         walks=len(walks),
@@ -174,7 +196,12 @@ def evaluate(walks: list[WalkScans], truth: dict[int, np.ndarray], cfg: Frontend
         accepted_per_scan=len(acc) / n_scans,
         accepted_p5m=float(np.mean(d_acc < 5.0)) if len(acc) else float("nan"),
         accepted_d50=float(np.median(d_acc)) if len(acc) else float("nan"),
+        # share of accepted loops within the 99 % radius of the Rayleigh the model gives each (sigma_in sqrt(9.21))
+        accepted_in_model=float(np.mean(d_acc <= np.array([lp.sigma_in for lp in acc]) * math.sqrt(CHI2_2_99))) if len(acc) else float("nan"),
         walks_linked=linked,
+        walk_pairs=len(t_err),
+        pair_translation_err_median=float(np.median(t_err)) if t_err else float("nan"),
+        pair_translation_err_p90=float(np.percentile(t_err, 90)) if t_err else float("nan"),
         rates=rates,
         seconds=seconds,
         model=det.model.table() if det.model is not None else "",
@@ -201,7 +228,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"\n== {fl}: {len(fw)} walks, {sum(len(w.scans) for w in fw)} scans, {len(pts)} walkable 1 m cells")
         print(
             "measure     offset | no truth: r=0.05 pi sigma P_model | r=0.1 pi sigma P_model | r=0.2 pi sigma P_model || "
-            "truth P(d<5) r=.05 .1 .2 | accepted/scan P(d<5) d50 walks linked | s"
+            "truth P(d<5) r=.05 .1 .2 | accepted/scan P(d<5) d50 P(d<3.03 sigma_in) walks linked | walk pairs, translation error median p90 | s"
         )
         for m, off in variants:
             cfg = FrontendConfig(measure=m, remove_offset=off)
@@ -214,7 +241,8 @@ def main(argv: list[str] | None = None) -> None:
                 tcells.append(f"{x.get('p_true_5m', float('nan')):.2f}")
             print(
                 f"{m:10s} {str(off):6s} | {' | '.join(cells)} || {' '.join(tcells)} | {res['accepted_per_scan']:.3f} "
-                f"{res['accepted_p5m']:.2f} {res['accepted_d50']:4.1f} m {res['walks_linked']:3d}/{res['walks']} | {res['seconds']:.1f}"
+                f"{res['accepted_p5m']:.2f} {res['accepted_d50']:4.1f} m {res['accepted_in_model']:.2f} {res['walks_linked']:3d}/{res['walks']} | "
+                f"{res['walk_pairs']:3d} {res['pair_translation_err_median']:4.1f} {res['pair_translation_err_p90']:4.1f} m | {res['seconds']:.1f}"
             )
             if args.model:
                 print(res["model"])
@@ -227,6 +255,8 @@ def main(argv: list[str] | None = None) -> None:
         ]
         score[key] = float(np.nanmean(vals)) if vals else float("nan")
     best = max(score, key=lambda k: -1 if math.isnan(score[k]) else score[k])
+    if best.endswith("+offset") and score[best] - score[best.removesuffix("+offset")] < OFFSET_MARGIN:
+        best = best.removesuffix("+offset")  # the offset removal must earn its keep
     print("\nno-truth score (mean P_model(d<5) over floors and rates):", ", ".join(f"{k} {v:.3f}" for k, v in score.items()), f"-> {best}")
     print(json.dumps({"floors": result, "score": score, "chosen": best}))
 

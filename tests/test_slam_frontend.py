@@ -22,6 +22,7 @@ from hybridloc.slam.frontend import (
     index_pairs,
     max_clique,
     pair_similarity,
+    pair_translations,
     pcm_adjacency,
     rayleigh_pdf,
     scan_time,
@@ -162,7 +163,7 @@ def test_index_top_k_equals_brute_force(one_per_walk):
     """The inverted index scores only pairs sharing >= min_shared strong transmitters; its top-k equals the
     top-k of a brute-force scoring of all cross-walk pairs under the same sharing rule."""
     _, walks, _ = corridor_walks(4, n_walks=6)
-    cfg = FrontendConfig(min_shared=4, strong_dbm=-75.0, k=3, one_per_walk=one_per_walk, row_block=7)
+    cfg = FrontendConfig(prefilter=0, min_shared=4, strong_dbm=-75.0, k=3, one_per_walk=one_per_walk, row_block=7)
     V = floor_vectors(walks, cfg)
     I, J = index_pairs(V, cfg)
     S = pair_similarity(V.R, I, J, cfg.measure)
@@ -186,6 +187,27 @@ def test_index_top_k_equals_brute_force(one_per_walk):
             if len(picked) == cfg.k:
                 break
         want |= {(i, j) for j in picked}
+    assert len(want) > 0
+    assert got == want
+
+
+def test_index_prefilter_keeps_each_scans_most_cosine_similar_scans():
+    """With the cosine prefilter the index scores, per scan, its L most cosine-similar scans of other walks
+    that share >= min_shared strong transmitters; brute force over all pairs gives the same set."""
+    _, walks, _ = corridor_walks(5, n_walks=5)
+    cfg = FrontendConfig(prefilter=6, min_shared=2, strong_dbm=-70.0, row_block=5)
+    V = floor_vectors(walks, cfg)
+    I, J = index_pairs(V, cfg)
+    got = set(zip(I.tolist(), J.tolist()))
+    vecs = [fresh_vector(s, cfg.max_age_s) for w in walks for s in w.scans]
+    strong = [{k for k, v in x.items() if v >= cfg.strong_dbm} for x in vecs]
+    want = set()
+    for i in range(len(vecs)):
+        scored = sorted(
+            ((_brute_similarity(vecs[i], vecs[j], "cosine"), j) for j in range(len(vecs)) if V.walk_row[i] != V.walk_row[j]),
+            key=lambda x: (-x[0], x[1]),
+        )
+        want |= {(i, j) for _c, j in scored[: cfg.prefilter] if len(strong[i] & strong[j]) >= cfg.min_shared}
     assert len(want) > 0
     assert got == want
 
@@ -284,6 +306,15 @@ def test_pcm_rejects_a_planted_inconsistent_candidate_and_accepts_the_consistent
     assert adj == [0, 0]
 
 
+def test_pair_translation_is_the_clique_mean_with_the_model_spread_as_its_floor():
+    A, B = _pair_walks(offset_b=(30.0, -12.0))
+    cands = _run_pcm(A, B, [(0, 0), (3, 3), (6, 6), (9, 9), (2, 10)], sigma=2.0)
+    (pt,) = pair_translations(cands, [A, B])
+    np.testing.assert_allclose(pt.t, [30.0, -12.0])  # exact matches: every implied translation is the offset
+    assert pt.n == 4
+    np.testing.assert_allclose(pt.cov, 2.0**2 / 4 * np.eye(2))  # no sample spread: the model's sigma^2 / n
+
+
 def test_pcm_accepts_nothing_from_mutually_inconsistent_aliased_candidates():
     """Only wrong candidates, each implying a different translation (aliasing across a floor): the largest
     consistent set is a single candidate, below min_clique_scans: nothing accepted."""
@@ -331,9 +362,12 @@ def test_detect_on_a_simulated_floor():
     assert inside >= 0.9, inside
 
 
-def test_detect_new_equals_detect_restricted_to_the_new_walks():
+@pytest.mark.parametrize("prefilter", [0, 5, 50])
+def test_detect_new_equals_detect_restricted_to_the_new_walks(prefilter):
+    """Also with a small cosine prefilter, whose lists are not symmetric (an old scan may list a new one
+    that does not list it back)."""
     _, walks, _ = corridor_walks(31, n_walks=14)
-    det = LoopDetector(FrontendConfig(remove_offset=True))
+    det = LoopDetector(FrontendConfig(remove_offset=True, prefilter=prefilter))
     det.fit(walks)
     old, new = walks[:11], walks[11:]
     key = lambda lp: (lp.walk_a, lp.node_a, lp.walk_b, lp.node_b)  # noqa: E731
