@@ -286,14 +286,15 @@ def locate_pieces(
 class FloorSlam:
     """The SLAM of one floor: build, anchor, solve, label (module docstring)."""
 
-    def __init__(self, floor: str, pieces: list[WalkPiece], field_=None, cfg: SlamConfig | None = None):
+    def __init__(self, floor: str, pieces: list[WalkPiece], field_=None, cfg: SlamConfig | None = None, walkable_points: np.ndarray | None = None):
         from .frontend import LoopDetector
 
         self.floor = floor
         self.pieces = pieces
         self.field = field_
         self.cfg = cfg or SlamConfig()
-        self.detector = LoopDetector(self.cfg.frontend)
+        # random walkable places of the floor: the front end's outlier distance density g(d)
+        self.detector = LoopDetector(self.cfg.frontend, walkable={floor: walkable_points} if walkable_points is not None else None)
         self.loops: list = []
         self.map_fixes: dict[int, list] = {}
         self.em_fixes: dict[int, list] = {}
@@ -317,11 +318,15 @@ class FloorSlam:
         self.beacons = self.beacon_passes()
         ws = self._walk_scans()
         self._ws = ws
+        self.loops = []
+        self.frontend_note = ""
         if len(ws) >= 2:
-            self.detector.fit(ws, **({"walkable": self._walkable_samples()} if self._walkable_samples() is not None else {}))
+            try:
+                self.detector.fit(ws)
+            except ValueError as exc:  # too few pairs inside walks to learn the similarity model
+                self.frontend_note = f"no fingerprint loops: {exc}"
+                return
             self.loops = self.detector.detect(ws)
-        else:
-            self.loops = []
 
     def beacon_passes(self) -> dict[str, list[tuple[int, int, float]]]:
         """{beacon id: [(piece, node index in piece, dBm)]} for beacons passed by two or more pieces."""
@@ -345,11 +350,6 @@ class FloorSlam:
                     if obs[x][0] != obs[y][0]:
                         out.append((obs[x][0], obs[x][1], obs[y][0], obs[y][1]))
         return out
-
-    def _walkable_samples(self) -> np.ndarray | None:
-        if self.field is None or not hasattr(self.field, "sample"):
-            return None
-        return self.field.sample(2000, np.random.default_rng(0))
 
     # -------------------------------------------------------------- graph
     def _number(self) -> None:
@@ -647,6 +647,23 @@ def _labels(fs: FloorSolution, walk_of_piece: list[int]) -> tuple[list[LabelledS
     return out, wk
 
 
+def _walkable_points(floor, n: int, rng: np.random.Generator) -> np.ndarray | None:
+    """n uniform random points of the floor's walkable area (rejection sampling in its bounds)."""
+    import shapely
+
+    area = floor.walkable
+    if area.is_empty:
+        return None
+    x0, y0, x1, y1 = area.bounds
+    out = np.zeros((0, 2))
+    for _ in range(50):
+        c = rng.uniform([x0, y0], [x1, y1], size=(4 * n, 2))
+        out = np.vstack([out, c[shapely.contains_xy(area, c[:, 0], c[:, 1])]])
+        if len(out) >= n:
+            return out[:n]
+    return out if len(out) else None
+
+
 def run_slam(
     walks: list[Walk],
     plan: FloorPlan | None = None,
@@ -685,7 +702,10 @@ def run_slam(
     for n_done, (fname, pieces) in enumerate(sorted(by_floor.items())):
         if progress:
             progress("loops", fname, n_done, total)
-        fsl = FloorSlam(fname, pieces, fields.get(fname), cfg)
+        pts = None
+        if plan is not None and fname in plan.floor_names:
+            pts = _walkable_points(plan.floor(fname), 2000, np.random.default_rng(0))
+        fsl = FloorSlam(fname, pieces, fields.get(fname), cfg, pts)
         fsl._number()
         fsl.detect_loops()
         if locator is not None:
