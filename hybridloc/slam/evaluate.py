@@ -269,7 +269,10 @@ def run_slam_eval(
         by_kind = ", ".join(
             f"{kd} {sum(1 for x in kinds if x == kd)} at {np.mean([ok for ok, x in zip(lk, kinds) if x == kd]):.3f}" for kd in sorted(set(kinds))
         )
-        print(f"    loops: {len(lk)} accepted ({len(lk) / nw if nw else float('nan'):.3f} per WiFi scan), precision at 5 m {prec:.3f} ({by_kind})", file=out)
+        print(
+            f"    loops: {len(lk)} accepted ({len(lk) / nw if nw else float('nan'):.3f} per WiFi scan), precision at 5 m {prec:.3f} ({by_kind})",
+            file=out,
+        )
         for k, label in (("survey_only", "survey only"), ("crowd", "survey + crowd"), ("all_marks", "all marks (upper anchor)")):
             s = fs[k]
             print(

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..radio.survey import LabelledScan
 from ..types import FloorPlan, RfScan, Walk
+from .anchoring import MIN_LOG_RATIO
 from .register import RegisterConfig, register_walk
 from .walkgraph import KIND_SCAN, WalkGraphConfig, WalkPiece, walk_pieces
 
@@ -55,6 +56,9 @@ class SlamConfig:
     #: walkable-area factor: r = max(0, d(p) - margin) / sigma on nodes and edge midpoints
     field_sigma_m: float = 0.5
     field_margin_m: float = 0.3
+    #: plan anchoring of a component with no mark and no fix: refused when the runner-up placement is
+    #: within this log-likelihood of the best (anchoring.MIN_LOG_RATIO: bench_anchoring)
+    anchor_min_log_ratio: float = MIN_LOG_RATIO
     #: a component placed by the floor plan: prior on its nodes around the placement (sd of the centroid, m)
     plan_anchor_sd_m: float = 3.0
     #: loops: GNC Geman-McClure kernel width (whitened units)
@@ -497,7 +501,7 @@ class FloorSlam:
             from .anchoring import anchor_points
 
             pts = np.concatenate([rel[k] for k in members])
-            an = anchor_points(pts, self.field)
+            an = anchor_points(pts, self.field, min_log_ratio=cfg.anchor_min_log_ratio)
             if an.ambiguous:
                 for k in members:
                     init[k] = rel[k]
@@ -579,8 +583,18 @@ class FloorSlam:
                     pa, pb = self.pieces[ka], self.pieces[kb]
                     records.append(
                         LoopRecord(
-                            pa.name, float(pa.t[ia]), pb.name, float(pb.t[ib]), min(da, db), w, w >= 0.5, self.floor,
-                            reason="" if w >= 0.5 else "robust-weight", node_a=pa.node0 + ia, node_b=pb.node0 + ib, kind="ble",
+                            pa.name,
+                            float(pa.t[ia]),
+                            pb.name,
+                            float(pb.t[ib]),
+                            min(da, db),
+                            w,
+                            w >= 0.5,
+                            self.floor,
+                            reason="" if w >= 0.5 else "robust-weight",
+                            node_a=pa.node0 + ia,
+                            node_b=pb.node0 + ib,
+                            kind="ble",
                         )
                     )
         return FloorSolution(self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0)
