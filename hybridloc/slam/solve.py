@@ -28,8 +28,13 @@ Held variables (``free_nodes`` / ``free_nuisances``): their columns move to the 
 b <- b - A_held x_held, and only factors touching a free variable are assembled, so adding one walk to
 a solved floor costs a system of that walk's size.
 
-Marginals: Cov(p_i) = (H^-1)_{ii} (the 2x2 block), by solving H X = E_i with the last factorisation
-(batched right-hand sides). At convergence x moved by < tol in the last step, so H is the final one.
+IRLS tail: once mu = 1 the weights change little per step, so the last factorisation preconditions
+conjugate gradients on the new H (a few triangular solves instead of a factorisation; re-factorised
+when CG stalls within 20 steps).
+
+Marginals: Cov(p_i) = (H^-1)_{ii} (the 2x2 block), by solving H X = E_i (batched right-hand sides)
+with the factorisation of H at the final state (the last one when it was made there; else made on the
+first call).
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import LinearOperator, cg, splu
 
 from ..errors import require
 from .factors import FactorGraph, field_residual, kernel_weight
@@ -54,12 +59,17 @@ class SolveOptions:
     gnc_widths: tuple = (16.0, 8.0, 4.0, 2.0, 1.0)
     #: total IRLS / Gauss-Newton iterations (the GNC stages included)
     max_iters: int = 30
-    #: convergence: the largest change of any coordinate in the last step, m (positions) / unitless (a, b)
-    tol: float = 1e-2
+    #: convergence: the largest change of any coordinate in the last step, m (positions) / unitless (a, b);
+    #: 5 cm: a twentieth of the smallest loop sd (~1 m), and the IRLS tail converges only linearly
+    tol: float = 5e-2
     #: sd of the gauge prior on every free variable at its starting value (m for nodes)
     gauge_sigma: float = 1e3
-    #: sparse factorisation of the scipy backend: "auto" (CHOLMOD via cholespy when installed), "superlu", "cholmod"
-    linear_solver: str = "auto"
+    #: sparse factorisation of the scipy backend: "superlu" (in nested-dissection order) or "cholmod" (pip cholespy)
+    linear_solver: str = "superlu"
+    #: fill-reducing order for superlu: "nd" (geometric nested dissection on the start positions) or "mmd"
+    ordering: str = "nd"
+    #: IRLS tail (mu = 1): solve with conjugate gradients preconditioned by the last factorisation
+    reuse_factor: bool = True
 
 
 #: the default backend's reason, with the bench_slam figures (written by the benchmark's author)
@@ -87,8 +97,18 @@ class Solution:
 
 
 class _Marginals:
-    def __init__(self, lu, colmap: np.ndarray, n_free: int):
-        self.lu, self.colmap, self.n_free = lu, colmap, n_free
+    """Blocks of H^-1 at the final state: the last factorisation when it was made there, else one made
+    on the first call (the IRLS tail re-uses an older factorisation as a preconditioner only)."""
+
+    def __init__(self, problem: _Problem, x: np.ndarray, lu=None):
+        self.problem, self.x, self._lu = problem, x, lu
+        self.colmap, self.n_free = problem.colmap, problem.n_free
+
+    @property
+    def lu(self):
+        if self._lu is None:
+            self._lu = self.problem.factorize(self.x, 1.0)[0]
+        return self._lu
 
     def blocks(self, nodes: np.ndarray, max_doubles: float = 2e7) -> np.ndarray:
         out = np.zeros((nodes.size, 2, 2))
@@ -156,26 +176,89 @@ class _Cholmod:
         return x
 
 
-def _have_cholespy() -> bool:
-    import importlib.util
+class _PermutedLU:
+    """SuperLU of P H P^T in the natural order (the permutation is a fill-reducing order computed once)."""
 
-    return importlib.util.find_spec("cholespy") is not None
+    def __init__(self, H: sp.spmatrix, perm: np.ndarray):
+        self.perm = perm
+        Hp = H.tocsr()[perm][:, perm].tocsc()
+        self.lu = splu(Hp, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        x = np.empty_like(b, dtype=float)
+        x[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm]))
+        return x
 
 
-def factor_spd(H: sp.spmatrix, linear_solver: str = "auto"):
+def factor_spd(H: sp.spmatrix, linear_solver: str = "superlu", perm: np.ndarray | None = None):
     """Factorise the symmetric positive definite normal matrix H; the result has ``solve(b)``.
 
-    * ``superlu``: ``splu(H, permc_spec="MMD_AT_PLUS_A")`` in symmetric mode with diagonal pivots, so the
-      minimum-degree ordering of H + H^T is kept on both sides (a Cholesky-like LU; threshold pivoting
-      off the diagonal multiplies the fill by ~20 on these graphs). scipy's SuperLU runs on reference
-      BLAS: dense separators of crowded floors are its cost (24 s for one factorisation at 10^5 nodes
-      in bench_slam's two-pass world);
-    * ``cholmod``: CHOLMOD's supernodal Cholesky (pip ``cholespy``, extra ``slam``): 3.6 s there;
-    * ``auto``: cholmod when cholespy is installed, else superlu.
+    * ``superlu`` with ``perm`` (the default path, :func:`nested_dissection` order): SuperLU of P H P^T
+      in symmetric mode with diagonal pivots, i.e. a Cholesky-like LU in the given order;
+    * ``superlu`` without ``perm``: ``splu(H, permc_spec="MMD_AT_PLUS_A")`` in symmetric mode (threshold
+      pivoting off the diagonal would undo the ordering: ~20x the fill on these graphs);
+    * ``cholmod``: CHOLMOD (pip ``cholespy``, extra ``slam``) with its own AMD ordering.
+    Measured at 10^5 nodes in :func:`nested_dissection`'s docstring; scipy's SuperLU runs on reference
+    BLAS, so the ordering matters more than the library.
     """
-    if linear_solver == "cholmod" or (linear_solver == "auto" and _have_cholespy()):
+    if linear_solver == "cholmod":
         return _Cholmod(H)
+    if linear_solver != "superlu":
+        raise ValueError(f"unknown linear solver {linear_solver!r} (superlu or cholmod)")
+    if perm is not None:
+        return _PermutedLU(H, perm)
     return splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+
+
+def nested_dissection(xy: np.ndarray, rows: np.ndarray, cols: np.ndarray, leaf: int = 64) -> np.ndarray:
+    """Fill-reducing elimination order of a graph whose vertices have positions ``xy`` (m,2) and edges
+    (rows, cols) (George 1973, geometric nested dissection): split the vertices at the median of their
+    wider coordinate, take the vertices of one half adjacent to the other as the separator, order the
+    two halves recursively and the separator last. Crowd graphs are local (odometry, loops of a few to
+    tens of metres), so separators stay small where minimum degree orderings leave large dense fronts
+    (bench_slam at 10^5 nodes, one walk per corridor: SuperLU's own MMD ordering 2.0 s and 3.6 M
+    entries, CHOLMOD/AMD 3.2 s, this ordering 1.0 s; two walks per corridor: 24 s, 3.6 s and 2.4 s). Returns the order
+    (a permutation of range(m))."""
+    m = xy.shape[0]
+    keep = rows != cols
+    u, v = rows[keep], cols[keep]
+    order = np.empty(m, dtype=np.int64)
+    pos = 0
+    side = np.zeros(m, dtype=np.int8)
+    work = [("sub", np.arange(m), u, v)]
+    while work:
+        kind, idx, eu, ev = work.pop()
+        if kind == "sep":
+            order[pos : pos + idx.size] = idx
+            pos += idx.size
+            continue
+        if idx.size <= leaf:
+            order[pos : pos + idx.size] = idx
+            pos += idx.size
+            continue
+        p = xy[idx]
+        ax = int(np.argmax(p.max(0) - p.min(0)))
+        med = np.median(p[:, ax])
+        left = p[:, ax] <= med
+        if left.all() or not left.any():
+            left = np.zeros(idx.size, dtype=bool)
+            left[: idx.size // 2] = True
+        side[idx] = np.where(left, 0, 1)
+        cross = side[eu] != side[ev]
+        # separator: the endpoints in the smaller boundary
+        bl = np.unique(np.where(side[eu[cross]] == 0, eu[cross], ev[cross]))
+        br = np.unique(np.where(side[eu[cross]] == 1, eu[cross], ev[cross]))
+        sep = bl if bl.size <= br.size else br
+        side[sep] = 2
+        in_l = side[idx] == 0
+        in_r = side[idx] == 1
+        el = (side[eu] == 0) & (side[ev] == 0)
+        er = (side[eu] == 1) & (side[ev] == 1)
+        # post-order: halves first, separator last (pushed first: the stack pops it last)
+        work.append(("sep", sep, None, None))
+        work.append(("sub", idx[in_r], eu[er], ev[er]))
+        work.append(("sub", idx[in_l], eu[el], ev[el]))
+    return order
 
 
 class _Problem:
@@ -192,6 +275,7 @@ class _Problem:
         self.colmap[free_col] = np.arange(int(free_col.sum()))
         self.n_free = int(free_col.sum())
         self.free_var = free_var
+        self.perm: np.ndarray | None = None
         fn, fk = free_var[:N], free_var[N:]
         g = graph
         R, C, V, B = [], [], [], []
@@ -285,7 +369,29 @@ class _Problem:
         return w
 
     def factorize(self, x: np.ndarray, mu: float):
-        """H = A^T Wt A and A^T Wt b at the linearisation point x; returns (lu, rhs, w_loop, w_prior)."""
+        """Factorisation of H at x and the right-hand side: (factor, rhs, H)."""
+        H, rhs = self.system(x, mu)
+        if self.perm is None and self.opt.linear_solver == "superlu" and self.opt.ordering == "nd":
+            self.perm = self.order(H, x)
+        return factor_spd(H, self.opt.linear_solver, self.perm), rhs, H
+
+    def order(self, H: sp.spmatrix, x: np.ndarray) -> np.ndarray:
+        """Nested-dissection order of the free columns (the pattern of H does not change between
+        iterations: computed once). Vertices: free variables at their positions (a nuisance at the mean
+        of its odometry nodes); edges: the 2x2 blocks of H."""
+        N, K = self.N, self.K
+        xy = x.reshape(-1, 2).copy()
+        o = self.g.odometry
+        cnt = np.bincount(o["k"], minlength=K)
+        for a in range(2):
+            xy[N:, a] = np.bincount(o["k"], weights=xy[o["i"], a], minlength=K) / np.maximum(cnt, 1)
+        free = np.flatnonzero(self.free_var)
+        C = H.tocoo()
+        order = nested_dissection(xy[free], C.row // 2, C.col // 2)
+        return np.stack([2 * order, 2 * order + 1], 1).ravel()
+
+    def system(self, x: np.ndarray, mu: float):
+        """H = A^T Wt A and A^T Wt b at the linearisation point x."""
         w_loop, w_prior = self.weights(x, mu)
         w = self.row_weights(w_loop, w_prior)
         A, b = self.A_free, self.b
@@ -296,8 +402,7 @@ class _Problem:
         if Af is not None:
             H = H + (Af.T @ Af)
             rhs = rhs + Af.T @ bf
-        lu = factor_spd(H, self.opt.linear_solver)
-        return lu, rhs, w_loop, w_prior
+        return H, rhs
 
     def scatter(self, x: np.ndarray, x_free: np.ndarray) -> np.ndarray:
         out = x.copy()
@@ -339,8 +444,6 @@ def _finish(graph, problem, x, it, converged, t0, backend, lu=None) -> Solution:
     # final weights of every loop and prior at x (held ones too: their residual is what it is)
     w_loop, w_prior = robust_weights(graph, x, np.arange(graph.n_loops), np.arange(graph.n_priors), 1.0)
     seconds = time.perf_counter() - t0
-    if lu is None:
-        lu = problem.factorize(x, 1.0)[0]
     return Solution(
         pos=x[: 2 * N].reshape(-1, 2).copy(),
         nuisance=x[2 * N :].reshape(-1, 2).copy(),
@@ -350,7 +453,7 @@ def _finish(graph, problem, x, it, converged, t0, backend, lu=None) -> Solution:
         seconds=seconds,
         converged=converged,
         backend=backend,
-        _marg=_Marginals(lu, problem.colmap, problem.n_free),
+        _marg=_Marginals(problem, x, lu),
     )
 
 
@@ -376,15 +479,32 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
     converged = False
     lu = None
     it = 0
+    last_fresh = True
     if problem.n_free == 0:
         return _finish(graph, problem, x, 0, True, t0, "scipy")
+    x_free = None
     for it in range(1, options.max_iters + 1):
         mu = widths[min(it - 1, len(widths) - 1)]
-        lu, rhs, _, _ = problem.factorize(x, mu)
-        x_new = problem.scatter(x, lu.solve(rhs))
+        fresh = True
+        if lu is not None and it > len(widths) and options.reuse_factor:
+            # IRLS tail at mu = 1: the weights change little from one step to the next, so the last
+            # factorisation of H is a near-exact preconditioner of the new H: a few CG steps replace a
+            # factorisation (re-factorise only when CG stalls)
+            H, rhs = problem.system(x, mu)
+            M = LinearOperator(H.shape, matvec=lu.solve, dtype=float)
+            sol, info = cg(H, rhs, x0=x_free, rtol=1e-10, maxiter=20, M=M)
+            if info == 0:
+                x_free, fresh = sol, False
+        if fresh:
+            lu, rhs, _ = problem.factorize(x, mu)
+            x_free = lu.solve(rhs)
+        x_new = problem.scatter(x, x_free)
         step = float(np.max(np.abs(x_new - x)))
         x = x_new
+        last_fresh = fresh
         if not nonlinear or (it >= len(widths) and step < options.tol):
             converged = True
             break
+    if not last_fresh:
+        lu = None  # made at an earlier state: the marginals re-factorise at x when asked
     return _finish(graph, problem, x, it, converged, t0, "scipy", lu)
