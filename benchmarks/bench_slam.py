@@ -9,7 +9,8 @@ The world (seeded ``numpy.random.Generator``): walks of 100 nodes, 1.5 m apart, 
 scale s ~ N(1, 0.05) and heading bias beta ~ N(0, 0.08 rad), the bias drifting by N(0, 0.02) per segment
 of 25 nodes (nuisance (a, b) = s (cos beta, sin beta), prior N((1, 0), diag(0.1^2, 0.14^2)), links
 sd 0.02); dead-reckoned displacements D = T(n)^-1 (p_j - p_i) + N(0, 0.1^2 I). 10 % of the walks carry
-survey marks (every 5th node, sd 0.3 m). True loops: pairs of nodes of different walks within 2 m,
+survey marks (every 5th node, sd 0.3 m); every walk has radio-map fixes (every 10th node, sd 4 m,
+10 % of them 30 m off, Cauchy kernel), so no component floats. True loops: pairs of nodes of different walks within 2 m,
 0.2 per node, sd 1.5 m, Geman-McClure width c = 2 (see LOOP_KERNEL); wrong loops: 30 % of
 all loops, (a) to the node nearest a point 5-20 m away, (b) between random nodes.
 
@@ -48,6 +49,7 @@ class CrowdWorld:
     n_seg: int
     seg_walk: np.ndarray  # (K,) walk of each segment
     marks: tuple  # i, z
+    fixes: tuple  # i, z: radio-map fixes
     loops: tuple  # i, j, wrong (bool)
 
 
@@ -118,6 +120,11 @@ def crowd_world(
     surveyed[0] = True
     mi = np.flatnonzero(surveyed[walk] & (np.arange(n) % n_per % 5 == 0))
     mz = truth[mi] + rng.normal(0, 0.3, (mi.size, 2))
+    # radio-map fixes (an existing map, issue #20 point 4): every 10th node, 4 m sd, 10 % gross (30 m)
+    fi = np.flatnonzero(np.arange(n) % n_per % 10 == 5)
+    fz = truth[fi] + rng.normal(0, 4.0, (fi.size, 2))
+    gross = rng.random(fi.size) < 0.1
+    fz[gross] += rng.normal(0, 30.0, (int(gross.sum()), 2))
     # true loops: nodes of different walks within 2 m, 0.2 per node
     tree = cKDTree(truth)
     pairs = tree.query_pairs(2.0, output_type="ndarray")
@@ -147,6 +154,7 @@ def crowd_world(
         n_seg=n_walks * seg_per,
         seg_walk=np.repeat(np.arange(n_walks), seg_per),
         marks=(mi, mz),
+        fixes=(fi, fz),
         loops=(li, lj, lw),
     )
 
@@ -172,6 +180,9 @@ def build_graph(w: CrowdWorld, walks: np.ndarray | None = None, graph: FactorGra
     mi, mz = w.marks
     s = np.isin(mi, new_nodes)
     g.add_position_priors_many(mi[s], mz[s], 0.3**2 * np.eye(2))
+    fi, fz = w.fixes
+    s = np.isin(fi, new_nodes)
+    g.add_position_priors_many(fi[s], fz[s], 4.0**2 * np.eye(2), kernel=Kernel("cauchy", 1.0))
     li, lj, _ = w.loops
     inside = np.isin(li, np.flatnonzero(node_in)) & np.isin(lj, np.flatnonzero(node_in))
     s = inside & (np.isin(li, new_nodes) | np.isin(lj, new_nodes))
@@ -202,7 +213,7 @@ def line(name: str, s: dict) -> str:
 def run_case(w: CrowdWorld, label: str, backends: list[str]) -> dict:
     g = build_graph(w)
     wrong = w.loops[2]
-    print(f"{label}: {g.n_nodes} nodes, {g.n_nuisances} segments, {g.n_loops} loops ({wrong.mean():.0%} wrong), {g.n_priors} marks")
+    print(f"{label}: {g.n_nodes} nodes, {g.n_nuisances} segments, {g.n_loops} loops ({wrong.mean():.0%} wrong), {g.n_priors} marks and radio fixes")
     out = {}
     for b in backends:
         sol = solve(g, SolveOptions(backend=b))

@@ -123,24 +123,31 @@ def optimize(graph: FactorGraph, options, x: np.ndarray, free_var: np.ndarray) -
     if widths[-1] != 1.0:
         widths = (*widths, 1.0)
     iterations, converged = 0, False
+    keys = np.flatnonzero(touched)  # extractPoint2 returns the values in key order
+    current = X[keys].copy()
     for s, mu in enumerate(widths):
         fg = gtsam.NonlinearFactorGraph()
         fg.push_back(base)  # shares the factors (clone() refuses CustomFactor)
         for t in lsel:
             c = float(q["kc"][t]) * (mu if q["kcode"][t] == 1 else 1.0)
             fg.add(gtsam.BetweenFactorPoint2(int(q["j"][t]), int(q["i"][t]), q["offset"][t], _robust(gtsam, q["W"][t], int(q["kcode"][t]), c)))
-        params = gtsam.GaussNewtonParams()
+        opt = gtsam.GaussNewtonOptimizer(fg, values, gtsam.GaussNewtonParams())
+        # one IRLS step per GNC width (as the scipy backend), then at mu = 1 until the largest
+        # coordinate change is below tol (the scipy backend's test)
         last = s == len(widths) - 1
-        # one IRLS step per GNC width (as the scipy backend), then at mu = 1 until the cost stops falling
-        params.setMaxIterations(max(1, options.max_iters - iterations) if last else 1)
-        params.setRelativeErrorTol(1e-10)
-        params.setAbsoluteErrorTol(1e-12)
-        opt = gtsam.GaussNewtonOptimizer(fg, values, params)
-        values = opt.optimize()
-        iterations += opt.iterations()
-        if last:
-            converged = opt.iterations() < params.getMaxIterations()
-    out = x.copy()
-    for v in np.flatnonzero(free_var):
-        out[2 * v : 2 * v + 2] = values.atPoint2(int(v))
-    return out, iterations, converged
+        while iterations < options.max_iters:
+            opt.iterate()
+            iterations += 1
+            new = gtsam.utilities.extractPoint2(opt.values())
+            step = float(np.max(np.abs(new - current))) if new.size else 0.0
+            current = new
+            if not last:
+                break
+            if step < options.tol:
+                converged = True
+                break
+        values = opt.values()
+    out = x.copy().reshape(-1, 2)
+    f = free_var[keys]
+    out[keys[f]] = current[f]  # held variables keep their values exactly
+    return out.ravel(), iterations, converged
