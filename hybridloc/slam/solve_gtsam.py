@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import require
 from .factors import FactorGraph, field_residual
+from .solve import _settled
 
 _HOLD_SIGMA = 1e-6
 
@@ -133,17 +134,17 @@ def optimize(graph: FactorGraph, options, x: np.ndarray, free_var: np.ndarray) -
             fg.add(gtsam.BetweenFactorPoint2(int(q["j"][t]), int(q["i"][t]), q["offset"][t], _robust(gtsam, q["W"][t], int(q["kcode"][t]), c)))
         opt = gtsam.GaussNewtonOptimizer(fg, values, gtsam.GaussNewtonParams())
         # one IRLS step per GNC width (as the scipy backend), then at mu = 1 until the largest
-        # coordinate change is below tol (the scipy backend's test)
+        # step has settled (the scipy backend's test)
         last = s == len(widths) - 1
         while iterations < options.max_iters:
             opt.iterate()
             iterations += 1
             new = gtsam.utilities.extractPoint2(opt.values())
-            step = float(np.max(np.abs(new - current))) if new.size else 0.0
+            settled = _settled((new - current)[free_var[keys]], options.tol)
             current = new
             if not last:
                 break
-            if step < options.tol:
+            if settled:
                 converged = True
                 break
         values = opt.values()
