@@ -229,6 +229,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--nodes", type=int, default=100_000)
     ap.add_argument("--quick", action="store_true", help="10^4 nodes, scaling from 25 walks")
     ap.add_argument("--no-gtsam", action="store_true")
+    ap.add_argument(
+        "--random-nodes",
+        type=int,
+        default=20_000,
+        help="size of case (b): random long-range loops fill the factorisation in (slam.md 3.6); at 10^5 nodes scipy ran > 12 min",
+    )
     ap.add_argument("--passes", type=float, default=2.0, help="times the crowd walks each corridor (graph density)")
     args = ap.parse_args(argv)
     nodes = 10_000 if args.quick else args.nodes
@@ -245,7 +251,7 @@ def main(argv: list[str] | None = None) -> None:
     near = crowd_world(np.random.default_rng(20), n_walks, "near", passes=args.passes)
     print(f"world generated in {time.perf_counter() - t0:.1f} s")
     res_near = run_case(near, "(a) wrong loops 5-20 m", backends)
-    far = crowd_world(np.random.default_rng(21), n_walks, "random", passes=args.passes)
+    far = crowd_world(np.random.default_rng(21), max(4, min(nodes, args.random_nodes) // NODES_PER_WALK), "random", passes=args.passes)
     res_far = run_case(far, "(b) wrong loops between random places", backends)
 
     print("cost at N, 2N, 4N walks (wrong loops 5-20 m; 4N is case (a)):")
