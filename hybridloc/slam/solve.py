@@ -55,8 +55,9 @@ class SolveOptions:
     # scipy or gtsam, chosen by benchmarks/bench_slam.py (the more accurate; the faster where they tie
     # within 5 %). Both reach the same answer on its graphs (node RMSE 1.639 m both, wrong-loop p95
     # weight 0.054 both, 10^5 nodes, 30 % wrong loops 5-20 m, 27 iterations each), so speed decides:
-    # scipy 34.6 s vs GTSAM 51.2 s there, 2.1 s vs 3.3 s at 10^4 nodes; adding one walk 0.02 s both.
-    # Neither meets the 5 s at 10^5 nodes (see BACKEND_CHOICE).
+    # scipy 32.5 s vs GTSAM 42.4 s there (another run: 34.6 vs 51.2), 18.2 vs 19.6 s at 5*10^4,
+    # 5.2 vs 6.3 s at 2.5*10^4, 2.1 vs 3.3 s at 10^4; random long-range wrong loops at 2*10^4 nodes:
+    # 14.6 vs 14.4 s (a tie); adding one walk 0.023 s both. Neither meets the 5 s at 10^5 nodes.
     backend: str = "scipy"
     #: annealing schedule of the Geman-McClure widths, multipliers of Kernel.c (wide first, ends at 1)
     gnc_widths: tuple = (16.0, 8.0, 4.0, 2.0, 1.0)
@@ -76,7 +77,7 @@ class SolveOptions:
 
 
 #: why the default backend is scipy (bench_slam, 2-core machine shared with other jobs, 2026-12):
-#: 10^5 nodes, 28,571 loops (30 % wrong, 5-20 m), one crowd pass per corridor: scipy 34.6 s, GTSAM 51.2 s,
+#: 10^5 nodes, 28,571 loops (30 % wrong, 5-20 m), one crowd pass per corridor: scipy 32.5-34.6 s, GTSAM 42.4-51.2 s,
 #: identical node RMSE (1.639 m) and loop weights. Both spend ~1.3-1.9 s per iteration and need ~27
 #: GNC + IRLS iterations (the IRLS tail at mu = 1 converges linearly), so the issue's 5 s goal is missed
 #: by both; the wrong-loop p95 weight goal (< 0.1) is met (0.054).
