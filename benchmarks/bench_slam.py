@@ -4,8 +4,10 @@ side; the same with wrong loops between random places (long-range loops fill in 
 slam.md 3.6); the cost at N, 2N and 4N walks; adding one walk to a solved graph (its variables free,
 the rest held) <= 1 s.
 
-The world (seeded ``numpy.random.Generator``): walks of 100 nodes, 1.5 m apart, heading a random walk
-(sd 0.15 rad per node), folded into a square sized for 0.07 nodes per m^2; each walk has a step-length
+The world (seeded ``numpy.random.Generator``): walks of 100 nodes, 1.5 m apart, along a square grid of
+corridors 40 m apart (random turns at crossings, 0.3 m lateral wander), the floor sized so that the crowd
+walks each corridor ``--passes`` times (default 1; the graph's density, hence the factorisation's cost,
+grows with it: one factorisation at 10^5 nodes takes ~1 s at 1 pass, ~2.4 s at 2); each walk has a step-length
 scale s ~ N(1, 0.05) and heading bias beta ~ N(0, 0.08 rad), the bias drifting by N(0, 0.02) per segment
 of 25 nodes (nuisance (a, b) = s (cos beta, sin beta), prior N((1, 0), diag(0.1^2, 0.14^2)), links
 sd 0.02); dead-reckoned displacements D = T(n)^-1 (p_j - p_i) + N(0, 0.1^2 I). 10 % of the walks carry
@@ -14,7 +16,11 @@ survey marks (every 5th node, sd 0.3 m); every walk has radio-map fixes (every 1
 0.2 per node, sd 1.5 m, Geman-McClure width c = 2 (see LOOP_KERNEL); wrong loops: 30 % of
 all loops, (a) to the node nearest a point 5-20 m away, (b) between random nodes.
 
-    python -m benchmarks.bench_slam [--nodes 100000] [--quick]
+    python -m benchmarks.bench_slam [--nodes 100000] [--quick] [--passes 1] [--random-nodes 20000] [--no-gtsam]
+
+Measured (2 cores shared with other jobs): 10^5 nodes, case (a): scipy 32.5 s, GTSAM 42.4 s (27 GNC/IRLS
+iterations each), node RMSE 1.639 m both, wrong-loop p95 weight 0.054, true-loop median 0.80: the weight
+goal is met, the 5 s goal is not. Adding one walk: 0.023 s.
 """
 
 from __future__ import annotations
@@ -235,7 +241,7 @@ def main(argv: list[str] | None = None) -> None:
         default=20_000,
         help="size of case (b): random long-range loops fill the factorisation in (slam.md 3.6); at 10^5 nodes scipy ran > 12 min",
     )
-    ap.add_argument("--passes", type=float, default=2.0, help="times the crowd walks each corridor (graph density)")
+    ap.add_argument("--passes", type=float, default=1.0, help="times the crowd walks each corridor (graph density)")
     args = ap.parse_args(argv)
     nodes = 10_000 if args.quick else args.nodes
     n_walks = max(4, nodes // NODES_PER_WALK)
