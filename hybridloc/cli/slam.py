@@ -20,7 +20,7 @@ def _cmd_slam_run(args: argparse.Namespace) -> int:
 
     site_dir = Path(args.site_dir)
     if not site_dir.is_dir():
-        raise MissingData(f"{site_dir}: no such folder")
+        raise MissingData(f"{site_dir}: {'not a folder' if site_dir.exists() else 'no such folder'} (a site folder of recordings and floor plans)")
     paths = find_ilc_traces(site_dir)
     if not paths:
         raise MissingData(f"no Indoor Location Competition recordings under {site_dir}")

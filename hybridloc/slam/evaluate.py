@@ -134,6 +134,8 @@ def run_slam_eval(
         raise ValueError("--survey-fraction must be in [0, 1] and --data-fraction in (0, 1]")
     t0 = time.monotonic()
     site = Path(site_dir)
+    if not site.is_dir():
+        raise MissingData(f"{site}: {'not a folder' if site.exists() else 'no such folder'} (an Indoor Location Competition site folder)")
     paths = find_ilc_traces(site)
     if len(paths) < 4:
         raise MissingData(f"too few Indoor Location Competition recordings under {site_dir}")
