@@ -2,7 +2,17 @@
 
 from pathlib import Path
 
-from . import bench_foot_ins, bench_foot_loops, bench_phone_pdr, bench_radiomap, bench_server, bench_sim
+from . import (
+    bench_anchoring,
+    bench_foot_ins,
+    bench_foot_loops,
+    bench_loop_signal,
+    bench_phone_pdr,
+    bench_radiomap,
+    bench_server,
+    bench_sim,
+    bench_slam,
+)
 
 if __name__ == "__main__":
     bench_phone_pdr.main([])
@@ -11,3 +21,6 @@ if __name__ == "__main__":
     bench_radiomap.main([])
     bench_sim.main([])
     bench_server.main(["--postgres"] if Path("/usr/lib/postgresql").is_dir() else [])
+    bench_slam.main([])
+    bench_loop_signal.main([])
+    bench_anchoring.main([])

@@ -28,7 +28,9 @@ from . import geo
 from .errors import ComputationFailed, MissingData
 from .fusion import run_fusion
 from .io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
+from .metrics import causal_errors as _fused_errors
 from .metrics import first_leg_rotation, oracle_start_errors, summarize_errors
+from .metrics import held_rows as _held
 from .pdr.deadreckoning import DeadReckoning
 from .progress import Progress
 from .samples import ILC_SITE1_F1
@@ -49,27 +51,6 @@ def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
     if len(steps) < 2 or len(wp_t) < 2:
         return np.zeros(0)
     return oracle_start_errors(_pdr_track_at(steps, wp_t), wp_xy)
-
-
-def _held(poses, wp_t) -> np.ndarray:
-    """For each waypoint after the first, the index of the newest pose row with t <= its time (as a
-    live client would show it; at equal t the later row), -1 before the first row."""
-    if not poses:
-        return np.full(max(len(wp_t) - 1, 0), -1)
-    order = np.array(sorted(range(len(poses)), key=lambda i: (poses[i][0], i)))
-    k = np.searchsorted(np.array([poses[i][0] for i in order]), np.asarray(wp_t[1:], float), side="right") - 1
-    return np.where(k >= 0, order[np.maximum(k, 0)], -1)
-
-
-def _fused_errors(poses, wp_t, wp_xy) -> np.ndarray:
-    """Causal scoring: at each waypoint (after the first) the newest estimate available then; NaN before the first."""
-    out = np.full(max(len(wp_t) - 1, 0), np.nan)
-    idx = _held(poses, wp_t)
-    ok = idx >= 0
-    if ok.any():
-        xy = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]])
-        out[ok] = np.linalg.norm(xy - np.asarray(wp_xy[1:])[ok], axis=1)
-    return out
 
 
 def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: int = 4, progress: bool = True, corridor_axes: dict | None = None):

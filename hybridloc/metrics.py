@@ -222,3 +222,25 @@ def oracle_start_errors(est_xy: np.ndarray, true_xy: np.ndarray) -> np.ndarray:
     c, s = math.cos(rot), math.sin(rot)
     aligned = (est_xy - est_xy[0]) @ np.array([[c, s], [-s, c]]) + true_xy[0]
     return np.linalg.norm(aligned[1:] - true_xy[1:], axis=1)
+
+
+# ------------------------------------------------------------------ causal scoring of live estimates
+def held_rows(poses, wp_t) -> np.ndarray:
+    """For each waypoint after the first, the index of the newest pose row with t <= its time (as a
+    live client would show it; at equal t the later row), -1 before the first row."""
+    if not poses:
+        return np.full(max(len(wp_t) - 1, 0), -1)
+    order = np.array(sorted(range(len(poses)), key=lambda i: (poses[i][0], i)))
+    k = np.searchsorted(np.array([poses[i][0] for i in order]), np.asarray(wp_t[1:], float), side="right") - 1
+    return np.where(k >= 0, order[np.maximum(k, 0)], -1)
+
+
+def causal_errors(poses, wp_t, wp_xy) -> np.ndarray:
+    """Causal scoring: at each waypoint (after the first) the newest estimate available then; NaN before the first."""
+    out = np.full(max(len(wp_t) - 1, 0), np.nan)
+    idx = held_rows(poses, wp_t)
+    ok = idx >= 0
+    if ok.any():
+        xy = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]])
+        out[ok] = np.linalg.norm(xy - np.asarray(wp_xy[1:])[ok], axis=1)
+    return out

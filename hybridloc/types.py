@@ -584,7 +584,7 @@ class Floor:
     outline : MultiPolygon
         The floor's footprint.
     walkable : MultiPolygon
-        Where a person can be: the footprint minus solid obstacles (shops are walkable rooms).
+        Where a person can be: the footprint minus solid obstacles (in the competition's plans, minus the shops).
     walls : ndarray, shape (M, 2, 2)
         Wall segments ``[[x0, y0], [x1, y1]]``, m (what a particle may not cross).
     rooms : tuple of (name, Polygon)

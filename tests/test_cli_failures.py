@@ -46,6 +46,9 @@ CASES: dict[str, list[str]] = {
     "eval fingerprint": ["eval", "fingerprint", "--uji", "{f}", "--ilc", ""],
     "eval sim-realism": ["eval", "sim-realism", "--ilc", "{f}"],
     "eval fusion": ["eval", "fusion", "{f}", "--out", "{o}"],
+    "eval slam": ["eval", "slam", "{f}", "--workers", "1"],
+    "slam run": ["slam", "run", "{f}", "--out", "{o}/slam", "--workers", "1"],
+    "slam show": ["slam", "show", "{f}", "--floor", "F1", "--out", "{o}/s.png"],
     "demo": ["--config", "{f}", "demo", "--out", "{o}"],
 }
 

@@ -1,4 +1,5 @@
 import gzip
+import json
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ import shapely
 
 from hybridloc.io import detect_format
 from hybridloc.io.common import DataFormatError
-from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_site, read_ilc_trace, read_ilc_waypoints
+from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_floor, read_ilc_site, read_ilc_trace, read_ilc_waypoints
 
 HEADER = "#\tstartTime:1574559495255\n#\tSiteID:s1\tSiteName:test\tFloorId:f\tFloorName:F2\n#\tBrand:ACME\tModel:X1\n"
 
@@ -187,3 +188,69 @@ def test_a_mark_may_carry_its_floor(tmp_path):
         assert w.floor == "F2" and [w.floor_of(i) for i in range(3)] == ["F2", "F3", "F2"]
     plain = read_ilc_waypoints(_write(tmp_path, HEADER + "1574559495400\tTYPE_WAYPOINT\t1.0\t2.0\n", name="b.txt.gz"))
     assert plain.floors is None and plain.floor_of(0) == "F2"
+
+
+def _write_plan(folder, width: float, height: float, shops: list, walls: list = ()) -> None:
+    """A floor folder in the competition's layout: the footprint [0, width] x [0, height] m drawn as the
+    lon/lat box [0, width/100] x [0, height/100] deg (the reader maps the box linearly onto metres),
+    ``shops`` rectangles (x0, y0, x1, y1) m, ``walls`` LineStrings (our simulator's extension)."""
+
+    def ll(x, y):
+        return [x / 100.0, y / 100.0]
+
+    def rect(x0, y0, x1, y1):
+        return {"type": "Polygon", "coordinates": [[ll(x0, y0), ll(x1, y0), ll(x1, y1), ll(x0, y1), ll(x0, y0)]]}
+
+    feats = [{"type": "Feature", "geometry": rect(0, 0, width, height), "properties": {"category": "floor", "name": "F1"}}]
+    feats += [{"type": "Feature", "geometry": rect(*r), "properties": {"category": ["shop"], "name": f"s{i}"}} for i, r in enumerate(shops)]
+    feats += [
+        {"type": "Feature", "geometry": {"type": "LineString", "coordinates": [ll(*a), ll(*b)]}, "properties": {"category": "wall"}} for a, b in walls
+    ]
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "geojson_map.json").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    (folder / "floor_info.json").write_text(json.dumps({"map_info": {"width": width, "height": height}}))
+
+
+def test_competition_plan_walkable_is_the_footprint_minus_the_shops(tmp_path):
+    """Shops have no doors in the competition's plans: the walkable area is the footprint minus the
+    shops (a sliver between two adjacent shop outlines dropped), the shop fronts are walls, the shops
+    stay as rooms."""
+    # 40 x 20 m floor; shops along the north side (y 12..20) leave a 12 m deep concourse; two
+    # shops 2 cm apart leave a 0.02 x 8 m sliver (0.16 m^2).
+    _write_plan(tmp_path / "F1", 40.0, 20.0, [(0, 12, 10, 20), (10.02, 12, 20, 20)])
+    fl, _ = read_ilc_floor(tmp_path / "F1")
+    assert [n for n, _ in fl.rooms] == ["s0", "s1"]
+    assert fl.outline.area == pytest.approx(800.0)
+    assert fl.walkable.area == pytest.approx(800.0 - 10.0 * 8.0 - 9.98 * 8.0)  # the sliver is not walkable
+    assert len(fl.walkable.geoms) == 1
+    inside = shapely.contains_xy(fl.walkable, np.array([5.0, 5.0, 15.0, 30.0]), np.array([5.0, 15.0, 16.0, 16.0]))
+    assert inside.tolist() == [True, False, False, True]
+    # the walls are the walkable area's boundary: the shop front y = 12 for x in [0, 20.02] is a wall
+    from hybridloc.geo import wall_crossings
+
+    p0, p1 = np.array([[5.0, 10.0], [15.0, 10.0], [30.0, 10.0]]), np.array([[5.0, 14.0], [15.0, 14.0], [30.0, 14.0]])
+    assert (wall_crossings(fl.walls, p0, p1) > 0).tolist() == [True, True, False]
+    assert fl.walls.shape[1:] == (2, 2) and np.isclose(fl.walls[..., 1], 12.0).any()
+
+
+def test_plan_listing_its_walls_keeps_enterable_rooms(tmp_path):
+    """Our simulator's extension: a plan with "wall" LineStrings has enterable rooms (doors left open in
+    the walls), so its walkable area is the whole footprint and its walls are the listed ones."""
+    walls = [((0, 12), (4, 12)), ((6, 12), (10, 12)), ((10, 12), (10, 20))]
+    _write_plan(tmp_path / "F1", 40.0, 20.0, [(0, 12, 10, 20)], walls)
+    fl, _ = read_ilc_floor(tmp_path / "F1")
+    assert fl.walkable.equals(fl.outline)
+    assert len(fl.walls) == 3 and len(fl.rooms) == 1
+    np.testing.assert_allclose(fl.walls[1], [[6, 12], [10, 12]], atol=1e-9)
+
+
+@pytest.mark.shared_data
+def test_site1_waypoints_lie_in_the_walkable_area(ilc_site1):
+    """site1's survey waypoints lie in the footprint minus the shops (shared-notes slam.md 3.1:
+    97.7-99.7 %); the shops cover most of each floor."""
+    plan = read_ilc_site(ilc_site1)
+    for floor in plan.floors:
+        pts = np.vstack([read_ilc_waypoints(f).pos_enu for f in find_ilc_traces(ilc_site1 / floor.name)])
+        inside = shapely.contains_xy(floor.walkable, pts[:, 0], pts[:, 1])
+        assert inside.mean() >= 0.95, f"{floor.name}: {inside.mean():.2%} of waypoints in the walkable area"
+        assert floor.walkable.area < 0.5 * floor.outline.area

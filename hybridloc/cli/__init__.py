@@ -2,7 +2,7 @@
 
 Layering (as in evo): this package only parses arguments, calls pure library functions and prints.
 Each command module (:mod:`.data`, :mod:`.pdr`, :mod:`.radiomap`, :mod:`.locate`, :mod:`.sim`,
-:mod:`.server`, :mod:`.client`, :mod:`.eval`, :mod:`.demo`) registers its sub-commands on the parser
+:mod:`.server`, :mod:`.client`, :mod:`.slam`, :mod:`.eval`, :mod:`.demo`) registers its sub-commands on the parser
 with ``register(subparsers)`` and holds their ``_cmd_*`` functions. The library reports failures
 with :class:`hybridloc.errors.HybridlocError` (and the builtin ``ValueError`` / ``OSError``); they
 become one line on stderr (``hybridloc: error: ...``) and exit status 2 for what the user can mend
@@ -29,7 +29,7 @@ log = logging.getLogger("hybridloc")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import client, data, demo, eval, locate, pdr, radiomap, server, sim
+    from . import client, data, demo, eval, locate, pdr, radiomap, server, sim, slam
 
     ap = argparse.ArgumentParser(prog="hybridloc", description="Crowd-sourced hybrid PDR + WiFi/RF SLAM for indoor positioning.")
     ap.add_argument("--version", action="version", version=f"hybridloc {__version__}")
@@ -52,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     server.register(sub)
     locate.register(sub)
     sim.register(sub)
+    slam.register(sub)
     eval.register(sub)
     demo.register(sub)
     return ap

@@ -369,6 +369,13 @@ def _cmd_eval_fusion(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_slam(args: argparse.Namespace) -> int:
+    from ..slam.evaluate import run_slam_eval
+
+    print_headline(run_slam_eval(args.dir, args.survey_fraction, args.seed, args.data_fraction, workers=args.workers))
+    return 0
+
+
 def register(sub) -> None:
     ev = sub.add_parser("eval", help="evaluation commands that print figures")
     esub = ev.add_subparsers(dest="eval_command", required=True)
@@ -411,3 +418,11 @@ def register(sub) -> None:
     efu.add_argument("--replay-every", type=int, default=4, help="every N-th trace is a phone client, the rest are surveys (default 4)")
     efu.add_argument("--every", type=int, default=1, help="use every N-th trace of the site")
     efu.set_defaults(func=_cmd_eval_fusion)
+
+    esl = esub.add_parser("slam", help="crowd SLAM: corrected crowd walks, loops, and test clients with survey-only, crowd and all-marks maps")
+    esl.add_argument("dir", help="Indoor Location Competition site folder, e.g. ../shared/data/msft-ilc/site1")
+    esl.add_argument("--survey-fraction", type=float, default=0.1, help="share F of the crowd walks that keep their survey marks (default 0.1)")
+    esl.add_argument("--seed", type=int, default=0, help="seed of the survey and data-fraction draws")
+    esl.add_argument("--data-fraction", type=float, default=1.0, help="share P of the unmarked crowd walks used (the data-amount curve)")
+    esl.add_argument("--workers", type=int, default=2, help="processes reading the walks")
+    esl.set_defaults(func=_cmd_eval_slam)

@@ -348,6 +348,11 @@ class KnnLocator:
             return sorensen_neighbours(self._R, self._R_sum, Xr.astype(np.float32), self.k)
         return self._nn.kneighbors(Xr)
 
+    def nearest(self, scans: list[RfScan]) -> tuple[np.ndarray, np.ndarray]:
+        """(distances, indices) (n, k) of each scan's k nearest references in fingerprint space (the
+        locator's representation and metric): how well the references explain the scan."""
+        return self.neighbours(self._rep(fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)))
+
     def locate_many(self, scans: list[RfScan]) -> list[LocateResult]:
         X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
         known = (X > MISSING_DBM).sum(axis=1)

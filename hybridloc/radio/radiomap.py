@@ -61,6 +61,10 @@ class BuildParams:
     half_life_days: float = 90.0
     estimate_device_offsets: bool = True
     max_age_s: float | None = None  # readings older than this at scan time are left out (stale cache)
+    #: weigh each labelled scan by how well its position is known: w = 1 / (1 + (sigma_label / bandwidth)^2),
+    #: the share of a Gaussian label of sd sigma_label that falls within the kernel (crowd maps, whose labels
+    #: range from survey-grade to metres; surveys keep equal weights)
+    label_weight: bool = False
 
 
 @dataclass
@@ -261,6 +265,7 @@ class _Readings:
     rssi: np.ndarray  # (R,) dBm
     t: np.ndarray  # (S,) scan times
     pos: np.ndarray  # (S, 2)
+    sigma: np.ndarray  # (S,) label sd, m
     floor: np.ndarray  # (S,) floor index
     device: np.ndarray  # (S,) device index
     floors: list[str]
@@ -290,6 +295,7 @@ def _collect(scans: list[LabelledScan], max_age_s: float | None) -> _Readings:
         np.asarray(rv, np.float64),
         np.array([ls.scan.t for ls in scans]),
         np.array([ls.pos_enu for ls in scans], float).reshape(-1, 2),
+        np.array([ls.sigma for ls in scans], float),
         np.array([fl.setdefault(ls.floor or "0", len(fl)) for ls in scans]),
         np.array([dv.setdefault(ls.scan.device_model, len(dv)) for ls in scans]),
         list(fl),
@@ -323,7 +329,7 @@ def build_radio_map(
     gmap = np.full(n_tx_all, -1, np.int64)
     gmap[order] = np.arange(len(order))
     keep = gmap[rd.tx] >= 0
-    R = _Readings(rd.scan[keep], gmap[rd.tx[keep]], rd.rssi[keep], rd.t, rd.pos, rd.floor, rd.device, rd.floors, rd.devices, txs)
+    R = _Readings(rd.scan[keep], gmap[rd.tx[keep]], rd.rssi[keep], rd.t, rd.pos, rd.sigma, rd.floor, rd.device, rd.floors, rd.devices, txs)
     dev_off = np.zeros(len(R.devices))
     floors: dict[str, FloorMap] = {}
     for _pass in range(2 if (p.estimate_device_offsets and len(R.devices) > 1) else 1):
@@ -373,6 +379,8 @@ def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: Build
     S = len(sel_scans)
     age_days = (t_new - R.t[sel_scans]) / 86400.0
     w = 0.5 ** (np.maximum(age_days, 0.0) / p.half_life_days)
+    if p.label_weight:
+        w = w / (1.0 + (R.sigma[sel_scans] / p.bandwidth) ** 2)
     det = sparse.csr_matrix((np.ones(len(r_scan)), (r_scan, r_col)), shape=(S, m))
     rs = sparse.csr_matrix((r_val, (r_scan, r_col)), shape=(S, m))
     rs2 = sparse.csr_matrix((r_val**2, (r_scan, r_col)), shape=(S, m))

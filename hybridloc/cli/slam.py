@@ -1,0 +1,139 @@
+"""``hybridloc slam run`` and ``hybridloc slam show``: crowd SLAM over recording files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from ..errors import BadInput, MissingData
+
+
+def _cmd_slam_run(args: argparse.Namespace) -> int:
+    from ..io.msft import find_ilc_traces, read_ilc_site
+    from ..progress import Progress
+    from ..radio.radiomap import RadioMap
+    from ..slam.output import write_outputs
+    from ..slam.pipeline import RELATIVE, run_slam
+    from ..slam.walkgraph import walks_from_files
+
+    site_dir = Path(args.site_dir)
+    if not site_dir.is_dir():
+        raise MissingData(f"{site_dir}: {'not a folder' if site_dir.exists() else 'no such folder'} (a site folder of recordings and floor plans)")
+    paths = find_ilc_traces(site_dir)
+    if not paths:
+        raise MissingData(f"no Indoor Location Competition recordings under {site_dir}")
+    plan = None
+    try:
+        plan = read_ilc_site(site_dir if any((d / "geojson_map.json").is_file() for d in site_dir.iterdir() if d.is_dir()) else site_dir.parent)
+    except Exception:  # noqa: BLE001 - a site without plans still runs (no plan anchoring)
+        plan = None
+    rmap = RadioMap.load(args.map) if args.map else None
+    t0 = time.monotonic()
+    bar = Progress("[slam] reading walks", len(paths))
+    loaded = walks_from_files(paths, marks=args.marks == "keep", workers=args.workers, progress=lambda i, n: bar.update(i))
+    bar.close()
+    walks = [w for w, _ in loaded]
+    names = [p.name.split(".")[0] for p in paths]
+    stages: dict = {}
+
+    def progress(stage: str, floor: str, done: int, total: int) -> None:
+        if stage not in stages:
+            stages[stage] = Progress(f"[slam] {stage}", total)
+        stages[stage].update(done, floor)
+
+    res = run_slam(walks, plan, rmap, names=names, progress=progress)
+    for p in stages.values():
+        p.close()
+    site = walks[0].site if walks else site_dir.name
+    n_scans = sum(len(ls) for ls in [res.labels])
+    res.stats = {
+        "site_dir": str(site_dir.resolve()),
+        "walks": len(walks),
+        "marks": args.marks,
+        "map": args.map or "",
+        "labelled_scans": n_scans,
+        "loops": len(res.loops),
+        "loops_accepted": sum(lp.accepted for lp in res.loops),
+        "seconds": time.monotonic() - t0,
+    }
+    got = write_outputs(args.out, res, plan, site)
+    print(
+        f"crowd SLAM of {len(walks)} walks of {site_dir} ({args.marks} marks{', map ' + args.map if args.map else ''}) in {time.monotonic() - t0:.0f} s -> {args.out}"
+    )
+    for fname, fs in sorted(res.floors.items()):
+        st = [s for s in fs.status]
+        n_anch = sum(s != RELATIVE for s in st)
+        acc = sum(lp.accepted for lp in fs.loops)
+        by = {k: st.count(k) for k in sorted(set(st))}
+        print(f"  floor {fname}: {len(st)} walks, anchored {n_anch} ({by}), loops {len(fs.loops)} candidates, {acc} accepted")
+    print(
+        f"  files: tracks.csv ({got['track_rows']} rows), raw.csv, tracks.geojson, loops.csv ({got['loops']} loops), "
+        + ", ".join(Path(p).name for p in got["maps"].values())
+    )
+    print(
+        json.dumps(
+            {
+                "walks": len(walks),
+                "labelled_scans": n_scans,
+                "loops": len(res.loops),
+                "loops_accepted": res.stats["loops_accepted"],
+                "seconds": round(res.stats["seconds"], 1),
+            }
+        )
+    )
+    return 0
+
+
+def _cmd_slam_show(args: argparse.Namespace) -> int:
+    from ..io.msft import read_ilc_site
+    from ..slam.output import plot_slam, read_loops_csv, read_tracks_csv
+    from ._common import pyplot
+
+    d = Path(args.dir)
+    if not (d / "tracks.csv").is_file():
+        raise MissingData(f"{d}: no tracks.csv (run 'hybridloc slam run SITE_DIR --out {d}' first)")
+    tracks = read_tracks_csv(d / "tracks.csv")
+    raw = read_tracks_csv(d / "raw.csv") if (d / "raw.csv").is_file() else None
+    loops = read_loops_csv(d / "loops.csv") if (d / "loops.csv").is_file() else []
+    floors = sorted({v["floor"] for v in tracks.values()})
+    if args.floor not in floors:
+        raise BadInput(f"floor {args.floor!r} is not in {d}/tracks.csv (floors: {floors})")
+    plan = None
+    site_dir = args.floorplan
+    if site_dir is None and (d / "summary.json").is_file():
+        site_dir = json.loads((d / "summary.json").read_text(encoding="utf-8")).get("site_dir")
+    if site_dir and Path(site_dir).is_dir():
+        plan = read_ilc_site(site_dir)
+    plt = pyplot("slam show")
+    fig, ax = plt.subplots(figsize=(11, 9))
+    try:
+        got = plot_slam(ax, plan, tracks, raw, loops, args.floor)
+        fig.tight_layout()
+        fig.savefig(args.out, dpi=args.dpi)
+    finally:
+        plt.close(fig)
+    print(f"floor {args.floor}: {got['walks']} walks, {got['accepted']} accepted and {got['rejected']} rejected loops -> {args.out}")
+    return 0
+
+
+def register(sub) -> None:
+    sp = sub.add_parser("slam", help="crowd SLAM: drift-corrected walks, loop closures and a crowd radio map")
+    ssub = sp.add_subparsers(dest="slam_command", required=True)
+    r = ssub.add_parser("run", help="crowd SLAM over the recordings of a site folder")
+    r.add_argument("site_dir", help="Indoor Location Competition site folder (floor folders with path_data_files and plans)")
+    r.add_argument("--out", required=True, help="output folder (tracks.csv, tracks.geojson, loops.csv, crowdmap_<technology>.npz)")
+    r.add_argument(
+        "--marks", choices=("keep", "strip"), default="keep", help="use the survey marks found in the files (keep) or drop them first (strip)"
+    )
+    r.add_argument("--map", metavar="FILE", help="an existing radio map whose fixes anchor the walks (heavy-tailed)")
+    r.add_argument("--workers", type=int, default=2, help="processes for reading the walks (phone PDR)")
+    r.set_defaults(func=_cmd_slam_run)
+    s = ssub.add_parser("show", help="raw and corrected walks and loops of one floor over its plan")
+    s.add_argument("dir", help="a 'slam run' output folder")
+    s.add_argument("--floor", required=True)
+    s.add_argument("--out", required=True, help="PNG file")
+    s.add_argument("--floorplan", metavar="SITE_DIR", help="site folder of the plan (default: the one slam run read)")
+    s.add_argument("--dpi", type=int, default=130)
+    s.set_defaults(func=_cmd_slam_show)

@@ -1,0 +1,785 @@
+"""Crowd SLAM over a set of walks: loops, anchors, robust solve, labels, and EM with the crowd map.
+
+Per floor (slam.md 4.3-4.7):
+
+1. every walk's piece on the floor becomes nodes and odometry (:mod:`.walkgraph`);
+2. the front end proposes loops between walks from fingerprint similarity and keeps the pairwise
+   consistent ones (:mod:`.frontend`); every candidate is kept with its weight (the audit trail);
+3. anchors: survey marks (absolute, 0.5 m), fixes from an existing radio map (Cauchy kernel: a fix in
+   the wrong corridor must not bend the walk), and the floor plan. Walks linked by accepted loops form
+   components; a component holding no mark and no fix is solved in its own frame and placed on the plan
+   by a search over translation, rotation and scale (:func:`.anchoring.anchor_points`); when the search
+   is ambiguous the component stays "relative only" and yields no absolute label;
+4. the robust solve (:func:`.solve.solve`): first the linear problem (odometry, nuisances, anchors,
+   loops under GNC), then with the walkable-area factors on nodes and edge midpoints;
+5. every scan of an anchored walk is labelled with its node's position and marginal covariance;
+6. EM (slam.md 4.7): the crowd radio map is built from the labels with each walk's fold left out,
+   every scan of the fold is located against it, the fixes enter as Cauchy-robust anchors, and the
+   floor is solved again, while the labels still move (median > ``em_stop_m``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..radio.survey import LabelledScan
+from ..types import FloorPlan, RfScan, Walk
+from .anchoring import MIN_LOG_RATIO
+from .register import RegisterConfig, register_walk
+from .walkgraph import KIND_SCAN, WalkGraphConfig, WalkPiece, walk_pieces
+
+#: two scans of one walk this far apart in time are independent looks at the place (slam.md 4.3: 4 s)
+MIN_PAIR_DT_S = 4.0
+#: anchored-status of a walk piece (tracks.csv "anchored" column): its own survey marks, fixes from a radio
+#: map, loops to walks that have either, the floor plan (a component placed by search), or none
+MARKS, MAP, LOOPS, PLAN, RELATIVE = "marks", "map", "loops", "plan", "relative"
+
+
+@dataclass
+class SlamConfig:
+    walk: WalkGraphConfig = field(default_factory=WalkGraphConfig)
+    #: survey marks: a person marks a point to about half a metre (radio.survey)
+    mark_sigma_m: float = 0.5
+    #: radio-map fixes: their own covariance, at least this sd, under a Cauchy kernel of this width
+    fix_sigma_floor_m: float = 3.0
+    fix_kernel_c: float = 1.0
+    #: a fix is used only when its scan is as close to the map as this quantile of the map's own
+    #: neighbours where it covers the place (mapped_distance_gate)
+    fix_gate_quantile: float = 0.9
+    #: a fix whose map-floor probability is below this is not used
+    fix_min_floor_prob: float = 0.6
+    #: walkable-area factor: r = max(0, d(p) - margin) / sigma on nodes and edge midpoints
+    field_sigma_m: float = 0.5
+    field_margin_m: float = 0.3
+    #: plan anchoring of a component with no mark and no fix: refused when the runner-up placement is
+    #: within this log-likelihood of the best (anchoring.MIN_LOG_RATIO: bench_anchoring)
+    anchor_min_log_ratio: float = MIN_LOG_RATIO
+    #: a component placed by the floor plan: prior on its nodes around the placement (sd of the centroid, m)
+    plan_anchor_sd_m: float = 3.0
+    #: loops and beacon passes: GNC Geman-McClure kernel width (whitened units). Cross-validated across
+    #: site1's floors (eval slam F = 0.1, fused test mean, each floor scored with the width the other two
+    #: chose from 1, 2, 3): held out 17.5 m, against 17.0 / 17.6 / 17.0 m for 1 / 2 / 3 on all floors -
+    #: no width is distinguishable; 1 keeps the spec's value (loops already carry their own 4-8 m spread)
+    loop_kernel_c: float = 1.0
+    #: beacon passes (walkgraph): each beacon is an unknown position; a pass puts the walk within this sd
+    #: of it (the spread measured for -65 dBm passes on site1, walkgraph.WalkGraphConfig.beacon_min_dbm),
+    #: under the same GNC kernel as fingerprint loops (a moved or duplicated beacon is an outlier)
+    beacon_sigma_m: float = 3.0
+    #: EM rounds with the crowd map (at most; site1 F = 0.1, fused test mean: 0 rounds 18.3 m, 2 17.0 m,
+    #: 4 16.2 m), folds of walks left out of each map, stop when labels move less
+    em_rounds: int = 5
+    em_folds: int = 5
+    em_stop_m: float = 0.5
+    #: technologies a crowd map is built for
+    technologies: tuple[str, ...] = ("wifi", "ble")
+    #: kNN locator settings of the EM fixes (the server's: k = 5, readings up to 8 s old)
+    knn_k: int = 5
+    knn_max_age_s: float = 8.0
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+    frontend: object | None = None  # FrontendConfig
+    solve: object | None = None  # SolveOptions
+
+
+@dataclass
+class LoopRecord:
+    """One loop candidate as the audit trail keeps it."""
+
+    walk_a: str
+    t_a: float
+    walk_b: str
+    t_b: float
+    similarity: float
+    weight: float
+    accepted: bool
+    floor: str
+    p_inlier: float = float("nan")
+    reason: str = ""
+    node_a: int = -1
+    node_b: int = -1
+    kind: str = "wifi"  # "wifi": fingerprint loop; "ble": both walks passed the same beacon
+
+
+@dataclass
+class FloorSolution:
+    floor: str
+    pieces: list[WalkPiece]
+    pos: np.ndarray  # (N, 2) node positions (site frame where anchored)
+    cov: np.ndarray  # (N, 2, 2) node marginal covariance (NaN where not computed)
+    nuisance: np.ndarray  # (K, 2)
+    status: list[str]  # per piece: MARKS / MAP / PLAN / RELATIVE
+    loops: list[LoopRecord]
+    seconds: float = 0.0
+    em_moves: list[float] = field(default_factory=list)
+
+    def piece_nodes(self, k: int) -> np.ndarray:
+        return self.pieces[k].nodes
+
+    def anchored(self, k: int) -> bool:
+        return self.status[k] != RELATIVE
+
+    def track(self, k: int, t: np.ndarray) -> np.ndarray:
+        """Corrected positions of piece k at times t (s): between nodes i and j the dead-reckoned shape,
+        mapped by the segment's (scale, bias) and closed so that it passes through both nodes."""
+        pc = self.pieces[k]
+        P = self.pos[pc.nodes]
+        t = np.asarray(t, float)
+        q = np.column_stack([np.interp(t, pc.step_t, pc.step_q[:, 0]), np.interp(t, pc.step_t, pc.step_q[:, 1])])
+        j = np.clip(np.searchsorted(pc.t, t, side="right"), 1, max(pc.n - 1, 1))
+        i = j - 1
+        if pc.n < 2:
+            return np.repeat(P[:1], len(t), axis=0)
+        seg = pc.segment[np.minimum(i, len(pc.segment) - 1)]
+        ab = self.nuisance[pc.nuisance[seg]]
+        a, b = ab[:, 0:1], ab[:, 1:2]
+
+        def M(v, a=a, b=b):  # (a, b) acting on v: a v + b perp(v)
+            return a * v + b * np.column_stack([-v[:, 1], v[:, 0]])
+
+        qi = np.column_stack([np.interp(pc.t[i], pc.step_t, pc.step_q[:, 0]), np.interp(pc.t[i], pc.step_t, pc.step_q[:, 1])])
+        qj = np.column_stack([np.interp(pc.t[j], pc.step_t, pc.step_q[:, 0]), np.interp(pc.t[j], pc.step_t, pc.step_q[:, 1])])
+        close = (P[j] - P[i]) - M(qj - qi)
+        dt = pc.t[j] - pc.t[i]
+        u = np.clip(np.where(dt > 0, (t - pc.t[i]) / np.where(dt > 0, dt, 1.0), 0.0), 0.0, 1.0)[:, None]
+        out = P[i] + M(q - qi) + u * close
+        before, after = t < pc.t[0], t > pc.t[-1]
+        out[before] = P[0] + M(q[before] - pc.q[0], a[before], b[before])
+        out[after] = P[-1] + M(q[after] - pc.q[-1], a[after], b[after])
+        return out
+
+    def track_sigma(self, k: int, t: np.ndarray) -> np.ndarray:
+        """Per-axis sd (m, shape (len(t), 2)) interpolated between the piece's nodes."""
+        pc = self.pieces[k]
+        sd = np.sqrt(np.maximum(np.stack([self.cov[pc.nodes, 0, 0], self.cov[pc.nodes, 1, 1]], axis=1), 0.0))
+        return np.column_stack([np.interp(t, pc.t, sd[:, 0]), np.interp(t, pc.t, sd[:, 1])])
+
+
+@dataclass
+class SlamResult:
+    walks: list[Walk]
+    names: list[str]
+    floors: dict[str, FloorSolution]
+    labels: list[LabelledScan]  # every scan of an anchored walk, with its position and sigma
+    label_walk: list[int]  # walk index of each label
+    seconds: float = 0.0
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def loops(self) -> list[LoopRecord]:
+        return [lp for f in self.floors.values() for lp in f.loops]
+
+    def crowd_map(self, technology: str, site: str, plan: FloorPlan | None, walks: set[int] | None = None):
+        """The radio map of one technology from the labels (label uncertainty in its likelihood)."""
+        from ..radio.radiomap import BuildParams, build_radio_map
+
+        refs = [ls for ls, w in zip(self.labels, self.label_walk) if ls.scan.technology.value == technology and (walks is None or w in walks)]
+        if not refs:
+            return None
+        return build_radio_map(refs, site=site, plan=plan, params=BuildParams(label_weight=True), technology=technology)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _components(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
+    parent = list(range(n))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for a, b in pairs:
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[ra] = rb
+    return np.array([root(i) for i in range(n)])
+
+
+def _similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares 2-D similarity dst ~ T src + t (Umeyama); translation only for one point."""
+    if len(src) == 1:
+        return np.eye(2), dst[0] - src[0]
+    ms, md = src.mean(0), dst.mean(0)
+    s, d = src - ms, dst - md
+    # T = [[a, -b], [b, a]]: a = sum(s.d)/sum(|s|^2), b = sum(s x d)/sum(|s|^2)
+    n2 = float((s**2).sum())
+    if n2 < 1e-6:
+        return np.eye(2), md - ms
+    a = float((s * d).sum()) / n2
+    b = float((s[:, 0] * d[:, 1] - s[:, 1] * d[:, 0]).sum()) / n2
+    sc = math.hypot(a, b)
+    if not 0.5 < sc < 2.0:  # degenerate (marks close together): keep the rotation, unit scale
+        a, b = a / sc, b / sc
+    T = np.array([[a, -b], [b, a]])
+    return T, md - T @ ms
+
+
+def _fix_cov(cov: np.ndarray, floor_m: float) -> np.ndarray:
+    c = 0.5 * (np.asarray(cov, float)[:2, :2] + np.asarray(cov, float)[:2, :2].T)
+    w, V = np.linalg.eigh(c)
+    return (V * np.maximum(w, floor_m**2)) @ V.T
+
+
+@dataclass
+class _Anchors:
+    """Absolute information per piece: marks (node index within the piece, position) and fixes."""
+
+    marks: dict[int, list[tuple[int, np.ndarray]]] = field(default_factory=dict)
+    fixes: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = field(default_factory=dict)
+
+
+def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000) -> float:
+    """The fingerprint distance below which a scan is explained by a map of ``refs`` (no ground truth:
+    the references' own labels). For each reference, the nearest other reference whose label lies within
+    ``radius_m`` - of another walk, or of the same walk at least ``MIN_PAIR_DT_S`` apart (an independent
+    scan of the same place): the distance a scan has to the map where the map covers its place. The
+    gate is the ``cfg.fix_gate_quantile`` quantile of those distances; a scan farther from every
+    reference comes from a place the map does not cover, and its fix (the nearest mapped place,
+    whatever the distance) is not used."""
+    from ..radio.locate import KnnLocator
+
+    if len(refs) < 10:
+        return math.inf
+    loc = KnnLocator(refs, k=min(30, len(refs)), max_age_s=cfg.knn_max_age_s)
+    rng = np.random.default_rng(0)
+    idx = rng.choice(len(refs), size=min(n_max, len(refs)), replace=False)
+    dist, nb = loc.nearest([refs[i].scan for i in idx])
+    pos = np.array([r.pos_enu for r in refs])
+    src = np.array([r.source for r in refs])
+    tt = np.array([r.scan.t for r in refs])
+    out = []
+    for row, i in enumerate(idx):
+        other = (src[nb[row]] != src[i]) | (np.abs(tt[nb[row]] - tt[i]) >= MIN_PAIR_DT_S)
+        ok = other & (np.linalg.norm(pos[nb[row]] - pos[i], axis=1) <= radius_m)
+        if ok.any():
+            out.append(float(dist[row][ok][0]))
+    return float(np.quantile(out, cfg.fix_gate_quantile)) if len(out) >= 20 else math.inf
+
+
+def locate_pieces(
+    pieces: list[WalkPiece], locate: Callable[[list[RfScan]], list], cfg: SlamConfig, technology: str = "wifi", nearest=None, gate: float = math.inf
+) -> dict[int, list]:
+    """Fixes for the scan nodes of each piece from a locator (``locate_many``-like callable):
+    {piece index: [(node index in piece, pos (2,), cov (2, 2))]}; fixes on another floor are dropped,
+    and with ``nearest`` (the locator's ``nearest``) those of scans farther than ``gate`` from every
+    reference (:func:`mapped_distance_gate`)."""
+    out: dict[int, list] = {}
+    batch, where = [], []
+    for k, pc in enumerate(pieces):
+        for i in np.flatnonzero(pc.scan >= 0):
+            s = pc.scans[int(pc.scan[i])]
+            if s.technology.value == technology:
+                batch.append(s)
+                where.append((k, int(i)))
+    if not batch:
+        return out
+    far = np.zeros(len(batch), bool)
+    if nearest is not None and math.isfinite(gate):
+        far = nearest(batch)[0][:, 0] > gate
+    for (k, i), res, too_far in zip(where, locate(batch), far):
+        fx = getattr(res, "fix", None)
+        if too_far:
+            continue
+        if fx is None or (fx.floor and fx.floor != pieces[k].floor) or fx.floor_prob < cfg.fix_min_floor_prob:
+            continue
+        out.setdefault(k, []).append((i, np.asarray(fx.pos_enu, float)[:2], _fix_cov(fx.cov, cfg.fix_sigma_floor_m)))
+    return out
+
+
+# ------------------------------------------------------------------------------------------ the floor
+class FloorSlam:
+    """The SLAM of one floor: build, anchor, solve, label (module docstring)."""
+
+    def __init__(self, floor: str, pieces: list[WalkPiece], field_=None, cfg: SlamConfig | None = None, walkable_points: np.ndarray | None = None):
+        from .frontend import LoopDetector
+
+        self.floor = floor
+        self.pieces = pieces
+        self.field = field_
+        self.cfg = cfg or SlamConfig()
+        # random walkable places of the floor: the front end's outlier distance density g(d)
+        self.detector = LoopDetector(self.cfg.frontend, walkable={floor: walkable_points} if walkable_points is not None else None)
+        self.loops: list = []
+        self.map_fixes: dict[int, list] = {}
+        self.em_fixes: dict[int, list] = {}
+        self.registrations: dict = {}
+        self.beacons: dict[str, list[tuple[int, int, float]]] = {}
+
+    # -------------------------------------------------------------- front end
+    def _walk_scans(self) -> list:
+        from .frontend import WalkScans
+
+        out = []
+        for k, pc in enumerate(self.pieces):
+            sel = np.flatnonzero((pc.kind == KIND_SCAN) & (pc.scan >= 0))
+            sel = np.array([i for i in sel if pc.scans[int(pc.scan[i])].technology.value == "wifi"], dtype=np.int64)
+            if len(sel) == 0:
+                continue
+            out.append(WalkScans(k, self.floor, pc.node0 + sel, pc.t[sel], pc.q[sel], pc.C[sel], [pc.scans[int(pc.scan[i])] for i in sel]))
+        return out
+
+    def detect_loops(self) -> None:
+        self.beacons = self.beacon_passes()
+        ws = self._walk_scans()
+        self._ws = ws
+        self.loops = []
+        self.frontend_note = ""
+        if len(ws) >= 2:
+            try:
+                self.detector.fit(ws)
+            except ValueError as exc:  # too few pairs inside walks to learn the similarity model
+                self.frontend_note = f"no fingerprint loops: {exc}"
+                return
+            self.loops = self.detector.detect(ws)
+
+    def beacon_passes(self) -> dict[str, list[tuple[int, int, float]]]:
+        """{beacon id: [(piece, node index in piece, dBm)]} for beacons passed by two or more pieces."""
+        out: dict[str, list] = {}
+        for k, pc in enumerate(self.pieces):
+            for i in np.flatnonzero(pc.beacon >= 0):
+                b = int(pc.beacon[i])
+                out.setdefault(pc.beacons[b], []).append((k, int(i), float(pc.beacon_dbm[b])))
+        return {b: v for b, v in out.items() if len({k for k, _, _ in v}) >= 2}
+
+    def _links(self) -> list[tuple[int, int, int, int]]:
+        """(piece a, node in a, piece b, node in b) of every accepted fingerprint loop and beacon co-pass."""
+        out = []
+        for lp in self.loops:
+            if lp.accepted:
+                ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+                out.append((ka, lp.node_a - self.pieces[ka].node0, kb, lp.node_b - self.pieces[kb].node0))
+        for obs in self.beacons.values():
+            for x in range(len(obs)):
+                for y in range(x + 1, len(obs)):
+                    if obs[x][0] != obs[y][0]:
+                        out.append((obs[x][0], obs[x][1], obs[y][0], obs[y][1]))
+        return out
+
+    # -------------------------------------------------------------- graph
+    def _number(self) -> None:
+        n = 0
+        for pc in self.pieces:
+            pc.node0 = n
+            n += pc.n
+
+    def _graph(self, pieces_idx: list[int], init: dict[int, np.ndarray], anchors: _Anchors, plan_prior: dict[int, tuple], with_field: bool):
+        """A factor graph over the given pieces (nodes numbered densely in that order)."""
+        from .factors import FactorGraph, Kernel
+
+        cfg = self.cfg
+        g = FactorGraph()
+        local0: dict[int, int] = {}
+        for k in pieces_idx:
+            pc = self.pieces[k]
+            ids = g.add_nodes(init[k])
+            local0[k] = int(ids[0])
+        nuis: dict[int, np.ndarray] = {}
+        ii, jj, DD, SS, KK = [], [], [], [], []
+        wc = cfg.walk
+        for k in pieces_idx:
+            pc = self.pieces[k]
+            T0 = init.get(("T", k)) if isinstance(init.get(("T", k)), np.ndarray) else np.eye(2)
+            ks = np.asarray(g.add_nuisances(np.tile([float(T0[0, 0]), float(T0[1, 0])], (pc.n_segments, 1))), dtype=np.int64)
+            nuis[k] = ks
+            g.add_nuisance_prior(int(ks[0]), (1.0, 0.0), np.diag([wc.scale_sd**2, wc.bias_sd**2]))
+            if len(ks) > 1:
+                g.add_nuisance_links_many(ks[:-1], ks[1:], np.tile(np.diag([wc.scale_drift_sd**2, wc.bias_drift_sd**2]), (len(ks) - 1, 1, 1)))
+            D, S = pc.odometry()
+            base = local0[k]
+            ii.append(base + np.arange(pc.n - 1))
+            jj.append(base + np.arange(1, pc.n))
+            DD.append(D)
+            SS.append(S)
+            KK.append(ks[pc.segment])
+        if ii:
+            g.add_odometry_many(np.concatenate(ii), np.concatenate(jj), np.concatenate(DD), np.concatenate(SS), np.concatenate(KK))
+        priors: list[tuple[int, str]] = []
+        for k in pieces_idx:
+            base = local0[k]
+            for i, z in anchors.marks.get(k, []):
+                priors.append((g.add_position_prior(base + i, z, np.eye(2) * cfg.mark_sigma_m**2), "mark"))
+            for i, z, R in anchors.fixes.get(k, []):
+                priors.append((g.add_position_prior(base + i, z, R, kernel=Kernel("cauchy", cfg.fix_kernel_c)), "fix"))
+            if k in plan_prior:
+                z_all, sd = plan_prior[k]
+                # the placement fixes the component's centroid to sd: a prior of sd*sqrt(n) on each of its n nodes
+                for i in range(self.pieces[k].n):
+                    g.add_position_prior(base + i, z_all[i], np.eye(2) * sd**2)
+        loop_ids: list[tuple[int, int]] = []  # (loop index in self.loops, graph loop id)
+        for li, lp in enumerate(self.loops):
+            if not lp.accepted:
+                continue
+            ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+            if ka not in local0 or kb not in local0:
+                continue
+            ia = local0[ka] + (lp.node_a - self.pieces[ka].node0)
+            ib = local0[kb] + (lp.node_b - self.pieces[kb].node0)
+            gid = g.add_loop(ia, ib, np.eye(2) * lp.sigma_in**2, kernel=Kernel("gm", cfg.loop_kernel_c))
+            loop_ids.append((li, gid))
+        beacon_ids: list[tuple[str, int, int]] = []  # (beacon, piece, graph loop id)
+        for b, obs in sorted(self.beacons.items()):
+            here = [(k, i) for k, i, _ in obs if k in local0]
+            if len({k for k, _ in here}) < 2:
+                continue
+            init_b = np.mean([init[k][i] for k, i in here], axis=0)
+            bn = int(g.add_nodes(init_b[None, :])[0])
+            for k, i in here:
+                gid = g.add_loop(local0[k] + i, bn, np.eye(2) * cfg.beacon_sigma_m**2, kernel=Kernel("gm", cfg.loop_kernel_c))
+                beacon_ids.append((b, k, gid))
+        self._beacon_loop_ids = beacon_ids
+        if with_field and self.field is not None:
+            nodes = np.concatenate([local0[k] + np.arange(self.pieces[k].n) for k in pieces_idx])
+            g.add_field(nodes, self.field, cfg.field_sigma_m, cfg.field_margin_m)
+            # the middle of every edge longer than 1 m (a wall between two nodes is what it catches)
+            ei = [local0[k] + e for k in pieces_idx for e in np.flatnonzero(np.linalg.norm(np.diff(self.pieces[k].q, axis=0), axis=1) > 1.0)]
+            if ei:
+                ei = np.asarray(ei, dtype=np.int64)
+                g.add_edge_field(ei, ei + 1, self.field, cfg.field_sigma_m, cfg.field_margin_m, fractions=(0.5,))
+        return g, local0, nuis, loop_ids
+
+    def _piece_of_node(self, node: int) -> int:
+        starts = np.array([pc.node0 for pc in self.pieces])
+        return int(np.searchsorted(starts, node, side="right") - 1)
+
+    # -------------------------------------------------------------- solve
+    def solve(self) -> FloorSolution:
+        from .solve import solve
+
+        t0 = time.monotonic()
+        cfg = self.cfg
+        self._number()
+        n_p = len(self.pieces)
+        anchors = _Anchors()
+        self.registrations = {}
+        for k, pc in enumerate(self.pieces):
+            mk = [(int(i), np.array([pc.marks[int(pc.mark[i])].x, pc.marks[int(pc.mark[i])].y])) for i in np.flatnonzero(pc.mark >= 0)]
+            if mk:
+                anchors.marks[k] = mk
+            fx = self.map_fixes.get(k, []) + self.em_fixes.get(k, [])
+            if fx and k not in anchors.marks:
+                # a walk is placed by its fixes only when they agree on one placement (register.py)
+                qf = np.array([pc.q[i] for i, _, _ in fx])
+                zf = np.array([z for _, z, _ in fx])
+                sd = np.array([math.sqrt(float(np.linalg.eigvalsh(R).max())) for _, _, R in fx])
+                reg = register_walk(qf, zf, sd, pc.step_q, self.field, cfg.register)
+                self.registrations[k] = reg
+                if reg.placed:
+                    near = np.linalg.norm(qf @ reg.T.T + reg.t - zf, axis=1) <= 2.0 * cfg.register.support_m
+                    anchors.fixes[k] = [f for f, ok in zip(fx, near) if ok]
+        links = self._links()
+        comp = _components(n_p, [(a, b) for a, _, b, _ in links])
+        status = [RELATIVE] * n_p
+        init: dict = {}
+        plan_prior: dict[int, tuple] = {}
+        absolute_roots = {comp[k] for k in range(n_p) if k in anchors.marks or k in anchors.fixes}
+        # initial positions of pieces in absolute components: from their own marks/fixes, else through a
+        # relative solve of the component pinned by the pieces that have them
+        for root in sorted(set(comp.tolist())):
+            members = [k for k in range(n_p) if comp[k] == root]
+            if root in absolute_roots:
+                own = {}
+                for k in members:
+                    pts = anchors.marks.get(k) or []
+                    src = [self.pieces[k].q[i] for i, _ in pts]
+                    dst = [z for _, z in pts]
+                    if not pts and anchors.fixes.get(k):
+                        reg = self.registrations[k]
+                        own[k] = (reg.T, reg.t)
+                        continue
+                    if pts:
+                        own[k] = _similarity_fit(np.asarray(src), np.asarray(dst))
+                rel = self._relative_layout(members, own)
+                for k in members:
+                    init[k] = rel[k]
+                    status[k] = MARKS if k in anchors.marks else MAP if k in anchors.fixes else LOOPS
+                continue
+            rel = self._relative_layout(members, {})
+            if self.field is None:
+                for k in members:
+                    init[k] = rel[k]
+                continue
+            from .anchoring import anchor_points
+
+            pts = np.concatenate([rel[k] for k in members])
+            an = anchor_points(pts, self.field, min_log_ratio=cfg.anchor_min_log_ratio)
+            if an.ambiguous:
+                for k in members:
+                    init[k] = rel[k]
+                continue
+            sd_node = cfg.plan_anchor_sd_m * math.sqrt(len(pts))
+            for k in members:
+                placed = rel[k] @ an.T.T + an.t
+                init[k] = placed
+                plan_prior[k] = (placed, sd_node)
+                status[k] = PLAN
+        self.status = status
+        anchored = [k for k in range(n_p) if status[k] != RELATIVE]
+        relative = [k for k in range(n_p) if status[k] == RELATIVE]
+        N = sum(pc.n for pc in self.pieces)
+        pos = np.full((N, 2), np.nan)
+        cov = np.full((N, 2, 2), np.nan)
+        K = sum(pc.n_segments for pc in self.pieces)
+        nuisance = np.tile([1.0, 0.0], (K, 1))
+        weights = np.zeros(len(self.loops))
+        beacon_w: dict[tuple[str, int], float] = {}
+        k0 = 0
+        seg0 = {}
+        for k, pc in enumerate(self.pieces):
+            seg0[k] = k0
+            pc.nuisance = k0 + np.arange(pc.n_segments)
+            k0 += pc.n_segments
+        for group, with_field in ((anchored, True), (relative, False)):
+            if not group:
+                continue
+            g, local0, nuis, loop_ids = self._graph(group, {k: init[k] for k in group}, anchors, plan_prior, with_field=False)
+            sol = solve(g, cfg.solve)
+            if with_field and self.field is not None:
+                g2, local0, nuis, loop_ids = self._graph(
+                    group, {k: sol.pos[local0[k] : local0[k] + self.pieces[k].n] for k in group}, anchors, plan_prior, True
+                )
+                sol = solve(g2, cfg.solve, x0=sol)
+            for k in group:
+                pc = self.pieces[k]
+                sl = slice(local0[k], local0[k] + pc.n)
+                pos[pc.nodes] = sol.pos[sl]
+                nuisance[pc.nuisance] = sol.nuisance[nuis[k]]
+            if group is anchored:
+                # marginal covariance of every node (the group's nodes are numbered 0..n-1 in order)
+                C = sol.marginals(np.arange(g.n_nodes))
+                for k in group:
+                    pc = self.pieces[k]
+                    cov[pc.nodes] = C[local0[k] : local0[k] + pc.n]
+            for li, gid in loop_ids:
+                weights[li] = sol.loop_weight[gid]
+            for b, k, gid in self._beacon_loop_ids:
+                beacon_w[(b, k)] = float(sol.loop_weight[gid])
+        records = []
+        for li, lp in enumerate(self.loops):
+            ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+            records.append(
+                LoopRecord(
+                    self.pieces[ka].name,
+                    float(lp.t_a),
+                    self.pieces[kb].name,
+                    float(lp.t_b),
+                    float(lp.similarity),
+                    float(weights[li]) if lp.accepted else 0.0,
+                    bool(lp.accepted and weights[li] >= 0.5),
+                    self.floor,
+                    float(lp.p_inlier),
+                    lp.reason if not lp.accepted else ("" if weights[li] >= 0.5 else "robust-weight"),
+                    int(lp.node_a),
+                    int(lp.node_b),
+                )
+            )
+        # beacon co-passes as loops of the audit trail: weight = the smaller of the two passes' weights
+        for b, obs in sorted(self.beacons.items()):
+            for x in range(len(obs)):
+                for y in range(x + 1, len(obs)):
+                    (ka, ia, da), (kb, ib, db) = obs[x], obs[y]
+                    if ka == kb:
+                        continue
+                    w = min(beacon_w.get((b, ka), 0.0), beacon_w.get((b, kb), 0.0))
+                    pa, pb = self.pieces[ka], self.pieces[kb]
+                    records.append(
+                        LoopRecord(
+                            pa.name,
+                            float(pa.t[ia]),
+                            pb.name,
+                            float(pb.t[ib]),
+                            min(da, db),
+                            w,
+                            w >= 0.5,
+                            self.floor,
+                            reason="" if w >= 0.5 else "robust-weight",
+                            node_a=pa.node0 + ia,
+                            node_b=pb.node0 + ib,
+                            kind="ble",
+                        )
+                    )
+        return FloorSolution(self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0)
+
+    def _relative_layout(self, members: list[int], own: dict[int, tuple]) -> dict[int, np.ndarray]:
+        """Initial node positions of a component's pieces: pieces with their own anchor transform are
+        placed by it; the others follow along accepted loops (breadth first: a piece linked to a placed
+        one is shifted by the median loop offset), and the first piece of a free component sits at its
+        own frame."""
+        placed: dict[int, np.ndarray] = {}
+        for k, (T, t) in own.items():
+            placed[k] = self.pieces[k].q @ T.T + t
+        if not placed:
+            k = members[0]
+            placed[k] = self.pieces[k].q.copy()
+        links: dict[int, list] = {}
+        mset = set(members)
+        for ka, ia, kb, ib in self._links():
+            if ka in mset and kb in mset:
+                links.setdefault(ka, []).append((kb, ia, ib))
+                links.setdefault(kb, []).append((ka, ib, ia))
+        frontier = list(placed)
+        while frontier:
+            nxt = []
+            for k in frontier:
+                by: dict[int, list] = {}
+                for other, i_self, i_other in links.get(k, []):
+                    if other not in placed:
+                        by.setdefault(other, []).append(placed[k][i_self] - self.pieces[other].q[i_other])
+                for other, offs in by.items():
+                    placed[other] = self.pieces[other].q + np.median(np.asarray(offs), axis=0)
+                    nxt.append(other)
+            frontier = nxt
+        for k in members:  # not reached (should not happen inside a component): own frame
+            placed.setdefault(k, self.pieces[k].q.copy())
+        return placed
+
+
+# ------------------------------------------------------------------------------------------ site level
+def _labels(fs: FloorSolution, walk_of_piece: list[int]) -> tuple[list[LabelledScan], list[int]]:
+    """Every scan of every anchored piece with its position and sd: node scans from their node (position
+    and marginal covariance), the others (BLE) from the corrected track at their time."""
+    out, wk = [], []
+    for k, pc in enumerate(fs.pieces):
+        if not fs.anchored(k):
+            continue
+        at_node = {int(pc.scan[i]): pc.node0 + int(i) for i in np.flatnonzero(pc.scan >= 0)}
+        rest = [j for j in range(len(pc.scans)) if j not in at_node]
+        if rest:
+            tr = np.array([pc.scans[j].t for j in rest])
+            xy, sd = fs.track(k, tr), fs.track_sigma(k, tr)
+        for j, s in enumerate(pc.scans):
+            if j in at_node:
+                n = at_node[j]
+                c = fs.cov[n]
+                sig = float(math.sqrt(max(0.5 * (c[0, 0] + c[1, 1]), 0.0))) if np.all(np.isfinite(c)) else 5.0
+                pos = fs.pos[n].copy()
+            else:
+                r = rest.index(j)
+                pos = xy[r]
+                sig = float(np.sqrt(0.5 * (sd[r] ** 2).sum())) if np.all(np.isfinite(sd[r])) else 5.0
+            out.append(LabelledScan(s, pos, sig, fs.floor, pc.name))
+            wk.append(walk_of_piece[k])
+    return out, wk
+
+
+def _walkable_points(floor, n: int, rng: np.random.Generator) -> np.ndarray | None:
+    """n uniform random points of the floor's walkable area (rejection sampling in its bounds)."""
+    import shapely
+
+    area = floor.walkable
+    if area.is_empty:
+        return None
+    x0, y0, x1, y1 = area.bounds
+    out = np.zeros((0, 2))
+    for _ in range(50):
+        c = rng.uniform([x0, y0], [x1, y1], size=(4 * n, 2))
+        out = np.vstack([out, c[shapely.contains_xy(area, c[:, 0], c[:, 1])]])
+        if len(out) >= n:
+            return out[:n]
+    return out if len(out) else None
+
+
+def run_slam(
+    walks: list[Walk],
+    plan: FloorPlan | None = None,
+    radio_map=None,
+    config: SlamConfig | None = None,
+    names: list[str] | None = None,
+    progress: Callable[[str, str, int, int], None] | None = None,
+) -> SlamResult:
+    """Crowd SLAM over ``walks`` (module docstring). ``radio_map``: an existing map whose fixes anchor
+    the walks (heavy-tailed). ``progress(stage, floor, done, total)`` is called as floors advance."""
+    from ..radio.locate import KnnLocator
+
+    cfg = config or SlamConfig()
+    t0 = time.monotonic()
+    names = names or [str(w.walk_id) if w.walk_id is not None else w.device for w in walks]
+    by_floor: dict[str, list[WalkPiece]] = {}
+    for wi, w in enumerate(walks):
+        for pc in walk_pieces(w, wi, cfg.walk, name=names[wi]):
+            by_floor.setdefault(pc.floor, []).append(pc)
+    fields = {}
+    if plan is not None:
+        from .floorplan import WalkableField
+
+        for f in plan.floors:
+            if f.name in by_floor:
+                fields[f.name] = WalkableField.from_floor(f)
+    floors: dict[str, FloorSolution] = {}
+    slams: dict[str, FloorSlam] = {}
+    labels: list[LabelledScan] = []
+    label_walk: list[int] = []
+    locator = None
+    if radio_map is not None and radio_map.references:
+        locator = KnnLocator(radio_map.references, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
+        map_gate = mapped_distance_gate(radio_map.references, cfg)
+    total = len(by_floor)
+    for n_done, (fname, pieces) in enumerate(sorted(by_floor.items())):
+        if progress:
+            progress("loops", fname, n_done, total)
+        pts = None
+        if plan is not None and fname in plan.floor_names:
+            pts = _walkable_points(plan.floor(fname), 2000, np.random.default_rng(0))
+        fsl = FloorSlam(fname, pieces, fields.get(fname), cfg, pts)
+        fsl._number()
+        fsl.detect_loops()
+        if locator is not None:
+            fsl.map_fixes = locate_pieces(pieces, locator.locate_many, cfg, radio_map.technology, locator.nearest, map_gate)
+        if progress:
+            progress("solve", fname, n_done, total)
+        fs = fsl.solve()
+        slams[fname] = fsl
+        floors[fname] = fs
+    walk_of = {fname: [pc.walk for pc in fs.pieces] for fname, fs in floors.items()}
+    # EM with the crowd map: each fold of walks located against the map of the others
+    for rnd in range(cfg.em_rounds):
+        labels, label_walk = [], []
+        for fname, fs in floors.items():
+            lb, wk = _labels(fs, walk_of[fname])
+            labels += lb
+            label_walk += wk
+        wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
+        if len(wifi) < 20:
+            break
+        folds = np.arange(len(walks)) % max(cfg.em_folds, 2)
+        moves = []
+        for fsl in slams.values():
+            fsl.em_fixes = {}
+        for f in range(max(cfg.em_folds, 2)):
+            refs = [labels[i] for i in wifi if folds[label_walk[i]] != f]
+            if len(refs) < 10:
+                continue
+            loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
+            gate = mapped_distance_gate(refs, cfg)
+            for fsl in slams.values():
+                sel = [k for k, pc in enumerate(fsl.pieces) if folds[pc.walk] == f]
+                if not sel:
+                    continue
+                got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi", loc.nearest, gate)
+                for j, v in got.items():
+                    fsl.em_fixes[sel[j]] = v
+        for n_done, (fname, fsl) in enumerate(sorted(slams.items())):
+            if progress:
+                progress(f"em {rnd + 1}", fname, n_done, total)
+            old = floors[fname]
+            new = fsl.solve()
+            both = np.isfinite(old.pos[:, 0]) & np.isfinite(new.pos[:, 0])
+            both &= np.array([old.status[fsl._piece_of_node(n)] != RELATIVE for n in range(len(new.pos))]) if len(new.pos) else both
+            if both.any():
+                moves.append(np.linalg.norm(new.pos[both] - old.pos[both], axis=1))
+            new.em_moves = old.em_moves + [float(np.median(moves[-1])) if moves and both.any() else 0.0]
+            floors[fname] = new
+        med = float(np.median(np.concatenate(moves))) if moves else 0.0
+        if med < cfg.em_stop_m:
+            break
+    labels, label_walk = [], []
+    for fname, fs in floors.items():
+        lb, wk = _labels(fs, walk_of[fname])
+        labels += lb
+        label_walk += wk
+    if progress:
+        progress("done", "", total, total)
+    return SlamResult(walks, names, floors, labels, label_walk, time.monotonic() - t0)
