@@ -130,6 +130,7 @@ def run_slam_eval(
     from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_waypoints
     from ..progress import Progress
 
+    out = out if out is not None else sys.stdout  # looked up per call (a captured stdout may be replaced)
     if not 0.0 <= survey_fraction <= 1.0 or not 0.0 < data_fraction <= 1.0:
         raise ValueError("--survey-fraction must be in [0, 1] and --data-fraction in (0, 1]")
     t0 = time.monotonic()
