@@ -124,7 +124,7 @@ def run_slam_eval(
     data_fraction: float = 1.0,
     workers: int = 2,
     config: SlamConfig | None = None,
-    out=sys.stdout,
+    out=None,
 ) -> dict:
     from .. import geo
     from ..io.msft import find_ilc_traces, read_ilc_site, read_ilc_waypoints
