@@ -141,7 +141,10 @@ def run_slam_eval(
     if len(paths) < 4:
         raise MissingData(f"too few Indoor Location Competition recordings under {site_dir}")
     plan = read_ilc_site(site)
-    rng = np.random.default_rng(seed)
+    # two generators: which walks keep their marks does not depend on how many crowd walks are used,
+    # so the data-amount curve (P) varies only the crowd
+    rng_survey = np.random.default_rng(seed)
+    rng_data = np.random.default_rng([seed, 1])
     # roles per floor: the floor of each file is its folder's (no file is read for this)
     by_floor: dict[str, list[Path]] = {}
     for p in sorted(paths, key=lambda p: p.name):
@@ -152,10 +155,10 @@ def run_slam_eval(
         for p in ps[1::2]:
             roles[p] = "test"
         n_keep = int(round(survey_fraction * len(crowd)))
-        keep = set(rng.choice(len(crowd), size=n_keep, replace=False).tolist()) if n_keep else set()
+        keep = set(rng_survey.choice(len(crowd), size=n_keep, replace=False).tolist()) if n_keep else set()
         rest = [i for i in range(len(crowd)) if i not in keep]
         n_use = int(math.ceil(data_fraction * len(rest)))
-        use = set(rng.choice(rest, size=n_use, replace=False).tolist()) if rest and n_use else set()
+        use = set(rng_data.choice(rest, size=n_use, replace=False).tolist()) if rest and n_use else set()
         for i, p in enumerate(crowd):
             if i in keep:
                 roles[p] = "survey"
