@@ -163,36 +163,54 @@ def read_loops_csv(path: str | Path) -> list[dict]:
         return list(csv.DictReader(fh))
 
 
+#: rejected candidates drawn: those that were mutual matches and fell at the model, PCM or the robust back
+#: end (the others - below the similarity floor, not mutual - would cover the plan; they are counted)
+DRAWN_REJECTIONS = ("model", "pcm", "pcm-small", "robust-weight")
+
+
 def plot_slam(ax, plan, tracks: dict, raw: dict | None, loops: list[dict], floor: str) -> dict:
-    """Raw and corrected walks of one floor with accepted (green) and rejected (red) loops over the plan."""
+    """Raw (grey) and corrected (coloured) walks of one floor over the plan, accepted loops (green) and
+    the rejected ones that reached the consistency test or the back end (red). Walks that are relative
+    only have no place on the plan and are counted, not drawn."""
+    from matplotlib import colormaps
+
     from ..radio.plot import plot_plan
 
     plot_plan(ax, plan, floor)
     pos_at = {}
-    n_walks = 0
-    for key, d in tracks.items():
-        if d["floor"] != floor:
-            continue
+    n_walks = n_rel = 0
+    cmap = colormaps["Blues"]  # walks in blues: green and red are the loops' colours
+    keys = [k for k, d in sorted(tracks.items()) if d["floor"] == floor]
+    for n, key in enumerate(keys):
+        d = tracks[key]
         n_walks += 1
-        rel = d["anchored"] == RELATIVE
+        if d["anchored"] == RELATIVE:
+            n_rel += 1
+            continue
         if raw and key in raw:
             ax.plot(raw[key]["xy"][:, 0], raw[key]["xy"][:, 1], color="0.6", lw=0.5, alpha=0.6)
-        if not rel:
-            ax.plot(d["xy"][:, 0], d["xy"][:, 1], lw=0.9, alpha=0.9)
-            pos_at[d["walk"]] = d
-    acc = rej = 0
+        ax.plot(d["xy"][:, 0], d["xy"][:, 1], lw=0.9, alpha=0.9, color=cmap(0.45 + 0.55 * n / max(len(keys) - 1, 1)))
+        pos_at[d["walk"]] = d
+    acc = rej = drawn = 0
     for lp in loops:
         if lp.get("floor", floor) != floor:
+            continue
+        ok = lp["accepted"] in ("1", "True", "true")
+        acc += ok
+        rej += not ok
+        if not ok and lp.get("reason", "") not in DRAWN_REJECTIONS:
             continue
         a, b = pos_at.get(lp["walk_a"]), pos_at.get(lp["walk_b"])
         if a is None or b is None:
             continue
         pa = np.array([np.interp(float(lp["t_a"]), a["t"], a["xy"][:, c]) for c in (0, 1)])
         pb = np.array([np.interp(float(lp["t_b"]), b["t"], b["xy"][:, c]) for c in (0, 1)])
-        ok = lp["accepted"] in ("1", "True", "true")
-        acc += ok
-        rej += not ok
-        ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color="tab:green" if ok else "tab:red", lw=0.6 if ok else 0.3, alpha=0.8 if ok else 0.35)
+        drawn += not ok
+        ax.plot([pa[0], pb[0]], [pa[1], pb[1]], color="tab:green" if ok else "tab:red", lw=1.0 if ok else 0.4, alpha=0.9 if ok else 0.4, zorder=3)
     ax.set_aspect("equal")
-    ax.set_title(f"floor {floor}: {n_walks} walks, {acc} accepted loops (green), {rej} rejected (red); grey: raw")
-    return {"walks": n_walks, "accepted": acc, "rejected": rej}
+    ax.set_title(
+        f"floor {floor}: {n_walks} walks ({n_rel} relative only, not drawn); loops: {acc} accepted (green), {rej} rejected "
+        f"({drawn} drawn in red: fell at the model, PCM or the back end); grey: raw",
+        fontsize=9,
+    )
+    return {"walks": n_walks, "relative": n_rel, "accepted": acc, "rejected": rej}
