@@ -19,6 +19,7 @@ through these, never through raw rows.
 from __future__ import annotations
 
 import datetime as dt
+import math
 from collections import Counter
 from collections.abc import Collection
 from dataclasses import dataclass
@@ -395,6 +396,46 @@ class Store:
                 update(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value, m.Walk.updated_at < cutoff).values(end_reason=WalkEnd.IDLE.value)
             )
             return int(cast(CursorResult, res).rowcount)
+
+    # -------------------------------------------------------------- floor plans
+    def save_floor_plan(self, site: str, plan) -> int:
+        """Store a :class:`~hybridloc.types.FloorPlan` as the site's newest floor plan (one GeoJSON row of
+        the ``floor_plan`` table, :mod:`hybridloc.io.floorplan_geojson`); returns the row id. The site's
+        ``floor`` rows are added or updated (name, level)."""
+        from hybridloc.io.floorplan_geojson import floorplan_to_geojson
+
+        text = floorplan_to_geojson(plan)
+        with Session(self.engine) as s, s.begin():
+            site_row = s.get(m.Site, site)
+            if site_row is None:
+                site_row = m.Site(id=site, name=site)
+                s.add(site_row)
+            if plan.origin is not None:
+                site_row.origin_lat_deg = math.degrees(plan.origin.lat)
+                site_row.origin_lon_deg = math.degrees(plan.origin.lon)
+            s.flush()
+            have = {f.name: f for f in s.execute(select(m.Floor).where(m.Floor.site_id == site)).scalars()}
+            for f in plan.floors:
+                if f.name in have:
+                    have[f.name].level = int(f.level)
+                else:
+                    s.add(m.Floor(site_id=site, name=f.name, level=int(f.level)))
+            row = m.FloorPlanVersion(site_id=site, geojson=text)
+            s.add(row)
+            s.flush()
+            return int(row.id)
+
+    def load_floor_plan(self, site: str):
+        """The site's newest floor plan (:class:`~hybridloc.types.FloorPlan`), or None."""
+        from hybridloc.io.floorplan_geojson import floorplan_from_geojson
+
+        with Session(self.engine) as s:
+            row = (
+                s.execute(select(m.FloorPlanVersion).where(m.FloorPlanVersion.site_id == site).order_by(m.FloorPlanVersion.id.desc()))
+                .scalars()
+                .first()
+            )
+            return None if row is None else floorplan_from_geojson(row.geojson, source=f"floor plan {row.id} of site {site!r}")
 
     # -------------------------------------------------------------- radio maps
     def save_map(self, site: str, data: bytes, n_scans: int = 0) -> int:

@@ -47,6 +47,8 @@ CASES: dict[str, list[str]] = {
     "eval sim-realism": ["eval", "sim-realism", "--ilc", "{f}"],
     "eval fusion": ["eval", "fusion", "{f}", "--out", "{o}"],
     "eval slam": ["eval", "slam", "{f}", "--workers", "1"],
+    "floorplan import": ["floorplan", "import", "{f}", "--site", "s", "--db", "{o}/h.db"],
+    "floorplan export": ["--config", "{f}", "floorplan", "export", "--site", "s", "--db", "{o}/h.db", "--out", "{o}/p.geojson"],
     "slam run": ["slam", "run", "{f}", "--out", "{o}/slam", "--workers", "1"],
     "slam show": ["slam", "show", "{f}", "--floor", "F1", "--out", "{o}/s.png"],
     "demo": ["--config", "{f}", "demo", "--out", "{o}"],

@@ -29,7 +29,7 @@ log = logging.getLogger("hybridloc")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import client, data, demo, eval, locate, pdr, radiomap, server, sim, slam
+    from . import client, data, demo, eval, floorplan, locate, pdr, radiomap, server, sim, slam
 
     ap = argparse.ArgumentParser(prog="hybridloc", description="Crowd-sourced hybrid PDR + WiFi/RF SLAM for indoor positioning.")
     ap.add_argument("--version", action="version", version=f"hybridloc {__version__}")
@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     locate.register(sub)
     sim.register(sub)
     slam.register(sub)
+    floorplan.register(sub)
     eval.register(sub)
     demo.register(sub)
     return ap
