@@ -244,17 +244,28 @@ class Agent:
 
     local_fix = add_fix  # the name drivers used before
 
-    def maybe_flush(self, t: float, force: bool = False) -> None:
-        """Send what is queued when a batch period has passed since the last batch (``force``: now)."""
+    def end_walk(self, t: float) -> None:
+        """The walk ends (its replay or live input ended): send what is queued, the last batch marked
+        ``end_of_walk`` (an empty marker batch when nothing is queued), so the server closes the walk now."""
+        self.maybe_flush(t, force=True, end_of_walk=True)
+
+    def maybe_flush(self, t: float, force: bool = False, end_of_walk: bool = False) -> None:
+        """Send what is queued when a batch period has passed since the last batch (``force``: now);
+        ``end_of_walk`` marks the last batch sent (see :meth:`end_walk`)."""
         if not force and t - self._last_flush < self.batch_period:
             return
         # keep batches under the protocol size limit: scans are the big items
+        marked = False
         while self._steps or self._scans or self._marks:
             scans, self._scans = self._scans[:8], self._scans[8:]
             steps, self._steps = self._steps, []
             marks, self._marks = self._marks, []
-            self.uplink.send(steps=steps, scans=scans, marks=marks)
+            last = not (self._steps or self._scans or self._marks)
+            self.uplink.send(steps=steps, scans=scans, marks=marks, end_of_walk=end_of_walk and last)
+            marked = marked or (end_of_walk and last)
             self.n_asked += any(sc.technology is Technology.WIFI for sc in scans)
+        if end_of_walk and not marked:
+            self.uplink.send(end_of_walk=True)
         self._last_flush = t
 
     def tick(self, t: float, lockstep: bool = False) -> None:
@@ -385,7 +396,7 @@ def replay_phone(
                 time.sleep(lag)
     for tm, xy, floor in marks[i_mark:]:
         agent.add_mark(SurveyMark(float(tm), float(xy[0]), float(xy[1]), floor))
-    agent.flush(ts[-1])
+    agent.end_walk(ts[-1])
     return pdr
 
 
@@ -455,7 +466,7 @@ def live_phone(agent: Agent, lines, rate_hz: float, lockstep: bool = False, leng
     if units_error:
         raise ValueError(units_error)
     if math.isfinite(t_now):
-        agent.flush(t_now)
+        agent.end_walk(t_now)
     agent.drain_fixes()
     return st
 
@@ -474,4 +485,4 @@ def replay_foot(agent: Agent, imu, speed: float = 1.0) -> None:
                 time.sleep(lag)
         agent.add_step(st)
         agent.tick(st.t)
-    agent.flush(float(imu.t[-1]))
+    agent.end_walk(float(imu.t[-1]))

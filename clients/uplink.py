@@ -64,12 +64,13 @@ class Uplink:
         return self.next_seq - 1 - self.acked
 
     # ------------------------------------------------------------ sending
-    def send(self, steps=(), scans=(), marks=()) -> int:
-        """Spool and publish one batch of StepEvent, RfScan and SurveyMark records; returns its sequence number."""
+    def send(self, steps=(), scans=(), marks=(), end_of_walk: bool = False) -> int:
+        """Spool and publish one batch of StepEvent, RfScan and SurveyMark records; returns its sequence
+        number. ``end_of_walk``: the walk ends with this batch (the server closes it at once)."""
         with self._lock:
             seq = self.next_seq
             self.next_seq += 1
-            payload = C.BATCH.encode(Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time()))
+            payload = C.BATCH.encode(Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time(), end_of_walk))
             if len(payload) > P.MAX_BATCH_BYTES:
                 raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
             path = self.spool / f"{seq:012d}.json"

@@ -396,3 +396,41 @@ def test_phone_client_carried_turned_estimates_its_walking_offset(tmp_path):
             heading[name] = float(np.angle(np.exp(1j * h).mean()))
     assert abs(wrap_angle(heading["turned"] - heading["held"])) < math.radians(20)
     assert abs(wrap_angle(heading["turned, no estimate"] - heading["held"])) > math.radians(120)
+
+
+def test_end_of_walk_marker_closes_the_walk_on_the_server(tmp_path):
+    """The agent marks the last batch of a walk (end_walk, as every replay and live driver does at the
+    end of its input); the server stores the walk as ended by its marker at once, not after the idle gap.
+    A walk whose client sends no marker (an older client) stays open."""
+    from hybridloc.clients.agent import Agent, PoseWriter
+    from hybridloc.server.service import Server
+    from hybridloc.server.store import Store
+    from hybridloc.types import WalkEnd
+    from hybridloc.wire.zconfig import client_config, free_port
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    db = str(tmp_path / "db.sqlite")
+    srv = Server(ep, db).start()
+    try:
+        with zenoh.open(client_config(ep)) as s:
+            for device, end in (("marked", True), ("older", False)):
+                ag = Agent(s, "site1", device, tmp_path / f"spool-{device}", PoseWriter(None))
+                assert ag.uplink.wait_connected()
+                steps = _walk(10, 0.0, t0=100.0)
+                for st in steps:
+                    ag.add_step(st)
+                    ag.tick(st.t)
+                if end:
+                    ag.end_walk(steps[-1].t)
+                else:
+                    ag.flush(steps[-1].t)
+                assert ag.uplink.wait_acked(timeout=10.0)
+                ag.close(wait=10)
+    finally:
+        srv.stop()
+    store = Store(db)
+    try:
+        ends = {w.device: w.end for w in store.walks("site1")}
+    finally:
+        store.close()
+    assert ends == {"marked": WalkEnd.MARKER, "older": WalkEnd.OPEN}

@@ -531,3 +531,19 @@ def test_a_decoder_raises_nothing_but_rejected(name):
                 assert exc.reason in REASONS
 
     check()
+
+
+def test_batch_end_of_walk_is_optional_and_round_trips():
+    from hybridloc.wire import codecs as C
+    from hybridloc.wire.messages import Batch
+    from hybridloc.wire.protocol import Rejected
+
+    plain = Batch("site1", "dev01", 3)
+    marked = Batch("site1", "dev01", 4, end_of_walk=True)
+    assert b"end_of_walk" not in C.BATCH.encode(plain)  # older servers and clients see the bytes they know
+    assert C.BATCH.decode(C.BATCH.encode(marked)).end_of_walk is True
+    assert C.BATCH.decode(C.BATCH.encode(plain)).end_of_walk is False
+    bad = C.BATCH.encode(plain).replace(b'"seq":3', b'"seq":3,"end_of_walk":"yes"')
+    with pytest.raises(Rejected) as exc:
+        C.BATCH.decode(bad)
+    assert exc.value.reason == "bad-value"

@@ -234,6 +234,8 @@ class BatchCodec(Codec[Batch]):
             "scans": [scan_to_dict(s) for s in b.scans],
             "marks": [{"t": m.t, "x": m.x, "y": m.y, "floor": m.floor} for m in b.marks],
         }  # fmt: skip
+        if b.end_of_walk:  # optional: absent means false, so batches of older clients read the same
+            msg["end_of_walk"] = True
         return _dumps(msg, compact=True)
 
     def decode(self, payload: bytes, site: str | None = None, device: str | None = None) -> Batch:
@@ -261,7 +263,10 @@ class BatchCodec(Codec[Batch]):
             return steps, scans, marks
 
         steps, scans, marks = _structure(items)
-        return Batch(b_site, b_device, seq, model, steps, scans, marks, _finite(msg.get("sent_at") or 0.0, "sent_at"))
+        end = msg.get("end_of_walk", False)
+        if not isinstance(end, bool):
+            raise Rejected("bad-value", f"end_of_walk must be true or false, got {end!r}")
+        return Batch(b_site, b_device, seq, model, steps, scans, marks, _finite(msg.get("sent_at") or 0.0, "sent_at"), end)
 
 
 class AckCodec(Codec[Ack]):

@@ -31,6 +31,9 @@ class Batch:
     steps, scans, marks : tuples of StepEvent, RfScan, SurveyMark
     sent_at : float
         When the client sent the batch, s (Unix time on the client; 0 when unknown).
+    end_of_walk : bool
+        The device's walk ends with this batch (its replay or live input ended): the server closes the
+        walk at once instead of after the idle gap. On the wire only when true (older clients omit it).
     """
 
     site: str
@@ -41,6 +44,7 @@ class Batch:
     scans: tuple[RfScan, ...] = ()
     marks: tuple[SurveyMark, ...] = ()
     sent_at: float = 0.0
+    end_of_walk: bool = False
 
     def __post_init__(self) -> None:
         for name in ("steps", "scans", "marks"):
