@@ -47,7 +47,7 @@ def _cmd_slam_run(args: argparse.Namespace) -> int:
     for p in stages.values():
         p.close()
     site = walks[0].site if walks else site_dir.name
-    n_scans = sum(len(ls) for ls in [res.labels])
+    n_scans = len(res.labels)
     res.stats = {
         "site_dir": str(site_dir.resolve()),
         "walks": len(walks),

@@ -81,10 +81,9 @@ def _fused(test: list[_Walk], refs: list[LabelledScan], axes: dict, k: int = 5, 
     for w in test:
         steps = list(w.walk.steps)
         scans = [s for s in w.walk.scans if s.technology.value == "wifi"]
-        fixes = [r.fix for r in loc.locate_many(scans) if r.fix is not None] if scans else []
-        if scans and math.isfinite(gate):
-            near = loc.nearest(scans)[0][:, 0] <= gate
-            fixes = [r.fix for r, ok in zip(loc.locate_many(scans), near) if r.fix is not None and ok]
+        answers = loc.locate_many(scans) if scans else []
+        near = loc.nearest(scans)[0][:, 0] <= gate if scans and math.isfinite(gate) else np.ones(len(answers), bool)
+        fixes = [r.fix for r, ok in zip(answers, near) if r.fix is not None and ok]
         est = run_fusion(LocalFusion(corridor_axes=axes), steps, fixes) if steps else []
         poses = [(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in est]
         out.append(causal_errors(poses, w.wp.t, w.wp.pos_enu))

@@ -38,7 +38,7 @@ def _track_rows(res: SlamResult, raw: bool = False):
         for k, pc in enumerate(fs.pieces):
             t = np.union1d(pc.step_t, pc.t)
             if raw:
-                q = np.column_stack([np.interp(t, pc.step_t, pc.step_q[:, 0]), np.interp(t, pc.step_t, pc.step_q[:, 1])])
+                q = pc.q_at(t)
                 start = fs.pos[pc.nodes[0]] if np.all(np.isfinite(fs.pos[pc.nodes[0]])) else np.zeros(2)
                 xy = q - pc.q[0] + start
                 sd = np.full((len(t), 2), np.nan)

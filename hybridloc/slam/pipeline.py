@@ -20,6 +20,7 @@ Per floor (slam.md 4.3-4.7):
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -28,10 +29,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..radio.survey import LabelledScan
+from ..sim.building import graph_components
 from ..types import FloorPlan, RfScan, Walk
 from .anchoring import MIN_LOG_RATIO
 from .register import RegisterConfig, register_walk
 from .walkgraph import KIND_SCAN, WalkGraphConfig, WalkPiece, walk_pieces
+
+log = logging.getLogger(__name__)
 
 #: two scans of one walk this far apart in time are independent looks at the place (slam.md 4.3: 4 s)
 MIN_PAIR_DT_S = 4.0
@@ -128,7 +132,7 @@ class FloorSolution:
         pc = self.pieces[k]
         P = self.pos[pc.nodes]
         t = np.asarray(t, float)
-        q = np.column_stack([np.interp(t, pc.step_t, pc.step_q[:, 0]), np.interp(t, pc.step_t, pc.step_q[:, 1])])
+        q = pc.q_at(t)
         j = np.clip(np.searchsorted(pc.t, t, side="right"), 1, max(pc.n - 1, 1))
         i = j - 1
         if pc.n < 2:
@@ -140,8 +144,8 @@ class FloorSolution:
         def M(v, a=a, b=b):  # (a, b) acting on v: a v + b perp(v)
             return a * v + b * np.column_stack([-v[:, 1], v[:, 0]])
 
-        qi = np.column_stack([np.interp(pc.t[i], pc.step_t, pc.step_q[:, 0]), np.interp(pc.t[i], pc.step_t, pc.step_q[:, 1])])
-        qj = np.column_stack([np.interp(pc.t[j], pc.step_t, pc.step_q[:, 0]), np.interp(pc.t[j], pc.step_t, pc.step_q[:, 1])])
+        qi = pc.q_at(pc.t[i])
+        qj = pc.q_at(pc.t[j])
         close = (P[j] - P[i]) - M(qj - qi)
         dt = pc.t[j] - pc.t[i]
         u = np.clip(np.where(dt > 0, (t - pc.t[i]) / np.where(dt > 0, dt, 1.0), 0.0), 0.0, 1.0)[:, None]
@@ -183,22 +187,6 @@ class SlamResult:
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _components(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
-    parent = list(range(n))
-
-    def root(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in pairs:
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[ra] = rb
-    return np.array([root(i) for i in range(n)])
-
-
 def _similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares 2-D similarity dst ~ T src + t (Umeyama); translation only for one point."""
     if len(src) == 1:
@@ -325,14 +313,12 @@ class FloorSlam:
     def detect_loops(self) -> None:
         self.beacons = self.beacon_passes()
         ws = self._walk_scans()
-        self._ws = ws
         self.loops = []
-        self.frontend_note = ""
         if len(ws) >= 2:
             try:
                 self.detector.fit(ws)
             except ValueError as exc:  # too few pairs inside walks to learn the similarity model
-                self.frontend_note = f"no fingerprint loops: {exc}"
+                log.info("floor %s: no fingerprint loops (%s)", self.floor, exc)
                 return
             self.loops = self.detector.detect(ws)
 
@@ -365,6 +351,7 @@ class FloorSlam:
         for pc in self.pieces:
             pc.node0 = n
             n += pc.n
+        self._starts = np.array([pc.node0 for pc in self.pieces])
 
     def _graph(self, pieces_idx: list[int], init: dict[int, np.ndarray], anchors: _Anchors, plan_prior: dict[int, tuple], with_field: bool):
         """A factor graph over the given pieces (nodes numbered densely in that order)."""
@@ -382,8 +369,7 @@ class FloorSlam:
         wc = cfg.walk
         for k in pieces_idx:
             pc = self.pieces[k]
-            T0 = init.get(("T", k)) if isinstance(init.get(("T", k)), np.ndarray) else np.eye(2)
-            ks = np.asarray(g.add_nuisances(np.tile([float(T0[0, 0]), float(T0[1, 0])], (pc.n_segments, 1))), dtype=np.int64)
+            ks = np.asarray(g.add_nuisances(np.tile([1.0, 0.0], (pc.n_segments, 1))), dtype=np.int64)
             nuis[k] = ks
             g.add_nuisance_prior(int(ks[0]), (1.0, 0.0), np.diag([wc.scale_sd**2, wc.bias_sd**2]))
             if len(ks) > 1:
@@ -397,13 +383,12 @@ class FloorSlam:
             KK.append(ks[pc.segment])
         if ii:
             g.add_odometry_many(np.concatenate(ii), np.concatenate(jj), np.concatenate(DD), np.concatenate(SS), np.concatenate(KK))
-        priors: list[tuple[int, str]] = []
         for k in pieces_idx:
             base = local0[k]
             for i, z in anchors.marks.get(k, []):
-                priors.append((g.add_position_prior(base + i, z, np.eye(2) * cfg.mark_sigma_m**2), "mark"))
+                g.add_position_prior(base + i, z, np.eye(2) * cfg.mark_sigma_m**2)
             for i, z, R in anchors.fixes.get(k, []):
-                priors.append((g.add_position_prior(base + i, z, R, kernel=Kernel("cauchy", cfg.fix_kernel_c)), "fix"))
+                g.add_position_prior(base + i, z, R, kernel=Kernel("cauchy", cfg.fix_kernel_c))
             if k in plan_prior:
                 z_all, sd = plan_prior[k]
                 # the placement fixes the component's centroid to sd: a prior of sd*sqrt(n) on each of its n nodes
@@ -442,8 +427,11 @@ class FloorSlam:
         return g, local0, nuis, loop_ids
 
     def _piece_of_node(self, node: int) -> int:
-        starts = np.array([pc.node0 for pc in self.pieces])
-        return int(np.searchsorted(starts, node, side="right") - 1)
+        return int(np.searchsorted(self._starts, node, side="right") - 1)
+
+    def node_status(self, status: list[str]) -> np.ndarray:
+        """The per-piece ``status`` repeated for each node of the piece (nodes are numbered piece by piece)."""
+        return np.repeat(np.asarray(status, dtype=object), [pc.n for pc in self.pieces])
 
     # -------------------------------------------------------------- solve
     def solve(self) -> FloorSolution:
@@ -471,7 +459,7 @@ class FloorSlam:
                     near = np.linalg.norm(qf @ reg.T.T + reg.t - zf, axis=1) <= 2.0 * cfg.register.support_m
                     anchors.fixes[k] = [f for f, ok in zip(fx, near) if ok]
         links = self._links()
-        comp = _components(n_p, [(a, b) for a, _, b, _ in links])
+        comp = graph_components(n_p, [(a, b) for a, _, b, _ in links])
         status = [RELATIVE] * n_p
         init: dict = {}
         plan_prior: dict[int, tuple] = {}
@@ -548,8 +536,9 @@ class FloorSlam:
                 pos[pc.nodes] = sol.pos[sl]
                 nuisance[pc.nuisance] = sol.nuisance[nuis[k]]
             if group is anchored:
-                # marginal covariance of every node (the group's nodes are numbered 0..n-1 in order)
-                C = sol.marginals(np.arange(g.n_nodes))
+                # marginal covariance of every node of the group's pieces (numbered 0..n-1 in order; the
+                # beacon variables after them need none)
+                C = sol.marginals(np.arange(sum(self.pieces[k].n for k in group)))
                 for k in group:
                     pc = self.pieces[k]
                     cov[pc.nodes] = C[local0[k] : local0[k] + pc.n]
@@ -665,6 +654,16 @@ def _labels(fs: FloorSolution, walk_of_piece: list[int]) -> tuple[list[LabelledS
     return out, wk
 
 
+def _all_labels(floors: dict[str, FloorSolution], walk_of: dict[str, list[int]]) -> tuple[list[LabelledScan], list[int]]:
+    labels: list[LabelledScan] = []
+    label_walk: list[int] = []
+    for fname, fs in floors.items():
+        lb, wk = _labels(fs, walk_of[fname])
+        labels += lb
+        label_walk += wk
+    return labels, label_walk
+
+
 def _walkable_points(floor, n: int, rng: np.random.Generator) -> np.ndarray | None:
     """n uniform random points of the floor's walkable area (rejection sampling in its bounds)."""
     import shapely
@@ -736,11 +735,7 @@ def run_slam(
     walk_of = {fname: [pc.walk for pc in fs.pieces] for fname, fs in floors.items()}
     # EM with the crowd map: each fold of walks located against the map of the others
     for rnd in range(cfg.em_rounds):
-        labels, label_walk = [], []
-        for fname, fs in floors.items():
-            lb, wk = _labels(fs, walk_of[fname])
-            labels += lb
-            label_walk += wk
+        labels, label_walk = _all_labels(floors, walk_of)
         wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
         if len(wifi) < 20:
             break
@@ -767,7 +762,7 @@ def run_slam(
             old = floors[fname]
             new = fsl.solve()
             both = np.isfinite(old.pos[:, 0]) & np.isfinite(new.pos[:, 0])
-            both &= np.array([old.status[fsl._piece_of_node(n)] != RELATIVE for n in range(len(new.pos))]) if len(new.pos) else both
+            both &= fsl.node_status(old.status) != RELATIVE
             if both.any():
                 moves.append(np.linalg.norm(new.pos[both] - old.pos[both], axis=1))
             new.em_moves = old.em_moves + [float(np.median(moves[-1])) if moves and both.any() else 0.0]
@@ -775,11 +770,7 @@ def run_slam(
         med = float(np.median(np.concatenate(moves))) if moves else 0.0
         if med < cfg.em_stop_m:
             break
-    labels, label_walk = [], []
-    for fname, fs in floors.items():
-        lb, wk = _labels(fs, walk_of[fname])
-        labels += lb
-        label_walk += wk
+    labels, label_walk = _all_labels(floors, walk_of)
     if progress:
         progress("done", "", total, total)
     return SlamResult(walks, names, floors, labels, label_walk, time.monotonic() - t0)

@@ -108,6 +108,12 @@ class WalkPiece:
     def n_segments(self) -> int:
         return int(self.segment.max()) + 1 if len(self.segment) else 1
 
+    def q_at(self, t) -> np.ndarray:
+        """Dead-reckoned positions (len(t), 2) in the walk frame at times t: linear within a step,
+        held outside the piece."""
+        t = np.asarray(t, float)
+        return np.column_stack([np.interp(t, self.step_t, self.step_q[:, 0]), np.interp(t, self.step_t, self.step_q[:, 1])])
+
     def odometry(self) -> tuple[np.ndarray, np.ndarray]:
         """(D (n-1, 2), S (n-1, 2, 2)): displacement and white covariance of each edge (module docstring)."""
         D = np.diff(self.q, axis=0)
