@@ -834,3 +834,90 @@ class Walk:
     def duration(self) -> float:
         """s."""
         return self.t_end - self.t_start
+
+
+#: How a walk's corrected track is tied to the site frame (the SLAM's anchoring of its piece(s)):
+#: its own survey marks, fixes from a radio map, loops to walks that have either, the floor plan (a
+#: group of walks placed by search), or nothing ("relative": a shape in its own frame, never used as
+#: an absolute position).
+TRACK_ANCHORS = ("marks", "map", "loops", "plan", "relative")
+
+
+@dataclass(frozen=True, eq=False)
+class CorrectedTrack:
+    """A walk's drift-corrected track from the crowd SLAM: a position and covariance at every step and
+    scan (what the server stores per walk and sends a device on its ``track`` key).
+
+    Attributes
+    ----------
+    walk_id : int or None
+        The store's id of the walk.
+    t : (N,) array
+        Times of the points, s (the walk's clock), non-decreasing (a scan may share a step's time).
+    pos_enu : (N, 2) array
+        Corrected positions in the site frame, m.
+    cov : (N, 2, 2) array
+        Their marginal covariances, m^2 (NaN where the solve gave none, e.g. a relative walk).
+    floor : tuple of str, length N
+        Floor of each point.
+    kind : tuple of str, length N
+        ``"step"`` or ``"scan"``: the record the point belongs to.
+    anchored : str
+        One of :data:`TRACK_ANCHORS` (the best of the walk's pieces).
+    scale : float
+        The walk's step-length scale a (slam.md 3.1: the odometry residual p_j - p_i - (a D + b D_perp)),
+        the median over its segments; 1 = the PDR's lengths were right.
+    heading_bias : float
+        The walk's heading bias, rad, CCW (atan2(b, a) of the median segment), the angle that rotates the
+        PDR's headings onto the corrected track.
+    """
+
+    walk_id: int | None
+    t: np.ndarray
+    pos_enu: np.ndarray
+    cov: np.ndarray
+    floor: tuple[str, ...]
+    kind: tuple[str, ...]
+    anchored: str = "relative"
+    scale: float = 1.0
+    heading_bias: float = 0.0
+
+    def __post_init__(self) -> None:
+        t = _frozen_array(self.t, name="CorrectedTrack.t", ndim=1)
+        n = len(t)
+        if not np.all(np.isfinite(t)) or (n > 1 and np.any(np.diff(t) < 0)):
+            raise ValueError("CorrectedTrack.t: finite, non-decreasing times needed")
+        pos = _frozen_array(np.reshape(self.pos_enu, (n, 2)) if np.size(self.pos_enu) == 2 * n else self.pos_enu, (2,), "CorrectedTrack.pos_enu")
+        cov = _frozen_array(np.reshape(self.cov, (n, 2, 2)) if np.size(self.cov) == 4 * n else self.cov, (2, 2), "CorrectedTrack.cov")
+        if len(pos) != n or len(cov) != n or len(self.floor) != n or len(self.kind) != n:
+            raise ValueError(f"CorrectedTrack: {n} times but {len(pos)} positions, {len(cov)} covariances, {len(self.floor)} floors, {len(self.kind)} kinds")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("CorrectedTrack.pos_enu: non-finite position")
+        if self.anchored not in TRACK_ANCHORS:
+            raise ValueError(f"CorrectedTrack.anchored: {self.anchored!r} is not one of {TRACK_ANCHORS}")
+        if not (math.isfinite(self.scale) and math.isfinite(self.heading_bias)):
+            raise ValueError("CorrectedTrack: non-finite scale or heading bias")
+        bad = [k for k in self.kind if k not in ("step", "scan")]
+        if bad:
+            raise ValueError(f"CorrectedTrack.kind: {bad[0]!r} is not 'step' or 'scan'")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "pos_enu", pos)
+        object.__setattr__(self, "cov", cov)
+        object.__setattr__(self, "floor", tuple(str(f) for f in self.floor))
+        object.__setattr__(self, "kind", tuple(self.kind))
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray, str] | None:
+        """(position, covariance, floor) at time ``t``, linearly interpolated between the points around it
+        (the nearest point's covariance and floor); None outside the track's span or for an empty track."""
+        if len(self.t) == 0 or t < self.t[0] or t > self.t[-1]:
+            return None
+        j = int(np.clip(np.searchsorted(self.t, t, side="right"), 1, len(self.t) - 1)) if len(self.t) > 1 else 0
+        i = max(j - 1, 0)
+        dt = self.t[j] - self.t[i]
+        u = 0.0 if dt <= 0 else float((t - self.t[i]) / dt)
+        p = self.pos_enu[i] + u * (self.pos_enu[j] - self.pos_enu[i])
+        k = j if u >= 0.5 else i
+        return p, self.cov[k], self.floor[k]
