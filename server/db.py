@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import datetime as dt
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, UniqueConstraint, event, text
+from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, UniqueConstraint, event, text
 from sqlalchemy import create_engine as _create_engine
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
@@ -184,7 +184,115 @@ class RadioMapVersion(Base):
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     n_scans: Mapped[int] = mapped_column(Integer, default=0)
     data: Mapped[bytes] = mapped_column(LargeBinary)
+    #: where the map came from: "import" (a file), "survey" (map rebuild from marks), "slam" (a crowd-SLAM run)
+    source: Mapped[str] = mapped_column(String(16), default="import", server_default=text("'import'"))
+    #: the SLAM run that built it (source "slam")
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("slam_run.id"))
+    #: provenance: {"walks": [walk ids], "survey_walks": [walk ids with marks], "marks": n, "floors": [...], "coverage": c}
+    provenance: Mapped[dict | None] = mapped_column(JSON)
     __table_args__ = (UniqueConstraint("site_id", "version"),)
+
+
+class SlamRun(Base):
+    """One crowd-SLAM solve of a site: a batch re-solve of some floors (``kind`` "batch", checkpointed per
+    floor in :class:`SlamFloorDone`, resumable) or one walk added incrementally (``kind`` "walk").
+
+    ``status``: "running" (its rows are written but nobody reads them), "complete" (its tracks are the
+    walks' current ones), "failed". A batch run becomes complete in one transaction, so readers see the
+    previous version until the new one is whole."""
+
+    __tablename__ = "slam_run"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id"))
+    kind: Mapped[str] = mapped_column(String(8))
+    status: Mapped[str] = mapped_column(String(16), default="running")
+    #: floors the run solves (None: every floor of the site's walks)
+    floors: Mapped[list | None] = mapped_column(JSON)
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    #: the radio map version the run produced (batch runs that built one)
+    map_version: Mapped[int | None] = mapped_column(Integer)
+    stats: Mapped[dict | None] = mapped_column(JSON)
+    error: Mapped[str] = mapped_column(String, default="", server_default=text("''"))
+    __table_args__ = (Index("ix_slam_run_site_id_status", "site_id", "status"),)
+
+
+class SlamFloorDone(Base):
+    """A floor of a batch run whose results are written (its checkpoint: a resumed run skips it)."""
+
+    __tablename__ = "slam_floor_done"
+    run_id: Mapped[int] = mapped_column(ForeignKey("slam_run.id"), primary_key=True)
+    floor: Mapped[str] = mapped_column(String(32), primary_key=True)
+    finished_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    stats: Mapped[dict | None] = mapped_column(JSON)
+
+
+class WalkSlam(Base):
+    """A walk's SLAM state: its current corrected track (the points of run ``run_id``), or why it has none.
+
+    ``status``: "corrected" (absolute track), "relative" (a shape in its own frame only), "quarantined"
+    (the solver diverged or the track left the walkable area: kept out of the map, counted), "failed"
+    (an error while solving it; retried by the next batch run). ``anchored`` is the track's
+    :data:`hybridloc.types.TRACK_ANCHORS` value; ``scale``/``heading_bias`` (rad) the walk's PDR
+    nuisances (slam.md 3.1)."""
+
+    __tablename__ = "walk_slam"
+    walk_id: Mapped[int] = mapped_column(ForeignKey("walk.id"), primary_key=True)
+    site_id: Mapped[str] = mapped_column(ForeignKey("site.id"))
+    status: Mapped[str] = mapped_column(String(16))
+    anchored: Mapped[str] = mapped_column(String(16), default="relative")
+    reason: Mapped[str] = mapped_column(String, default="", server_default=text("''"))
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("slam_run.id"))
+    scale: Mapped[float | None] = mapped_column(Float)
+    heading_bias: Mapped[float | None] = mapped_column(Float)
+    n_points: Mapped[int] = mapped_column(Integer, default=0)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    updated_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    __table_args__ = (Index("ix_walk_slam_site_id_status", "site_id", "status"),)
+
+
+class TrackPoint(Base):
+    """A corrected position of a walk at one of its steps or scans (``kind``), written by SLAM run ``run_id``."""
+
+    __tablename__ = "track_point"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("slam_run.id"))
+    walk_id: Mapped[int] = mapped_column(ForeignKey("walk.id"))
+    t: Mapped[float] = mapped_column(Float)
+    kind: Mapped[str] = mapped_column(String(8))
+    floor: Mapped[str] = mapped_column(String(32))
+    x: Mapped[float] = mapped_column(Float)
+    y: Mapped[float] = mapped_column(Float)
+    #: the 2x2 covariance, m^2 (NULL where the solve gave none)
+    cov_xx: Mapped[float | None] = mapped_column(Float)
+    cov_xy: Mapped[float | None] = mapped_column(Float)
+    cov_yy: Mapped[float | None] = mapped_column(Float)
+    # "the walk's points of run r, by time"
+    __table_args__ = (Index("ix_track_point_walk_id_run_id_t", "walk_id", "run_id", "t"), Index("ix_track_point_run_id", "run_id"))
+
+
+class LoopClosure(Base):
+    """One loop candidate of a SLAM run, accepted or rejected, with its robust weight (the loop audit).
+
+    ``kind``: "wifi" (fingerprint similarity) or "ble" (both walks passed the same beacon); ``reason``
+    says why a rejected one was (not mutual, below the similarity floor, PCM, robust-weight ...)."""
+
+    __tablename__ = "loop_closure"
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("slam_run.id"))
+    site_id: Mapped[str] = mapped_column(String(64))
+    floor: Mapped[str] = mapped_column(String(32))
+    walk_a: Mapped[int] = mapped_column(ForeignKey("walk.id"))
+    t_a: Mapped[float] = mapped_column(Float)
+    walk_b: Mapped[int] = mapped_column(ForeignKey("walk.id"))
+    t_b: Mapped[float] = mapped_column(Float)
+    similarity: Mapped[float] = mapped_column(Float)
+    weight: Mapped[float] = mapped_column(Float)
+    p_inlier: Mapped[float | None] = mapped_column(Float)
+    accepted: Mapped[bool] = mapped_column(Boolean)
+    reason: Mapped[str] = mapped_column(String(32), default="", server_default=text("''"))
+    kind: Mapped[str] = mapped_column(String(8), default="wifi")
+    __table_args__ = (Index("ix_loop_closure_run_id", "run_id"), Index("ix_loop_closure_site_id_floor", "site_id", "floor"))
 
 
 class Rejection(Base):

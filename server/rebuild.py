@@ -102,4 +102,5 @@ def rebuild(store: Store, site: str, cache_dir: str | os.PathLike, progress=None
     rmap.save(tmpf)
     data = tmpf.read_bytes()
     tmpf.unlink()
-    return store.save_map(site, data, len(labelled)), len(labelled), relabelled
+    survey_devices = sorted({ls.source for ls in labelled})
+    return store.save_map(site, data, len(labelled), source="survey", provenance={"survey_devices": survey_devices}), len(labelled), relabelled

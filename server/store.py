@@ -86,6 +86,15 @@ class Store:
     def close(self) -> None:
         self.engine.dispose()
 
+    @property
+    def slam(self):
+        """The crowd SLAM's storage (:class:`hybridloc.server.slam_store.SlamStore`) on the same engine."""
+        from .slam_store import SlamStore
+
+        if getattr(self, "_slam", None) is None:
+            self._slam = SlamStore(self.engine)
+        return self._slam
+
     def persist(
         self,
         batches: list[Batch],
@@ -438,7 +447,9 @@ class Store:
             return None if row is None else floorplan_from_geojson(row.geojson, source=f"floor plan {row.id} of site {site!r}")
 
     # -------------------------------------------------------------- radio maps
-    def save_map(self, site: str, data: bytes, n_scans: int = 0) -> int:
+    def save_map(self, site: str, data: bytes, n_scans: int = 0, source: str = "import", provenance: dict | None = None) -> int:
+        """Store ``data`` as the site's next radio map version; ``source`` "import" / "survey" / "slam", and
+        what built it (``provenance``: walk ids, survey walks, marks)."""
         with Session(self.engine) as s, s.begin():
             if s.get(m.Site, site) is None:
                 s.add(m.Site(id=site, name=site))
@@ -447,7 +458,7 @@ class Store:
                 select(m.RadioMapVersion.version).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc())
             ).first()
             v = (last[0] if last else 0) + 1
-            s.add(m.RadioMapVersion(site_id=site, version=v, n_scans=n_scans, data=data))
+            s.add(m.RadioMapVersion(site_id=site, version=v, n_scans=n_scans, data=data, source=source, provenance=provenance))
             return v
 
     def load_map(self, site: str) -> tuple[int, bytes] | None:

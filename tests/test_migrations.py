@@ -4,6 +4,7 @@
 import datetime as dt
 import json
 
+import numpy as np
 from sqlalchemy import MetaData, insert, inspect, select
 
 from hybridloc.server import db as m
@@ -15,6 +16,7 @@ from hybridloc.wire.codecs import BATCH, step_to_dict
 
 T0 = 1.6e9
 NOW = dt.datetime(2024, 5, 1, 12, 0, tzinfo=dt.UTC)
+HEAD = "0003_slam"
 STEP_0001 = ["id", "batch_id", "device_id", "t", "length", "heading", "sigma_length", "sigma_heading", "heading_change", "floor_change"]
 
 
@@ -118,9 +120,9 @@ def test_upgrade_downgrade_upgrade_on_a_filled_database(tmp_path):
     assert current_revision(eng) == "0001_initial"
     before = _fill_0001(eng)
 
-    upgrade(eng)
+    upgrade(eng, "0002_walks")
     assert current_revision(eng) == "0002_walks"
-    st = Store(db)
+    st = Store(db, migrate=False)
     walks = _walks(st)
     assert walks == [
         ("dB", T0 + 7.0, T0 + 7.0, WalkEnd.OPEN, (), "", 1, 1, 0, 0),
@@ -185,5 +187,44 @@ def test_downgrade_to_base_and_back_on_an_empty_database(tmp_path):
     downgrade(eng, "base")
     assert current_revision(eng) is None and inspect(eng).get_table_names() == ["alembic_version"]
     upgrade(eng)
-    assert current_revision(eng) == "0002_walks"
+    assert current_revision(eng) == HEAD
+    eng.dispose()
+
+
+def test_0003_slam_up_down_up_keeps_maps(tmp_path):
+    """0003 (crowd SLAM tables, map provenance) on a filled 0002 database: a map stored before reads as an
+    "import"; SLAM rows written at head; downgrade to 0002 drops them and keeps every 0002 row."""
+    from hybridloc.server.slam_store import CORRECTED, WalkResult
+    from hybridloc.types import CorrectedTrack
+
+    db = str(tmp_path / "s.db")
+    eng = m.make_engine(db)
+    upgrade(eng, "0001_initial")
+    _fill_0001(eng)
+    upgrade(eng, "0002_walks")
+    md = MetaData()
+    md.reflect(eng)
+    with eng.begin() as c:
+        c.execute(insert(md.tables["radio_map"]), [{"site_id": "s1", "version": 1, "created_at": NOW, "n_scans": 3, "data": b"npz"}])
+    before = _dump_0001(eng)
+    upgrade(eng)
+    assert current_revision(eng) == HEAD
+    st = Store(db)
+    with st.engine.connect() as c:
+        assert [tuple(r) for r in c.execute(select(m.RadioMapVersion.version, m.RadioMapVersion.source, m.RadioMapVersion.run_id))] == [
+            (1, "import", None)
+        ]
+    wid = st.walks("s1")[0].walk_id
+    tr = CorrectedTrack(wid, [T0 + 7.0], [[1.0, 2.0]], [np.eye(2)], ("F1",), ("step",), "map", 1.0, 0.0)
+    run = st.slam.begin_run("s1")
+    st.slam.write_floor(run, "F1", [WalkResult(wid, CORRECTED, tr)])
+    assert st.slam.finish_run(run, b"npz2", provenance={"walks": [wid]}) == 2
+    st.close()
+    downgrade(eng, "0002_walks")
+    insp = inspect(eng)
+    assert not {"slam_run", "slam_floor_done", "walk_slam", "track_point", "loop_closure"} & set(insp.get_table_names())
+    assert "source" not in {c["name"] for c in insp.get_columns("radio_map")}
+    assert _dump_0001(eng) == before
+    upgrade(eng)
+    assert current_revision(eng) == HEAD
     eng.dispose()

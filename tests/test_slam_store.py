@@ -1,0 +1,127 @@
+"""The crowd SLAM's storage on a real SQLite file with the real migrations: incremental walks, a batch run
+written floor by floor, killed midway and resumed, completed atomically (readers see the old tracks until
+then), the loop audit and the per-site summary."""
+
+import numpy as np
+import pytest
+
+from hybridloc.server.slam_store import CORRECTED, QUARANTINED, RELATIVE, WalkResult
+from hybridloc.server.store import Store
+from hybridloc.slam.pipeline import LoopRecord
+from hybridloc.types import CorrectedTrack, RfScan, StepEvent, SurveyMark, Technology
+from hybridloc.wire.messages import Batch
+
+T0 = 1.6e9
+
+
+def _fill(st: Store, n_walks: int = 3, marks_on: int = 0) -> list[int]:
+    """n_walks ended walks of site s1 (one device each), 10 steps and 2 scans; walk ``marks_on`` has marks."""
+    bs = []
+    for k in range(n_walks):
+        t = T0 + 1000.0 * k
+        steps = [StepEvent(t + i, 0.7, 0.0, 0.05, 0.1) for i in range(10)]
+        scans = [RfScan(t + 2.0, Technology.WIFI, {"aa": -60.0}), RfScan(t + 7.0, Technology.WIFI, {"aa": -70.0})]
+        marks = [SurveyMark(t, 0.0, 0.0, "F1"), SurveyMark(t + 9, 6.3, 0.0, "F1")] if k == marks_on else [SurveyMark(t, 0.0, 0.0, "F1")][:0]
+        bs.append(Batch("s1", f"d{k}", 1, "", steps, scans, marks, end_of_walk=True))
+    st.persist(bs)
+    ws = st.walks("s1")
+    # the crowd walks name their floor through a fix (what the server does when it answers a scan)
+    from hybridloc.types import AbsoluteFix
+
+    st.add_fixes([(w.device, AbsoluteFix(w.t_start + 2.0, np.zeros(2), np.eye(2), "wifi", "F1")) for w in ws])
+    return [w.walk_id for w in st.walks("s1")]
+
+
+def _track(wid: int, t0: float, dx: float = 0.0, anchored: str = "loops") -> CorrectedTrack:
+    t = np.concatenate([t0 + np.arange(10.0), [t0 + 2.0, t0 + 7.0]])
+    order = np.argsort(t, kind="stable")
+    kinds = np.array(["step"] * 10 + ["scan"] * 2)[order]
+    pos = np.column_stack([0.7 * (t[order] - t0) + dx, np.zeros(12)])
+    return CorrectedTrack(wid, t[order], pos, np.tile(np.eye(2) * 4.0, (12, 1, 1)), ("F1",) * 12, tuple(kinds), anchored, 1.02, 0.05)
+
+
+def _loop(a: int, b: int, accepted: bool) -> LoopRecord:
+    return LoopRecord(str(a), T0, str(b), T0 + 1000, 0.8, 0.9 if accepted else 0.1, accepted, "F1", 0.7, "" if accepted else "robust-weight")
+
+
+@pytest.fixture
+def st(tmp_path):
+    s = Store(str(tmp_path / "slam.db"))
+    yield s
+    s.close()
+
+
+def test_walks_added_one_by_one(st):
+    w = _fill(st)
+    assert st.slam.pending_walks("s1") == w
+    st.slam.save_walk("s1", WalkResult(w[0], CORRECTED, _track(w[0], T0, anchored="marks")), [])
+    st.slam.save_walk("s1", WalkResult(w[1], CORRECTED, _track(w[1], T0 + 1000)), [_loop(w[1], w[0], True), _loop(w[1], w[0], False)])
+    st.slam.save_walk("s1", WalkResult(w[2], QUARANTINED, _track(w[2], T0 + 2000), "off-walkable: 60 %"), [])
+    assert st.slam.pending_walks("s1") == []
+    tr = st.slam.tracks("s1")
+    assert set(tr) == set(w)
+    got = tr[w[1]]
+    want = _track(w[1], T0 + 1000)
+    np.testing.assert_array_equal(got.t, want.t)
+    np.testing.assert_array_equal(got.pos_enu, want.pos_enu)
+    np.testing.assert_array_equal(got.cov, want.cov)
+    assert got.kind == want.kind and got.anchored == "loops" and got.scale == 1.02 and got.heading_bias == 0.05
+    sm = st.slam.summary("s1")
+    assert (sm["walks_corrected"], sm["walks_quarantined"], sm["walks_pending"]) == (2, 1, 0)
+    assert (sm["loops_accepted"], sm["loops_rejected"]) == (1, 1)
+    # coverage: the scans of the walks without marks (w1, w2) that have an absolute track: w1 only
+    assert sm["coverage"] == pytest.approx(0.5)
+    # a batch run does not take the quarantined walk
+    assert st.slam.solvable_walks("s1") == w[:2]
+
+
+def test_batch_run_is_atomic_resumable_and_replaces_tracks(st):
+    w = _fill(st)
+    for wid, k in zip(w, range(3)):
+        st.slam.save_walk("s1", WalkResult(wid, CORRECTED, _track(wid, T0 + 1000 * k)), [])
+    old = st.slam.tracks("s1")
+    run = st.slam.begin_run("s1", ["F1", "F2"])
+    st.slam.write_floor(
+        run, "F1", [WalkResult(wid, CORRECTED, _track(wid, T0 + 1000 * k, dx=5.0)) for wid, k in zip(w[:2], range(2))], [_loop(w[0], w[1], True)]
+    )
+    # killed here: readers still see the old tracks, the run is unfinished with F1 done
+    mid = st.slam.tracks("s1")
+    for wid in w:
+        np.testing.assert_array_equal(mid[wid].pos_enu, old[wid].pos_enu)
+    assert st.slam.loops("s1") == []
+    un = st.slam.unfinished_runs("s1")
+    assert [r.run_id for r in un] == [run] and un[0].floors_done == ("F1",)
+    with pytest.raises(ValueError):
+        st.slam.write_floor(run, "F1", [])
+    st.slam.write_floor(run, "F2", [WalkResult(w[2], RELATIVE, _track(w[2], T0 + 2000, dx=5.0, anchored="relative"))])
+    v = st.slam.finish_run(run, b"mapbytes", n_scans=4, provenance={"walks": w, "survey_walks": [w[0]]})
+    assert v == 1 and st.load_map("s1") == (1, b"mapbytes")
+    new = st.slam.tracks("s1")
+    for wid in w:
+        np.testing.assert_allclose(new[wid].pos_enu, old[wid].pos_enu + [5.0, 0.0])
+    assert st.slam.walk_states("s1")[w[2]].status == RELATIVE
+    assert st.slam.unfinished_runs("s1") == []
+    assert len(st.slam.loops("s1")) == 1
+    # the superseded points are gone: one point set per walk
+    from sqlalchemy import func, select
+    from sqlalchemy.orm import Session
+
+    from hybridloc.server import db as m
+
+    with Session(st.engine) as s:
+        assert s.execute(select(func.count()).select_from(m.TrackPoint)).scalar_one() == 3 * 12
+        rm = s.execute(select(m.RadioMapVersion)).scalar_one()
+        assert rm.source == "slam" and rm.run_id == run and rm.provenance["survey_walks"] == [w[0]]
+    with pytest.raises(ValueError):
+        st.slam.finish_run(run)
+
+
+def test_failed_run_leaves_nothing(st):
+    w = _fill(st, 1)
+    run = st.slam.begin_run("s1")
+    st.slam.write_floor(run, "F1", [WalkResult(w[0], CORRECTED, _track(w[0], T0))])
+    st.slam.fail_run(run, "solver diverged")
+    assert st.slam.tracks("s1") == {} and st.slam.unfinished_runs("s1") == []
+    assert st.slam.runs("s1")[0].status == "failed" and st.slam.runs("s1")[0].error == "solver diverged"
+    with pytest.raises(ValueError):
+        WalkResult(w[0], "fine")
