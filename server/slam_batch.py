@@ -379,7 +379,7 @@ def _solve_run(
             if piece is not None:
                 tracks[wid] = _merge(tracks[wid], piece) if wid in tracks else piece
     walks = {wid: slam.walks[wid] if wid in slam.walks else store.read_walk(wid) for wid in tracks}
-    labels = labels_from_tracks(walks, tracks)
+    labels = labels_from_tracks(list(walks.values()), tracks)
     maps = build_crowd_maps(labels, site, plan)
     wifi = [ls for ls in labels if ls.scan.technology.value == "wifi"]
     labelled = sorted({int(ls.source) for ls in labels})

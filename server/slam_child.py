@@ -149,9 +149,7 @@ def batch(store: Store, site: str, floors: list[str] | None = None, online: list
         if dev in want and wid > newest.get(dev, -1):
             newest[dev] = wid
     tracks = store.slam.tracks(site, walk_ids=newest.values()) if newest else {}
-    msgs = {
-        dev: _track_message(site, dev, wid, summary.run_id, tracks[wid], summary.map_version) for dev, wid in newest.items() if wid in tracks
-    }
+    msgs = {dev: _track_message(site, dev, wid, summary.run_id, tracks[wid], summary.map_version) for dev, wid in newest.items() if wid in tracks}
     return {"summary": summary.as_dict(), "tracks": msgs}
 
 

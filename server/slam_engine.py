@@ -80,11 +80,23 @@ except ImportError:
 
         return WalkableField.from_floor(plan.floor(floor))
 
+    #: the solved step-length scale of a walk lies within this many prior sd of 1 (WalkGraphConfig.scale_sd
+    #: = 0.1, slam.md 3.1); beyond, the solve forced the walk into a shape its steps do not have
+    SCALE_MAX_SD = 5.0
+
     def check_track(track: CorrectedTrack | None, plan: FloorPlan | None) -> str:  # type: ignore[no-redef]
-        """Why ``track`` cannot be used ("" when it can): it left the walkable area (more than
-        :data:`OFF_WALKABLE_SHARE` of its points over :data:`OFF_WALKABLE_M` outside). A relative track
-        has no place on the plan to check; without a plan nothing is checked."""
-        if track is None or len(track) == 0 or track.anchored == "relative" or plan is None:
+        """Why ``track`` cannot be used ("" when it can): the solve diverged (its step-length scale is
+        more than :data:`SCALE_MAX_SD` prior sd from 1: steps no person takes, or a wrong anchor), or it
+        left the walkable area (more than :data:`OFF_WALKABLE_SHARE` of its points over
+        :data:`OFF_WALKABLE_M` outside). A relative track has no place on the plan to check."""
+        if track is None or len(track) == 0 or track.anchored == "relative":
+            return ""
+        from hybridloc.slam.walkgraph import WalkGraphConfig
+
+        sd = WalkGraphConfig().scale_sd
+        if abs(track.scale - 1.0) > SCALE_MAX_SD * sd:
+            return f"diverged: step-length scale {track.scale:.2f} is more than {SCALE_MAX_SD:g} sd ({sd:g}) from 1"
+        if plan is None:
             return ""
         floors = np.asarray(track.floor)
         off = n = 0
@@ -212,23 +224,24 @@ except ImportError:
 
         def labels(self, floors: Iterable[str] | None = None) -> list[LabelledScan]:
             keep = None if floors is None else set(floors)
-            return [ls for ls in labels_from_tracks(self.walks, self.tracks) if keep is None or ls.floor in keep]
+            return [ls for ls in labels_from_tracks(list(self.walks.values()), self.tracks) if keep is None or ls.floor in keep]
 
         def coverage(self, floors: Iterable[str] | None = None) -> float | None:
             crowd = [w for w in self.walks.values() if not w.marks and (floors is None or set(w.floors) & set(floors))]
             n = sum(len(w.scans) for w in crowd)
             if not n:
                 return None
-            lab = labels_from_tracks({int(w.walk_id): w for w in crowd}, self.tracks)  # type: ignore[arg-type]
+            lab = labels_from_tracks(crowd, self.tracks)
             return len(lab) / n
 
-    def labels_from_tracks(walks: Mapping[int, Walk], tracks: Mapping[int, CorrectedTrack | None]) -> list[LabelledScan]:  # type: ignore[no-redef]
-        """Every scan of a walk with an absolute track, labelled with the track's position at its time and
-        the sd of the covariance there (5 m where the solve gave none)."""
+    def labels_from_tracks(walks: list[Walk], tracks: Mapping[int, CorrectedTrack | None]) -> list[LabelledScan]:  # type: ignore[no-redef]
+        """Every scan of the walks with an absolute track, labelled with the track's position at its time
+        and the sd of the covariance there (5 m where the solve gave none); source ``str(walk_id)``."""
         out = []
-        for wid, tr in tracks.items():
-            w = walks.get(wid)
-            if w is None or tr is None or tr.anchored == "relative":
+        for w in walks:
+            wid = int(w.walk_id)  # type: ignore[arg-type]
+            tr = tracks.get(wid)
+            if tr is None or tr.anchored == "relative":
                 continue
             for sc in w.scans:
                 got = tr.at(sc.t)
@@ -340,7 +353,9 @@ else:
 
     def _track_dec(d: dict) -> Track:
         nan = float("nan")
-        cov = np.array([[[nan if a is None else a, nan if b is None else b], [nan if b is None else b, nan if c is None else c]] for a, b, c in d["cov"]])
+        cov = np.array(
+            [[[nan if a is None else a, nan if b is None else b], [nan if b is None else b, nan if c is None else c]] for a, b, c in d["cov"]]
+        )
         tr = CorrectedTrack(
             d["walk_id"], np.array(d["t"], float), np.array(d["pos"], float).reshape(-1, 2), cov.reshape(-1, 2, 2), d["floor"], d["kind"],
             d["anchored"], d["scale"], d["heading_bias"],

@@ -264,9 +264,7 @@ class SlamStore:
             return int(run.id)
 
     # ------------------------------------------------------------------ one batch run at a time
-    def claim_batch(
-        self, site: str, floors: Sequence[str] | None, lease: dict, is_stale: Callable[[dict], bool]
-    ) -> tuple[int, bool, dict | None]:
+    def claim_batch(self, site: str, floors: Sequence[str] | None, lease: dict, is_stale: Callable[[dict], bool]) -> tuple[int, bool, dict | None]:
         """The batch run the caller may work on, under its ``lease`` ({"token", "host", "pid",
         "heartbeat"}, kept in the run's stats): (run id, resumed, the lease taken over or None).
 
@@ -281,7 +279,9 @@ class SlamStore:
                 s.flush()
             s.execute(update(m.Site).where(m.Site.id == site).values(name=m.Site.name))
             runs = (
-                s.execute(select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.kind == "batch", m.SlamRun.status == RUNNING).order_by(m.SlamRun.id))
+                s.execute(
+                    select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.kind == "batch", m.SlamRun.status == RUNNING).order_by(m.SlamRun.id)
+                )
                 .scalars()
                 .all()
             )

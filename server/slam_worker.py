@@ -247,7 +247,6 @@ class SlamWorker:
             if self.store.slam.unfinished_runs(self.site):
                 log.info("site %s: an unfinished batch run: resuming it", self.site)
                 self._batch_asked.set()
-            self._map_seen = self._map_row()[0]
             while not self._stop.is_set():
                 worked = False
                 try:
