@@ -91,9 +91,17 @@ class Server:
         for site in self.slam_sites:
             P.check_id(site, "site")
             self.slam_workers[site] = SlamWorker(
-                self.db_url, site, self._publish, self.slam_options, on_map=self.load_map, online=lambda: set(self.online)
+                self.db_url, site, self._publish, self.slam_options, on_map=self.load_map, online=self._online_now
             ).start()
         return self
+
+    def _online_now(self) -> set[str]:
+        """A copy of the devices online (the liveliness callback changes the set from its own thread)."""
+        while True:
+            try:
+                return set(self.online)
+            except RuntimeError:  # changed size during the copy: copy again
+                continue
 
     def _publish(self, key: str, payload: bytes, encoding: str) -> None:
         s = self.session
@@ -268,7 +276,9 @@ class Server:
     def _on_status(self, q: zenoh.Query) -> None:
         try:
             slam = {site: dict(self.store.slam.summary(site), worker=w.status()) for site, w in list(self.slam_workers.items())}
-            st = status_with_slam(sorted(self.online), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam)
+            st = status_with_slam(
+                sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam
+            )
             q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())

@@ -274,8 +274,7 @@ def run_batch(
     names, :class:`SlamBusy` while another process solves the site, :class:`ComputationFailed` when a
     solve fails (the run is ended as failed; the previous map stays)."""
     t0 = time.monotonic()
-    own = not isinstance(db, Store)
-    store = Store(str(db)) if own else db
+    store, own = (db, False) if isinstance(db, Store) else (Store(str(db)), True)
     say = progress or (lambda *_: None)
     try:
         known = site_floors(store, site)

@@ -197,12 +197,14 @@ class SlamWorker:
         self.last_batch: dict | None = None
         self.add_seconds: deque[float] = deque(maxlen=500)
         self.busy = ""
+        self._lock = threading.Lock()  # counts and latencies: written here, read by the status queryable
         self._stop = threading.Event()
         self._batch_asked = threading.Event()
         self._thread: threading.Thread | None = None
         self._child: _Child | None = None
         self._attempts: Counter = Counter()
         self._retry_batch_at = 0.0
+        self._batch_crashes = 0
         self._map_seen: int | None = None
         self._live: dict[int, tuple[float, float]] = {}  # open walk -> (t_end corrected, monotonic time)
         self._started = m.utcnow()
@@ -225,11 +227,17 @@ class SlamWorker:
         self._batch_asked.set()
         self._retry_batch_at = 0.0
 
+    def _bump(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counts[key] += n
+
     def status(self) -> dict:
         """The worker's figures since the server started (``Status.slam[site]["worker"]``)."""
-        lat = sorted(self.add_seconds)
+        with self._lock:
+            lat = sorted(self.add_seconds)
+            counts = dict(self.counts)
         return {
-            "counts": dict(self.counts),
+            "counts": counts,
             "busy": self.busy,
             "last_error": self.last_error,
             "last_batch": self.last_batch,
@@ -254,7 +262,7 @@ class SlamWorker:
                 except _Stopping:
                     break
                 except Exception as exc:  # noqa: BLE001 - the worker keeps going; the ingest never sees it
-                    self.counts["errors"] += 1
+                    self._bump("errors", 1)
                     self.last_error = {"walk": None, "error": f"{type(exc).__name__}: {exc}", "at": m.utcnow().isoformat()}
                     log.exception("site %s: SLAM worker turn failed", self.site)
                 if not worked:
@@ -268,7 +276,7 @@ class SlamWorker:
     def _turn(self) -> bool:
         n = self.store.close_idle_walks(self.options.idle_timeout_s)
         if n:
-            self.counts["walks_closed_idle"] += n
+            self._bump("walks_closed_idle", n)
         self._check_map()
         if self._batch_due():
             self._batch()
@@ -299,7 +307,7 @@ class SlamWorker:
         try:
             return self._child.call(name, self._progress, self._stop, **kwargs)
         except ChildCrashed:
-            self.counts["child_crashes"] += 1
+            self._bump("child_crashes", 1)
             self._child.close()
             self._child = None
             raise
@@ -325,27 +333,28 @@ class SlamWorker:
             return
         finally:
             self.busy = ""
-        self.add_seconds.append(time.monotonic() - t0)
+        with self._lock:
+            self.add_seconds.append(time.monotonic() - t0)
         self._attempts.pop(walk_id, None)
-        self.counts["walks_added"] += 1
-        self.counts[f"walks_{out['status']}"] += 1
+        self._bump("walks_added", 1)
+        self._bump(f"walks_{out['status']}")
         if out["status"] == "quarantined":
             log.warning("site %s: walk %d quarantined: %s", self.site, walk_id, out["reason"])
         if out["track"] is not None:
             self._put(key_track(self.site, out["device"]), out["track"], TRACK.encoding)
-            self.counts["tracks_published"] += 1
+            self._bump("tracks_published", 1)
         self._live.pop(walk_id, None)
 
     def _walk_failed(self, walk_id: int, exc: Exception) -> None:
         self._attempts[walk_id] += 1
         n = self._attempts[walk_id]
-        self.counts["walk_errors"] += 1
+        self._bump("walk_errors", 1)
         self.last_error = {"walk": walk_id, "error": str(exc), "at": m.utcnow().isoformat()}
         detail = "\n" + exc.tb if isinstance(exc, ChildError) else ""
         log.error("site %s: SLAM of walk %d failed (attempt %d of %d)%s", self.site, walk_id, n, self.options.max_attempts, detail, exc_info=exc)
         if n >= self.options.max_attempts:
             self.store.slam.mark_walk(self.site, walk_id, FAILED, f"{n} attempts: {exc}")
-            self.counts["walks_failed"] += 1
+            self._bump("walks_failed", 1)
             self._attempts.pop(walk_id, None)
 
     def _open_walks(self) -> list[tuple[int, str, float, float]]:
@@ -381,7 +390,7 @@ class SlamWorker:
         try:
             out = self._call("provisional", site=self.site, walk_id=wid)
         except (ChildError, ChildCrashed) as exc:
-            self.counts["live_errors"] += 1
+            self._bump("live_errors", 1)
             log.warning("site %s: provisional correction of open walk %d failed: %s", self.site, wid, exc)
             self._live[wid] = (self._live.get(wid, (0.0, 0.0))[0], time.monotonic())
             return True
@@ -390,7 +399,7 @@ class SlamWorker:
         self._live[wid] = (float(out["t_end"]), time.monotonic())
         if out["track"] is not None:
             self._put(key_track(self.site, dev), out["track"], TRACK.encoding)
-            self.counts["live_tracks_published"] += 1
+            self._bump("live_tracks_published", 1)
         return True
 
     # ------------------------------------------------------------ batch runs
@@ -415,8 +424,8 @@ class SlamWorker:
     def _batch_due(self) -> bool:
         if time.monotonic() < self._retry_batch_at:
             return False
-        if self._batch_asked.is_set():
-            return True
+        if self._batch_asked.is_set() or self.store.slam.unfinished_runs(self.site):
+            return True  # asked for, or a run to resume (killed midway, here or in another process)
         n, since = self._since_last_batch()
         if n == 0:
             return False
@@ -434,19 +443,27 @@ class SlamWorker:
         except (ChildError, ChildCrashed) as exc:
             self._retry_batch_at = time.monotonic() + self.options.retry_s
             if isinstance(exc, ChildError) and exc.name == "SlamBusy":
-                self.counts["batch_busy"] += 1
+                self._bump("batch_busy", 1)
                 log.info("site %s: batch re-solve not started: %s", self.site, exc.message)
                 return
             if isinstance(exc, ChildError) and exc.name == "MissingData":
                 return  # no ended walk with a floor yet
-            self.counts["batch_failures"] += 1
+            if isinstance(exc, ChildCrashed):
+                self._batch_crashes += 1
+                if self._batch_crashes >= self.options.max_attempts:
+                    # the same run kills the child every time: give it up (the previous map stays)
+                    for r in self.store.slam.unfinished_runs(self.site):
+                        self.store.slam.fail_run(r.run_id, f"the SLAM child process died {self._batch_crashes} times solving it")
+                    self._batch_crashes = 0
+            self._bump("batch_failures", 1)
             self.last_error = {"walk": None, "error": f"batch re-solve: {exc}", "at": m.utcnow().isoformat()}
             log.error("site %s: batch re-solve failed: %s%s", self.site, exc, "\n" + exc.tb if isinstance(exc, ChildError) else "")
             return
         finally:
             self.busy = ""
+        self._batch_crashes = 0
         sm = out["summary"]
-        self.counts["batch_runs"] += 1
+        self._bump("batch_runs", 1)
         self.last_batch = {k: sm[k] for k in ("run_id", "resumed", "floors", "floors_skipped", "walks", "map_version", "coverage", "seconds")}
         log.info(
             "site %s: batch run %d %s in %.1f s: walks %s, map version %s",
@@ -460,7 +477,7 @@ class SlamWorker:
         self._check_map()
         for dev, payload in out["tracks"].items():
             self._put(key_track(self.site, dev), payload, TRACK.encoding)
-            self.counts["tracks_published"] += 1
+            self._bump("tracks_published", 1)
 
     # ------------------------------------------------------------ maps
     def _map_row(self) -> tuple[int | None, Any]:
@@ -485,5 +502,5 @@ class SlamWorker:
         created = row[2].replace(tzinfo=dt.UTC) if row[2].tzinfo is None else row[2]
         msg = MapVersion(self.site, version, str(row[1]), created.timestamp(), len(prov.get("walks", []) or []), prov.get("coverage"))
         self._put(key_map_version(self.site), MAP_VERSION.encode(msg), MAP_VERSION.encoding)
-        self.counts["maps_announced"] += 1
+        self._bump("maps_announced", 1)
         log.info("site %s: radio map version %d (%s) in service", self.site, version, row[1])
