@@ -890,7 +890,9 @@ class CorrectedTrack:
         pos = _frozen_array(np.reshape(self.pos_enu, (n, 2)) if np.size(self.pos_enu) == 2 * n else self.pos_enu, (2,), "CorrectedTrack.pos_enu")
         cov = _frozen_array(np.reshape(self.cov, (n, 2, 2)) if np.size(self.cov) == 4 * n else self.cov, (2, 2), "CorrectedTrack.cov")
         if len(pos) != n or len(cov) != n or len(self.floor) != n or len(self.kind) != n:
-            raise ValueError(f"CorrectedTrack: {n} times but {len(pos)} positions, {len(cov)} covariances, {len(self.floor)} floors, {len(self.kind)} kinds")
+            raise ValueError(
+                f"CorrectedTrack: {n} times but {len(pos)} positions, {len(cov)} covariances, {len(self.floor)} floors, {len(self.kind)} kinds"
+            )
         if not np.all(np.isfinite(pos)):
             raise ValueError("CorrectedTrack.pos_enu: non-finite position")
         if self.anchored not in TRACK_ANCHORS:
