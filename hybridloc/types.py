@@ -865,11 +865,12 @@ class CorrectedTrack:
     anchored : str
         One of :data:`TRACK_ANCHORS` (the best of the walk's pieces).
     scale : float
-        The walk's step-length scale a (slam.md 3.1: the odometry residual p_j - p_i - (a D + b D_perp)),
+        The walk's step-length scale s, the factor its PDR step lengths needed (slam.md 3.1: a segment's
+        odometry residual is p_j - p_i - (a D + b D_perp) = p_j - p_i - s R(beta) D, so s = sqrt(a^2 + b^2)),
         the median over its segments; 1 = the PDR's lengths were right.
     heading_bias : float
-        The walk's heading bias, rad, CCW (atan2(b, a) of the median segment), the angle that rotates the
-        PDR's headings onto the corrected track.
+        The walk's heading bias beta = atan2(b, a), rad, CCW, of the median segment: the angle that rotates
+        the PDR's headings onto the corrected track (the filters' b_psi).
     """
 
     walk_id: int | None

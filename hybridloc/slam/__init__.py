@@ -12,6 +12,8 @@ A pure library (no network, no database; the server only loads and saves):
   of walks on the plan;
 * :mod:`.register` - placing one walk on a radio map by the consensus of its scans' fixes;
 * :mod:`.pipeline` - all of it per floor, with EM against the crowd radio map;
+* :mod:`.online` - one site live: walks added one by one (a solve of one walk against the held
+  others), floors re-solved in batch, corrected tracks, quarantine, labels and crowd maps;
 * :mod:`.output` - tracks.csv / tracks.geojson / loops.csv / crowd maps, and the plot;
 * :mod:`.evaluate` - ``hybridloc eval slam``.
 """

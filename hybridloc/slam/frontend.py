@@ -670,22 +670,47 @@ class LoopDetector:
                 out.extend(self._detect_floor(ws, floor, new_ids))
         return out
 
+    def detect_incremental(self, new: list[WalkScans], old: list[WalkScans], vectors: FloorVectors | None = None) -> list[Loop]:
+        """:meth:`detect_new` for the online path (one new walk on a floor already held): the old scans
+        whose own top-k is scored are only those that a new scan lists among its ``prefilter`` most
+        similar (detect_new scores every old scan sharing a transmitter with a new one: most of the
+        floor). The mutual candidates - hence every candidate that can pass the model gate and PCM, and
+        the accepted loops - are the same as detect_new's: a mutual pair (old i, new j) needs i in j's
+        list, which puts i among the scored old scans. What is dropped is audit trail only: pairs where
+        an unscored old scan lists a new one that does not list it back (rejected there as
+        ``below-s-min`` or ``not-mutual``).
+        ``vectors``: the floor vectors of ``old + new`` in that order (rows walk by walk; the caller
+        keeps them between calls), else built here."""
+        if self.model is None:
+            raise RuntimeError("LoopDetector.detect_incremental needs a fitted model: call fit() first")
+        out: list[Loop] = []
+        new_ids = {w.walk for w in new}
+        for floor, ws in _by_floor(list(old) + list(new)).items():
+            if any(w.walk in new_ids for w in ws):
+                out.extend(self._detect_floor(ws, floor, new_ids, vectors, reverse="listed"))
+        return out
+
     # ------------------------------------------------------------------ per floor
-    def _candidates(self, V: FloorVectors, new_walks: np.ndarray | None):
+    def _candidates(self, V: FloorVectors, new_walks: np.ndarray | None, reverse: str = "touched"):
         """Candidate pairs (i < j rows), similarity, mutual flag. ``new_walks``: walk-list indices that
-        are new (only pairs touching them are kept; rows whose top-k matter are scored in full)."""
+        are new (only pairs touching them are kept; rows whose top-k matter are scored in full).
+        ``reverse``: which old rows get their own top-k scored: "touched" (every old row sharing a
+        transmitter with a new row) or "listed" (those a new row lists, :meth:`detect_incremental`)."""
         cfg = self.cfg
         if new_walks is None:
             I, J = index_pairs(V, cfg)
         else:
             is_new = np.isin(V.walk_row, new_walks)
-            # rows of new scans against everything; then every old row that shares a transmitter with a
-            # new scan (only those can list a new scan: the index is not symmetric), against everything
+            # rows of new scans against everything; then the old rows whose own list may hold a new
+            # scan (the index is not symmetric), against everything
             new_rows = np.flatnonzero(is_new)
             I0, J0 = index_pairs(V, cfg, rows=new_rows)
-            H = sp.csr_matrix((np.ones_like(V.R.data), V.R.indices, V.R.indptr), shape=V.R.shape)
-            reach = np.diff((H @ H[new_rows].T).tocsr().indptr) > 0
-            touched = np.flatnonzero(reach & ~is_new)
+            if reverse == "listed":
+                touched = np.unique(J0[~is_new[J0]])
+            else:
+                H = sp.csr_matrix((np.ones_like(V.R.data), V.R.indices, V.R.indptr), shape=V.R.shape)
+                reach = np.diff((H @ H[new_rows].T).tocsr().indptr) > 0
+                touched = np.flatnonzero(reach & ~is_new)
             I1, J1 = index_pairs(V, cfg, rows=touched)
             I, J = np.concatenate([I0, I1]), np.concatenate([J0, J1])
         S = pair_similarity(V.R, I, J, cfg.measure)
@@ -705,12 +730,17 @@ class LoopDetector:
             pairs = {k: v for k, v in pairs.items() if is_new[k[0]] or is_new[k[1]]}
         return pairs
 
-    def _detect_floor(self, walks: list[WalkScans], floor: str, new_ids: set[int] | None) -> list[Loop]:
+    def _detect_floor(
+        self, walks: list[WalkScans], floor: str, new_ids: set[int] | None, V: FloorVectors | None = None, reverse: str = "touched"
+    ) -> list[Loop]:
         cfg = self.cfg
         assert self.model is not None
-        V = self._floor_vectors(walks, floor)
+        if V is None:
+            V = self._floor_vectors(walks, floor)
+        elif V.R.shape[0] != sum(len(w.scans) for w in walks):
+            raise ValueError(f"floor {floor}: the given vectors hold {V.R.shape[0]} rows for {sum(len(w.scans) for w in walks)} scans")
         new_walks = None if new_ids is None else np.array([k for k, w in enumerate(walks) if w.walk in new_ids], dtype=int)
-        pairs = self._candidates(V, new_walks)
+        pairs = self._candidates(V, new_walks, reverse)
         keys = sorted(pairs)
         sims = np.array([pairs[k][0] for k in keys])
         pi, sig = self.model.evaluate(sims) if len(keys) else (np.zeros(0), np.zeros(0))

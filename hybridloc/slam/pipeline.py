@@ -119,6 +119,9 @@ class FloorSolution:
     loops: list[LoopRecord]
     seconds: float = 0.0
     em_moves: list[float] = field(default_factory=list)
+    #: every solve of the floor converged; else the largest last step among those that did not settle (m)
+    converged: bool = True
+    last_step: float = 0.0
 
     def piece_nodes(self, k: int) -> np.ndarray:
         return self.pieces[k].nodes
@@ -434,16 +437,15 @@ class FloorSlam:
         return np.repeat(np.asarray(status, dtype=object), [pc.n for pc in self.pieces])
 
     # -------------------------------------------------------------- solve
-    def solve(self) -> FloorSolution:
-        from .solve import solve
-
-        t0 = time.monotonic()
+    def anchors(self, pieces_idx=None) -> _Anchors:
+        """Absolute information of the pieces (all, or ``pieces_idx``): their survey marks, and their
+        map and EM fixes where they agree on one placement of the walk (:func:`.register.register_walk`;
+        the registration is kept in ``self.registrations``). A piece with marks takes no fixes."""
         cfg = self.cfg
-        self._number()
-        n_p = len(self.pieces)
         anchors = _Anchors()
         self.registrations = {}
-        for k, pc in enumerate(self.pieces):
+        for k in range(len(self.pieces)) if pieces_idx is None else pieces_idx:
+            pc = self.pieces[k]
             mk = [(int(i), np.array([pc.marks[int(pc.mark[i])].x, pc.marks[int(pc.mark[i])].y])) for i in np.flatnonzero(pc.mark >= 0)]
             if mk:
                 anchors.marks[k] = mk
@@ -458,6 +460,16 @@ class FloorSlam:
                 if reg.placed:
                     near = np.linalg.norm(qf @ reg.T.T + reg.t - zf, axis=1) <= 2.0 * cfg.register.support_m
                     anchors.fixes[k] = [f for f, ok in zip(fx, near) if ok]
+        return anchors
+
+    def solve(self) -> FloorSolution:
+        from .solve import solve
+
+        t0 = time.monotonic()
+        cfg = self.cfg
+        self._number()
+        n_p = len(self.pieces)
+        anchors = self.anchors()
         links = self._links()
         comp = graph_components(n_p, [(a, b) for a, _, b, _ in links])
         status = [RELATIVE] * n_p
@@ -514,6 +526,7 @@ class FloorSlam:
         nuisance = np.tile([1.0, 0.0], (K, 1))
         weights = np.zeros(len(self.loops))
         beacon_w: dict[tuple[str, int], float] = {}
+        converged, last_step = True, 0.0
         k0 = 0
         seg0 = {}
         for k, pc in enumerate(self.pieces):
@@ -530,6 +543,8 @@ class FloorSlam:
                     group, {k: sol.pos[local0[k] : local0[k] + self.pieces[k].n] for k in group}, anchors, plan_prior, True
                 )
                 sol = solve(g2, cfg.solve, x0=sol)
+            converged &= sol.converged
+            last_step = max(last_step, sol.last_step)
             for k in group:
                 pc = self.pieces[k]
                 sl = slice(local0[k], local0[k] + pc.n)
@@ -590,7 +605,9 @@ class FloorSlam:
                             kind="ble",
                         )
                     )
-        return FloorSolution(self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0)
+        return FloorSolution(
+            self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0, converged=converged, last_step=last_step
+        )
 
     def _relative_layout(self, members: list[int], own: dict[int, tuple]) -> dict[int, np.ndarray]:
         """Initial node positions of a component's pieces: pieces with their own anchor transform are
@@ -664,6 +681,35 @@ def _all_labels(floors: dict[str, FloorSolution], walk_of: dict[str, list[int]])
     return labels, label_walk
 
 
+def set_em_fixes(slams, labels: list[LabelledScan], label_walk: list[int], fold_of: Callable[[int], int], cfg: SlamConfig) -> bool:
+    """One EM E-step (module docstring, 6): the crowd map of every fold of walks but one is built from
+    ``labels`` (``label_walk``: the walk of each, ``fold_of(walk)``: its fold), the pieces of that
+    fold's walks in each :class:`FloorSlam` of ``slams`` are located against it, and the fixes become
+    their ``em_fixes``. False (nothing set) when fewer than 20 WiFi labels exist."""
+    from ..radio.locate import KnnLocator
+
+    wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
+    if len(wifi) < 20:
+        return False
+    slams = list(slams)
+    for fsl in slams:
+        fsl.em_fixes = {}
+    for f in range(max(cfg.em_folds, 2)):
+        refs = [labels[i] for i in wifi if fold_of(label_walk[i]) != f]
+        if len(refs) < 10:
+            continue
+        loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
+        gate = mapped_distance_gate(refs, cfg)
+        for fsl in slams:
+            sel = [k for k, pc in enumerate(fsl.pieces) if fold_of(pc.walk) == f]
+            if not sel:
+                continue
+            got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi", loc.nearest, gate)
+            for j, v in got.items():
+                fsl.em_fixes[sel[j]] = v
+    return True
+
+
 def _walkable_points(floor, n: int, rng: np.random.Generator) -> np.ndarray | None:
     """n uniform random points of the floor's walkable area (rejection sampling in its bounds)."""
     import shapely
@@ -734,28 +780,12 @@ def run_slam(
         floors[fname] = fs
     walk_of = {fname: [pc.walk for pc in fs.pieces] for fname, fs in floors.items()}
     # EM with the crowd map: each fold of walks located against the map of the others
+    folds = np.arange(len(walks)) % max(cfg.em_folds, 2)
     for rnd in range(cfg.em_rounds):
         labels, label_walk = _all_labels(floors, walk_of)
-        wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
-        if len(wifi) < 20:
+        if not set_em_fixes(slams.values(), labels, label_walk, lambda w: int(folds[w]), cfg):
             break
-        folds = np.arange(len(walks)) % max(cfg.em_folds, 2)
         moves = []
-        for fsl in slams.values():
-            fsl.em_fixes = {}
-        for f in range(max(cfg.em_folds, 2)):
-            refs = [labels[i] for i in wifi if folds[label_walk[i]] != f]
-            if len(refs) < 10:
-                continue
-            loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
-            gate = mapped_distance_gate(refs, cfg)
-            for fsl in slams.values():
-                sel = [k for k, pc in enumerate(fsl.pieces) if folds[pc.walk] == f]
-                if not sel:
-                    continue
-                got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi", loc.nearest, gate)
-                for j, v in got.items():
-                    fsl.em_fixes[sel[j]] = v
         for n_done, (fname, fsl) in enumerate(sorted(slams.items())):
             if progress:
                 progress(f"em {rnd + 1}", fname, n_done, total)

@@ -94,6 +94,9 @@ class Solution:
     seconds: float
     converged: bool
     backend: str = "scipy"
+    #: largest change of a free coordinate in the last iteration (m for positions; NaN when unknown:
+    #: the GTSAM backend): with ``converged`` False, how far from settled the solve stopped
+    last_step: float = 0.0
     _marg: _Marginals | None = field(default=None, repr=False)
 
     def marginals(self, nodes) -> np.ndarray:
@@ -456,7 +459,7 @@ def _free_mask(graph: FactorGraph, free_nodes, free_nuisances) -> np.ndarray:
     return m
 
 
-def _finish(graph, problem, x, it, converged, t0, backend, lu=None) -> Solution:
+def _finish(graph, problem, x, it, converged, t0, backend, lu=None, last_step: float = 0.0) -> Solution:
     N = graph.n_nodes
     # final weights of every loop and prior at x (held ones too: their residual is what it is)
     w_loop, w_prior = robust_weights(graph, x, np.arange(graph.n_loops), np.arange(graph.n_priors), 1.0)
@@ -470,6 +473,7 @@ def _finish(graph, problem, x, it, converged, t0, backend, lu=None) -> Solution:
         seconds=seconds,
         converged=converged,
         backend=backend,
+        last_step=last_step,
         _marg=_Marginals(problem, x, lu),
     )
 
@@ -486,7 +490,7 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
         from .solve_gtsam import optimize
 
         x, it, converged = optimize(graph, options, x, free_var)
-        return _finish(graph, problem, x, it, converged, t0, "gtsam")
+        return _finish(graph, problem, x, it, converged, t0, "gtsam", last_step=float("nan"))
     if options.backend != "scipy":
         raise ValueError(f"unknown backend {options.backend!r} (scipy or gtsam)")
     has_gm, nonlinear = _has_nonlinear(problem)
@@ -500,6 +504,7 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
     if problem.n_free == 0:
         return _finish(graph, problem, x, 0, True, t0, "scipy")
     x_free = None
+    last_step = 0.0
     for it in range(1, options.max_iters + 1):
         mu = widths[min(it - 1, len(widths) - 1)]
         fresh = True
@@ -518,7 +523,9 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
             lu, rhs, _ = problem.factorize(x, mu)
             x_free = lu.solve(rhs)
         x_new = problem.scatter(x, x_free)
-        step = _settled((x_new - x)[problem.colmap >= 0], options.tol)
+        move = (x_new - x)[problem.colmap >= 0]
+        last_step = float(np.max(np.abs(move))) if move.size else 0.0
+        step = _settled(move, options.tol)
         x = x_new
         last_fresh = fresh
         if not nonlinear or (it >= len(widths) and step):
@@ -526,4 +533,4 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
             break
     if not last_fresh:
         lu = None  # made at an earlier state: the marginals re-factorise at x when asked
-    return _finish(graph, problem, x, it, converged, t0, "scipy", lu)
+    return _finish(graph, problem, x, it, converged, t0, "scipy", lu, last_step)
