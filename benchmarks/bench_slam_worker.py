@@ -63,7 +63,6 @@ def sample(out: dict) -> None:
     from hybridloc.io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
     from hybridloc.samples import ILC_SITE1_F1
     from hybridloc.server.service import Server
-    from hybridloc.server.slam_engine import LIBRARY
     from hybridloc.server.slam_worker import SlamOptions
     from hybridloc.server.store import Store
     from hybridloc.slam.walkgraph import walks_from_files
@@ -124,7 +123,7 @@ def sample(out: dict) -> None:
         lat = sorted(w.add_seconds)
         busy = [r for _, r, b in acks if b]
         idle = [r for _, r, b in acks if not b]
-        print(f"SLAM library: {LIBRARY}; {len(walks)} sample walks added in {t_add:.1f} s")
+        print(f"{len(walks)} sample walks added in {t_add:.1f} s")
         print(f"walk add latency (s): p50 {_pct(lat, 50):.2f}, p90 {_pct(lat, 90):.2f}, max {max(lat):.2f}")
         print(
             f"ack round trip (ms) while the child solves: p50 {1e3 * _pct(busy, 50):.1f}, p99 {1e3 * _pct(busy, 99):.1f} (n {len(busy)}); "
@@ -142,7 +141,6 @@ def sample(out: dict) -> None:
             ack_idle_p50_ms=1e3 * _pct(idle, 50),
             ack_idle_p99_ms=1e3 * _pct(idle, 99),
             sample_batch_s=lb.get("seconds"),
-            library=LIBRARY,
         )
 
 

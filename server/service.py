@@ -30,10 +30,9 @@ from hybridloc.radio.radiomap import RadioMap
 from hybridloc.types import Fix, RfScan, Technology
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
-from hybridloc.wire.messages import Ack, MapInfo
+from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
-from .slam_engine import status_with_slam
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
@@ -276,9 +275,7 @@ class Server:
     def _on_status(self, q: zenoh.Query) -> None:
         try:
             slam = {site: dict(self.store.slam.summary(site), worker=w.status()) for site, w in list(self.slam_workers.items())}
-            st = status_with_slam(
-                sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam
-            )
+            st = Status(sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam)
             q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())

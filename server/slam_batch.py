@@ -39,10 +39,10 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from hybridloc.errors import BadInput, ComputationFailed, MissingData
+from hybridloc.slam.online import CrowdSlam, build_crowd_maps, labels_from_tracks
 from hybridloc.types import CorrectedTrack, WalkEnd
 
 from . import db as m
-from .slam_engine import LIBRARY, CrowdSlam, build_crowd_maps, labels_from_tracks
 from .slam_store import CORRECTED, QUARANTINED, RELATIVE, SlamBusy, WalkResult
 from .store import Store
 
@@ -391,7 +391,6 @@ def _solve_run(
         "floors": todo,
         "coverage": coverage,
         "run": run_id,
-        "library": LIBRARY,
         "resumed_after": sorted(done_before),
     }
     rmap = maps.get("wifi")

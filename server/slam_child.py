@@ -27,9 +27,12 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from hybridloc.slam.online import CrowdSlam
+from hybridloc.wire.codecs import TRACK
+from hybridloc.wire.messages import Track
+
 from . import db as m
 from .slam_batch import load_radio_map, load_site, result_of, run_batch
-from .slam_engine import TRACK, CrowdSlam, Track
 from .store import Store
 
 log = logging.getLogger("hybridloc.server.slam")
@@ -83,7 +86,7 @@ def _hook(event: str, site: str, subject) -> None:
         _HOOK[0](event, site, subject, _HOOK[1])
 
 
-def _track_message(site: str, device: str, walk_id: int, run: int | None, track, map_version: int | None) -> bytes:
+def _track_message(site: str, device: str, walk_id: int, run: int, track, map_version: int | None) -> bytes:
     return TRACK.encode(Track(site, device, int(walk_id), map_version, run, track, time.time()))
 
 
@@ -97,6 +100,7 @@ def add_walk(store: Store, site: str, walk_id: int, progress=None) -> dict:
     out = slam.add_walk(walk)
     res = result_of(int(walk_id), out.track, out.quarantined)
     run = store.slam.save_walk(site, res, out.loops, stats={"seconds": out.seconds})
+    store.slam.drop_live_runs(int(walk_id), run)
     mv = _map_version(store, site)
     loops = list(out.loops)
     return {
@@ -114,7 +118,8 @@ def add_walk(store: Store, site: str, walk_id: int, progress=None) -> dict:
 
 def provisional(store: Store, site: str, walk_id: int, progress=None) -> dict:
     """A provisional correction of an open walk (its records so far): solved like an ended walk, not
-    stored, not held - only the track message for the device."""
+    stored, not held - only the track message for the device, under a run id of its own
+    (:meth:`~.slam_store.SlamStore.live_run`)."""
     walk = store.read_walk(walk_id)
     slam = site_slam(store, site)
     held = int(walk_id) in slam.walks
@@ -122,12 +127,13 @@ def provisional(store: Store, site: str, walk_id: int, progress=None) -> dict:
     if not held:
         slam.remove_walk(int(walk_id))
     ok = out.track is not None and not out.quarantined
+    run = store.slam.live_run(site, int(walk_id)) if ok else None
     return {
         "walk_id": int(walk_id),
         "device": walk.device,
         "t_end": walk.t_end,
         "seconds": float(out.seconds),
-        "track": _track_message(site, walk.device, walk_id, None, out.track, _map_version(store, site)) if ok else None,
+        "track": _track_message(site, walk.device, walk_id, run, out.track, _map_version(store, site)) if ok else None,
     }
 
 

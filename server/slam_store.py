@@ -240,6 +240,29 @@ class SlamStore:
             self._set_walk(s, site, result, run.id, n, attempt=True)
             return int(run.id)
 
+    def live_run(self, site: str, walk_id: int) -> int:
+        """A run id for a provisional correction of an open walk (kind "live", complete, no points: the
+        track is sent, not stored). Run ids only grow, so a device takes each newer correction of its
+        walk, and the walk's final run (:meth:`save_walk`, later) supersedes them all."""
+        with Session(self.engine) as s, s.begin():
+            run = m.SlamRun(site_id=site, kind="live", status=COMPLETE, floors=None, stats={"walk": int(walk_id)}, finished_at=m.utcnow())
+            s.add(run)
+            s.flush()
+            return int(run.id)
+
+    def drop_live_runs(self, walk_id: int, before: int) -> int:
+        """Forget the provisional runs of a walk older than run ``before`` (its final run: the newest id
+        stays, so ids are never reused); the number dropped."""
+        with Session(self.engine) as s, s.begin():
+            ids = [
+                r.id
+                for r in s.execute(select(m.SlamRun).where(m.SlamRun.kind == "live", m.SlamRun.id < before)).scalars()
+                if (r.stats or {}).get("walk") == int(walk_id)
+            ]
+            if ids:
+                s.execute(delete(m.SlamRun).where(m.SlamRun.id.in_(ids)))
+            return len(ids)
+
     def mark_walk(self, site: str, walk_id: int, status: str, reason: str = "") -> None:
         """Set a walk's state without a track (quarantined or failed outside a solve: its previous track is kept)."""
         if status not in WALK_STATUSES:

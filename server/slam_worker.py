@@ -46,10 +46,12 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from hybridloc.types import WalkEnd
+from hybridloc.wire.codecs import MAP_VERSION, PROGRESS, TRACK
+from hybridloc.wire.messages import MapVersion, Progress
+from hybridloc.wire.protocol import key_map_version, key_progress, key_track
 
 from . import db as m
 from .slam_batch import LEASE_S
-from .slam_engine import MAP_VERSION, PROGRESS, TRACK, MapVersion, Progress, key_map_version, key_progress, key_track
 from .slam_store import FAILED
 from .store import WALK_IDLE_GAP_S, Store
 

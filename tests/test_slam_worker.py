@@ -38,10 +38,10 @@ from sqlalchemy.orm import Session
 
 from hybridloc.server import db as m
 from hybridloc.server.slam_batch import lease_is_stale, run_batch
-from hybridloc.server.slam_engine import MAP_VERSION, PROGRESS, TRACK
 from hybridloc.server.slam_store import CORRECTED, FAILED, QUARANTINED, SlamBusy
 from hybridloc.server.slam_worker import SlamOptions
 from hybridloc.server.store import Store
+from hybridloc.wire.codecs import MAP_VERSION, PROGRESS, TRACK
 from hybridloc.wire.zconfig import client_config, free_port
 
 from .slam_helpers import SITE, sample_plan, sample_walks, store_walks, straight_steps, stretched
@@ -360,6 +360,8 @@ def test_live_crowd_slam_server(tmp_path):
     lis = _Listen(ep)
     st = srv.store
 
+    applied: dict[str, int] = {}
+
     def replay(path, kind: str, speed: float) -> str:
         tr = read_ilc_trace(path)
         dev = f"{kind}-{Path(path).name[:12]}"
@@ -369,6 +371,7 @@ def test_live_crowd_slam_server(tmp_path):
             replay_phone(ag, tr, speed, survey=kind == "survey", lockstep=kind == "phone")
             res = ag.close(wait=30)
         assert res.acked == res.batches
+        applied[dev] = res.tracks_applied
         return dev
 
     try:
@@ -404,12 +407,16 @@ def test_live_crowd_slam_server(tmp_path):
             if wid not in tracks:
                 continue
             got = [TRACK.decode(b) for b in lis.of(f"/{dev}/track")]
-            final = [t for t in got if t.walk_id == wid and t.run is not None]
+            final = [t for t in got if t.walk_id == wid and t.run == states[wid].run_id]
             assert final, f"{dev} received no track of walk {wid}"
             np.testing.assert_allclose(final[-1].track.pos_enu, tracks[wid].pos_enu, atol=1e-9)
-        # live: provisional tracks (run None) of an open walk reached a phone before its walk ended
-        assert any(TRACK.decode(b).run is None for d in phone_devs for b in lis.of(f"/{d}/track"))
+        # live: provisional tracks of the open walk (runs of their own, older than the walk's final run)
+        # reached phones while they walked, and their agents re-anchored on them
         assert srv.slam_workers[SITE].counts["live_tracks_published"] >= 1
+        early = [
+            t for d, wid in phone_ids.items() for t in map(TRACK.decode, lis.of(f"/{d}/track")) if t.walk_id == wid and t.run < states[wid].run_id
+        ]
+        assert early and sum(applied[d] for d in phone_devs) >= 1
         # a batch re-solve on demand: progress, a new map version announced, the locator moves
         srv.request_batch(SITE)
         _wait(lambda: srv.locators[SITE][0] == 2, 300, "map version 2 in service")
