@@ -5,7 +5,7 @@ long a batch re-solve takes.
 * The bundled sample (Indoor Location Competition site1 F1, 35 real walks through the phone PDR; every
   third keeps its survey marks, the others name their floor through a fix): stored as ended walks, a
   server with SLAM on the site (``Server(slam_sites=[site])``, its spawned child) adds them one by one.
-  Meanwhile a device sends a batch every 20 ms and times each acknowledgement. Printed: walk add
+  Meanwhile a device (its own process) sends a batch every 20 ms and times each acknowledgement. Printed: walk add
   latency (submitted to the child -> result back, p50 / p90 / max), ack round trips while the child
   solves and while it is idle (p50 / p99), then the batch re-solve of the site on demand (seconds).
 * ``--site1-floor F``: the batch re-solve (``run_batch``, as ``hybridloc slam rebuild`` runs it) of
@@ -17,6 +17,7 @@ long a batch re-solve takes.
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
 import tempfile
 import threading
 import time
@@ -56,18 +57,41 @@ def _pct(v, q):
     return float(np.percentile(v, q)) if len(v) else float("nan")
 
 
-def sample(out: dict) -> None:
+def _steady(ep: str, site: str, spool: str, stop, q) -> None:
+    """A device in its own process sending a batch of 10 steps every 20 ms: (send time, ack round trip)."""
     import zenoh
 
     from hybridloc.clients.uplink import Uplink
+    from hybridloc.types import StepEvent
+    from hybridloc.wire.zconfig import client_config
+
+    conf = client_config(ep)
+    conf.insert_json5("mode", '"peer"')  # connects once the server is up
+    out = []
+    with zenoh.open(conf) as s:
+        up = Uplink(s, site, "steady", spool)
+        q.put("connected?")
+        up.wait_connected(60)
+        k = 0
+        while not stop.is_set():
+            t0, p0 = time.time(), time.perf_counter()
+            seq = up.send(steps=[StepEvent(10.0 * k + 0.5 * i, 0.7, 0.0, 0.05, 0.1) for i in range(10)])
+            if up.wait_acked(seq, 10):
+                out.append((t0, time.perf_counter() - p0))
+            k += 1
+            time.sleep(0.02)
+        up.close()
+    q.put(out)
+
+
+def sample(out: dict) -> None:
     from hybridloc.io.msft import find_ilc_traces, read_ilc_site, read_ilc_trace
     from hybridloc.samples import ILC_SITE1_F1
     from hybridloc.server.service import Server
     from hybridloc.server.slam_worker import SlamOptions
     from hybridloc.server.store import Store
     from hybridloc.slam.walkgraph import walks_from_files
-    from hybridloc.types import StepEvent
-    from hybridloc.wire.zconfig import client_config, free_port
+    from hybridloc.wire.zconfig import free_port
 
     paths = find_ilc_traces(ILC_SITE1_F1)
     site = read_ilc_trace(paths[0]).site
@@ -76,51 +100,59 @@ def sample(out: dict) -> None:
         db = str(Path(d) / "s.db")
         st = Store(db)
         st.save_floor_plan(site, read_ilc_site(ILC_SITE1_F1))
+        _store(st, site, walks)  # stored before the server starts: the bench itself writes nothing meanwhile
         st.close()
         ep = f"tcp/127.0.0.1:{free_port()}"
+        ctx = mp.get_context("spawn")
+        q, stop = ctx.Queue(), ctx.Event()
+        client = ctx.Process(target=_steady, args=(ep, site, str(Path(d) / "spool"), stop, q))
+        client.start()
+        assert q.get(timeout=60) == "connected?"
         srv = Server(
             ep, db, slam_sites=[site], slam_options=SlamOptions(poll_s=0.05, batch_every_walks=0, batch_interval_s=0, live_every_s=0)
         ).start()
         w = srv.slam_workers[site]
-        acks: list[tuple[float, float, bool]] = []  # (sent, rtt, child busy)
-        stop = threading.Event()
+        timeline: list[tuple[float, str]] = []  # (Unix time, what the worker does) every 5 ms
+        sampling = threading.Event()
 
-        def steady() -> None:
-            with zenoh.open(client_config(ep)) as s:
-                up = Uplink(s, site, "steady", Path(d) / "spool")
-                up.wait_connected(10)
-                k = 0
-                while not stop.is_set():
-                    busy = bool(w.busy)
-                    t0 = time.perf_counter()
-                    seq = up.send(steps=[StepEvent(10.0 * k + 0.5 * i, 0.7, 0.0, 0.05, 0.1) for i in range(10)])
-                    if up.wait_acked(seq, 10):
-                        acks.append((t0, time.perf_counter() - t0, busy and bool(w.busy)))
-                    k += 1
-                    time.sleep(0.02)
-                up.close()
+        def sample_busy() -> None:
+            while not sampling.is_set():
+                timeline.append((time.time(), w.busy))
+                time.sleep(0.005)
 
-        th = threading.Thread(target=steady)
+        th = threading.Thread(target=sample_busy)
+        th.start()
         try:
-            th.start()
-            time.sleep(3.0)  # idle acks first (the child starts meanwhile)
-            st = Store(db, migrate=False)
-            _store(st, site, walks)
-            st.close()
             t0 = time.monotonic()
             while w.counts["walks_added"] + w.counts["walks_failed"] < len(walks) and time.monotonic() - t0 < 1800:
                 time.sleep(0.2)
             t_add = time.monotonic() - t0
+            time.sleep(3.0)  # idle acks
             srv.request_batch(site)
             v0 = w.counts["batch_runs"]
             while w.counts["batch_runs"] == v0 and time.monotonic() - t0 < 3600:
                 time.sleep(0.2)
             stop.set()
-            th.join(30)
+            acks = q.get(timeout=60)
+            client.join(30)
         finally:
             stop.set()
+            sampling.set()
+            th.join(10)
             srv.stop()
+        # what the worker did while each batch waited for its acknowledgement (busy if at any sample)
+        ts = np.array([t for t, _ in timeline])
+        what = [b for _, b in timeline]
+
+        def during(t_send: float, rtt: float) -> str:
+            i, j = np.searchsorted(ts, [t_send, t_send + rtt])
+            busy = [what[k] for k in range(max(i - 1, 0), min(j + 1, len(what))) if what[k]]
+            return busy[0] if busy else ""
+
+        acks = [(t, r, during(t, r)) for t, r in acks if ts.size and ts[0] <= t <= ts[-1]]
         lat = sorted(w.add_seconds)
+        slowest = sorted(acks, key=lambda a: -a[1])[:8]
+        print("slowest acks (ms, what the worker did): " + ", ".join(f"{1e3 * r:.0f} ({b or 'idle'})" for _, r, b in slowest))
         busy = [r for _, r, b in acks if b]
         idle = [r for _, r, b in acks if not b]
         print(f"{len(walks)} sample walks added in {t_add:.1f} s")

@@ -57,6 +57,9 @@ def test_file_then_environment(tmp_path):
         ('[filter]\nkind = "magic"', "filter.kind"),
         ('security = "x"', "security"),
         ('method = "nearest"', "method"),
+        ("[slam]\nenabled = 1", "slam.enabled"),
+        ("[slam]\nbatch_every = 2.5", "slam.batch_every"),
+        ('[slam]\nidle_s = "long"', "slam.idle_s"),
     ],
 )
 def test_unknown_keys_and_wrong_types_name_the_key(tmp_path, text, key):
@@ -64,6 +67,19 @@ def test_unknown_keys_and_wrong_types_name_the_key(tmp_path, text, key):
     f.write_text(text + "\n")
     with pytest.raises(BadInput, match=key.replace(".", r"\.")):
         load_settings(f, {})
+
+
+def test_slam_section_from_file_and_environment(tmp_path):
+    """The server's crowd-SLAM worker: [slam] enabled (bool), idle_s and interval_s (s), batch_every (walks)."""
+    f = tmp_path / "s.toml"
+    f.write_text("[slam]\nenabled = false\nidle_s = 60\nbatch_every = 10\n")
+    s = load_settings(f, {})
+    assert (s.slam.enabled, s.slam.idle_s, s.slam.batch_every, s.slam.interval_s) == (False, 60.0, 10, 3600.0)
+    assert isinstance(s.slam.idle_s, float) and isinstance(s.slam.batch_every, int)
+    s = load_settings(f, {"HYBRIDLOC_SLAM_ENABLED": "true", "HYBRIDLOC_SLAM_BATCH_EVERY": "5"})
+    assert (s.slam.enabled, s.slam.batch_every) == (True, 5)
+    with pytest.raises(BadInput, match="HYBRIDLOC_SLAM_ENABLED"):
+        load_settings(None, {"HYBRIDLOC_SLAM_ENABLED": "maybe"})
 
 
 def test_bad_environment_names_the_variable():

@@ -263,7 +263,7 @@ def test_a_walk_with_impossible_steps_is_quarantined_and_the_map_stays(tmp_path,
         from hybridloc.clients.status import query_status
 
         status = query_status(ep, timeout=10)
-        slam = status.get("slam") or status["db"]["slam"]
+        slam = status["slam"]
         assert slam[SITE]["walks_quarantined"] == before + 1 and slam[SITE]["worker"]["counts"]["walks_quarantined"] == 1
         # the map in service did not move, and no track of the quarantined walk went to the device
         assert st.load_map(SITE)[0] == 1 and srv.locators[SITE][0] == 1
@@ -339,7 +339,7 @@ def test_a_slow_failing_or_crashing_solve_never_delays_ingest(tmp_path, caplog):
 
 
 # ------------------------------------------------------------------------------------------ the live server
-def test_live_crowd_slam_server(tmp_path):
+def test_live_crowd_slam_server(tmp_path, capsys):
     from hybridloc.cli import main as cli_main
     from hybridloc.clients.agent import Agent, PoseWriter, replay_phone
     from hybridloc.clients.status import query_status
@@ -426,9 +426,14 @@ def test_live_crowd_slam_server(tmp_path):
         prog = [PROGRESS.decode(b) for b in lis.of("/progress")]
         assert any(p.stage == "floors" and p.floor == "F1" and p.done == 1 and p.total == 1 for p in prog)
         status = query_status(ep, timeout=10)
-        slam = (status.get("slam") or status["db"]["slam"])[SITE]
+        slam = status["slam"][SITE]
         assert slam["map_version"] == 2 and slam["walks_pending"] == 0 and slam["worker"]["counts"]["batch_runs"] == 1
         assert slam["walks_corrected"] >= len(survey_ids)
+        capsys.readouterr()
+        assert cli_main(["status", "--endpoint", ep]) == 0
+        printed = capsys.readouterr().out
+        assert f"slam {SITE}: walks corrected {slam['walks_corrected']}," in printed and "map v2 (slam)" in printed
+        assert "loops accepted" in printed and "coverage" in printed and "worker: added" in printed
     finally:
         lis.close()
         srv.stop()

@@ -70,7 +70,7 @@ def _cmd_status(args: argparse.Namespace) -> int:
     print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
     print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
     print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
-    slam = st.get("slam") or st["db"].get("slam") or {}
+    slam = st.get("slam") or {}
     for site, sm in sorted(slam.items()):
         cov = f"{100 * sm['coverage']:.0f} %" if sm.get("coverage") is not None else "-"
         mv = f"v{sm['map_version']} ({sm['map_source']})" if sm.get("map_version") is not None else "none"
