@@ -12,6 +12,7 @@ from . import (
     bench_server,
     bench_sim,
     bench_slam,
+    bench_slam_worker,
 )
 
 if __name__ == "__main__":
@@ -24,3 +25,4 @@ if __name__ == "__main__":
     bench_slam.main([])
     bench_loop_signal.main([])
     bench_anchoring.main([])
+    bench_slam_worker.main([])

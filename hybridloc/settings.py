@@ -19,6 +19,12 @@ line's own, so no file and no variable change nothing). Example file::
     kind = "particle"                  # kalman | particle | kourogi
     speed = 0                          # replay speed factor (0: as fast as possible)
 
+    [slam]                             # the server's crowd-SLAM worker per served site
+    enabled = true
+    idle_s = 180                       # a walk silent this long (s) is finished
+    batch_every = 25                   # a batch re-solve after this many new walks
+    interval_s = 3600                  # ... or this long after the last one (s)
+
 Environment variables are the keys in capitals, a section's keys prefixed by its name:
 ``HYBRIDLOC_SITE``, ``HYBRIDLOC_ENDPOINT``, ``HYBRIDLOC_SECURITY_PASSWORD``, ``HYBRIDLOC_FILTER_KIND``...
 An unknown key (in the file or as a ``HYBRIDLOC_*`` variable) or a value of the wrong type is a
@@ -68,6 +74,16 @@ class FilterSettings:
 
 
 @dataclass(frozen=True)
+class SlamSettings:
+    """The server's crowd-SLAM worker (``serve --no-slam/--slam-idle/--slam-batch-every/--slam-interval``)."""
+
+    enabled: bool = True  # a worker for every --site
+    idle_s: float = 180.0  # an open walk whose device sent nothing for this long, s, is finished
+    batch_every: int = 25  # a batch re-solve after this many walks added since the last (0: not by count)
+    interval_s: float = 3600.0  # ... or this long after the last one when walks were added, s (0: not by time)
+
+
+@dataclass(frozen=True)
 class Settings:
     site: str | None = None  # the site a client reports to and the server serves
     endpoint: str = "tcp/127.0.0.1:7447"  # Zenoh endpoint: the server listens on it, clients connect to it
@@ -76,6 +92,7 @@ class Settings:
     floorplan: str | None = None  # the site's floor plan folder (Indoor Location Competition layout)
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
+    slam: SlamSettings = field(default_factory=SlamSettings)
 
     def get(self, dotted: str) -> Any:
         """``get("security.tls_ca")``: a setting by its dotted key."""
@@ -85,7 +102,7 @@ class Settings:
         return obj
 
 
-_SECTIONS = {"security": SecuritySettings, "filter": FilterSettings}
+_SECTIONS = {"security": SecuritySettings, "filter": FilterSettings, "slam": SlamSettings}
 _CHOICES = {"method": LOCATE_METHODS, "filter.kind": FILTER_KINDS}
 
 
@@ -97,6 +114,21 @@ def _coerce(key: str, value: Any, typ: str, from_env: bool) -> Any:
     """``value`` as the field's type (annotations are strings here: ``str | None``, ``float``)."""
     if value is None:
         return None
+    if "bool" in typ:
+        if from_env and isinstance(value, str) and value.lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+            return value.lower() in ("1", "true", "yes", "on")
+        if not isinstance(value, bool):
+            raise BadInput(f"setting {key}: expected true or false, got {value!r}")
+        return value
+    if "int" in typ:
+        if from_env and isinstance(value, str):
+            try:
+                return int(value)
+            except ValueError:
+                raise BadInput(f"setting {key}: expected a whole number, got {value!r}") from None
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise BadInput(f"setting {key}: expected a whole number, got {value!r}")
+        return value
     if "float" in typ:
         if isinstance(value, bool):
             raise BadInput(f"setting {key}: expected a number, got {value!r}")

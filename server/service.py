@@ -7,7 +7,10 @@ Threads:
 * the ingest worker drains the channel in groups (up to ``max_group`` samples or ``max_wait`` s),
   validates every message, persists the group in one transaction, publishes the acknowledgements and,
   for batches with scans, pushes a fix to the device when its newest scan yields one;
-* queryable callbacks (locate, map, status) answer from memory and are short.
+* queryable callbacks (locate, map, status) answer from memory and are short;
+* one crowd-SLAM worker per SLAM site (:mod:`.slam_worker`): a thread that only waits on its spawned
+  child process, where the solves run, and publishes corrected tracks, map versions and progress. It
+  never touches the ingest path: a slow, failing or crashing solve delays no acknowledgement.
 
 Nothing is acknowledged before it is committed, so a crash (even SIGKILL) loses only unacknowledged
 batches, which clients resend.
@@ -30,6 +33,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
+from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
 log = logging.getLogger("hybridloc.server")
@@ -37,10 +41,22 @@ log = logging.getLogger("hybridloc.server")
 
 class Server:
     def __init__(
-        self, endpoint: str, db_url: str, security: Security | None = None, max_group: int = 500, max_wait: float = 0.02, method: str = "knn"
+        self,
+        endpoint: str,
+        db_url: str,
+        security: Security | None = None,
+        max_group: int = 500,
+        max_wait: float = 0.02,
+        method: str = "knn",
+        slam_sites: list[str] | None = None,
+        slam_options: SlamOptions | None = None,
     ):
         self.endpoint = endpoint
+        self.db_url = db_url
         self.store = Store(db_url)
+        self.slam_sites = list(dict.fromkeys(slam_sites or ()))
+        self.slam_options = slam_options
+        self.slam_workers: dict[str, SlamWorker] = {}
         self.security = security
         self.max_group = max_group
         self.max_wait = max_wait
@@ -71,9 +87,34 @@ class Server:
         ]
         self._worker = threading.Thread(target=self._run, name="hybridloc-ingest", daemon=True)
         self._worker.start()
+        for site in self.slam_sites:
+            P.check_id(site, "site")
+            self.slam_workers[site] = SlamWorker(
+                self.db_url, site, self._publish, self.slam_options, on_map=self.load_map, online=self._online_now
+            ).start()
         return self
 
+    def _online_now(self) -> set[str]:
+        """A copy of the devices online (the liveliness callback changes the set from its own thread)."""
+        while True:
+            try:
+                return set(self.online)
+            except RuntimeError:  # changed size during the copy: copy again
+                continue
+
+    def _publish(self, key: str, payload: bytes, encoding: str) -> None:
+        s = self.session
+        if s is not None:
+            s.put(key, payload, encoding=encoding)
+
+    def request_batch(self, site: str) -> None:
+        """Re-solve the site's floors in batch now (on demand); KeyError for a site without a SLAM worker."""
+        self.slam_workers[site].request_batch()
+
     def stop(self) -> None:
+        for w in self.slam_workers.values():
+            w.stop()
+        self.slam_workers.clear()
         self._stopping.set()
         if self._worker is not None:
             self._worker.join(timeout=10)
@@ -233,7 +274,8 @@ class Server:
 
     def _on_status(self, q: zenoh.Query) -> None:
         try:
-            st = Status(sorted(self.online), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()})
+            slam = {site: dict(self.store.slam.summary(site), worker=w.status()) for site, w in list(self.slam_workers.items())}
+            st = Status(sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam)
             q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())

@@ -21,14 +21,15 @@ from __future__ import annotations
 
 import datetime as dt
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import delete, func, insert, select
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
+from hybridloc.errors import ComputationFailed
 from hybridloc.types import CorrectedTrack, WalkEnd
 
 from . import db as m
@@ -36,6 +37,17 @@ from . import db as m
 CORRECTED, RELATIVE, QUARANTINED, FAILED = "corrected", "relative", "quarantined", "failed"
 WALK_STATUSES = (CORRECTED, RELATIVE, QUARANTINED, FAILED)
 RUNNING, COMPLETE, RUN_FAILED = "running", "complete", "failed"
+
+
+class SlamBusy(ComputationFailed):
+    """Another process holds a live lease on a batch run of the site (:meth:`SlamStore.claim_batch`)."""
+
+    def __init__(self, site: str, run_id: int, lease: dict):
+        self.site, self.run_id, self.lease = site, run_id, dict(lease)
+        super().__init__(
+            f"site {site}: batch run {run_id} is being solved by process {lease.get('pid')} on {lease.get('host')} "
+            f"(heartbeat {lease.get('heartbeat')}); try again when it ends"
+        )
 
 
 @dataclass(frozen=True)
@@ -228,6 +240,29 @@ class SlamStore:
             self._set_walk(s, site, result, run.id, n, attempt=True)
             return int(run.id)
 
+    def live_run(self, site: str, walk_id: int) -> int:
+        """A run id for a provisional correction of an open walk (kind "live", complete, no points: the
+        track is sent, not stored). Run ids only grow, so a device takes each newer correction of its
+        walk, and the walk's final run (:meth:`save_walk`, later) supersedes them all."""
+        with Session(self.engine) as s, s.begin():
+            run = m.SlamRun(site_id=site, kind="live", status=COMPLETE, floors=None, stats={"walk": int(walk_id)}, finished_at=m.utcnow())
+            s.add(run)
+            s.flush()
+            return int(run.id)
+
+    def drop_live_runs(self, walk_id: int, before: int) -> int:
+        """Forget the provisional runs of a walk older than run ``before`` (its final run: the newest id
+        stays, so ids are never reused); the number dropped."""
+        with Session(self.engine) as s, s.begin():
+            ids = [
+                r.id
+                for r in s.execute(select(m.SlamRun).where(m.SlamRun.kind == "live", m.SlamRun.id < before)).scalars()
+                if (r.stats or {}).get("walk") == int(walk_id)
+            ]
+            if ids:
+                s.execute(delete(m.SlamRun).where(m.SlamRun.id.in_(ids)))
+            return len(ids)
+
     def mark_walk(self, site: str, walk_id: int, status: str, reason: str = "") -> None:
         """Set a walk's state without a track (quarantined or failed outside a solve: its previous track is kept)."""
         if status not in WALK_STATUSES:
@@ -250,6 +285,75 @@ class SlamStore:
             s.add(run)
             s.flush()
             return int(run.id)
+
+    # ------------------------------------------------------------------ one batch run at a time
+    def claim_batch(self, site: str, floors: Sequence[str] | None, lease: dict, is_stale: Callable[[dict], bool]) -> tuple[int, bool, dict | None]:
+        """The batch run the caller may work on, under its ``lease`` ({"token", "host", "pid",
+        "heartbeat"}, kept in the run's stats): (run id, resumed, the lease taken over or None).
+
+        In one transaction that first writes the site's row, so two processes deciding at once are
+        serialised (SQLite's write lock, PostgreSQL's row lock): a running batch run of the site whose
+        lease is live (``is_stale(lease)`` False) refuses the claim (:class:`SlamBusy`); a stale one -
+        killed midway - is resumed when it solves the same ``floors`` (None: all), else ended as failed
+        (superseded); without one a new run begins."""
+        with Session(self.engine) as s, s.begin():
+            if s.get(m.Site, site) is None:
+                s.add(m.Site(id=site, name=site))
+                s.flush()
+            s.execute(update(m.Site).where(m.Site.id == site).values(name=m.Site.name))
+            runs = (
+                s.execute(
+                    select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.kind == "batch", m.SlamRun.status == RUNNING).order_by(m.SlamRun.id)
+                )
+                .scalars()
+                .all()
+            )
+            for r in runs:
+                held = (r.stats or {}).get("lease")
+                if held and not is_stale(held):
+                    raise SlamBusy(site, r.id, held)
+            want = sorted(floors) if floors is not None else None
+            mine, taken = None, None
+            for r in runs:
+                if mine is None and (sorted(r.floors) if r.floors is not None else None) == want:
+                    mine, taken = r, (r.stats or {}).get("lease")
+                    continue
+                r.status, r.finished_at = RUN_FAILED, m.utcnow()
+                r.error = f"superseded by a batch run of floors {want if want is not None else 'all'}"
+                s.execute(delete(m.TrackPoint).where(m.TrackPoint.run_id == r.id))
+            resumed = mine is not None
+            if mine is None:
+                mine = m.SlamRun(site_id=site, kind="batch", status=RUNNING, floors=want, stats={})
+                s.add(mine)
+                s.flush()
+            st = dict(mine.stats or {})
+            st["lease"] = dict(lease)
+            if resumed:
+                st["resumes"] = int(st.get("resumes", 0)) + 1
+            mine.stats = st
+            return int(mine.id), resumed, taken
+
+    def renew_lease(self, run_id: int, token: str, heartbeat: float) -> bool:
+        """Refresh the lease of a running batch run; False when it is not the caller's any more (taken
+        over as stale, or the run ended)."""
+        with Session(self.engine) as s, s.begin():
+            run = s.get(m.SlamRun, run_id)
+            if run is None or run.status != RUNNING:
+                return False
+            held = (run.stats or {}).get("lease") or {}
+            if held.get("token") != token:
+                return False
+            run.stats = dict(run.stats or {}, lease=dict(held, heartbeat=heartbeat))
+            return True
+
+    def release_lease(self, run_id: int, token: str) -> None:
+        """Give a running run up for someone else to resume at once (an interrupted ``slam rebuild``)."""
+        with Session(self.engine) as s, s.begin():
+            run = s.get(m.SlamRun, run_id)
+            if run is not None and run.status == RUNNING and ((run.stats or {}).get("lease") or {}).get("token") == token:
+                st = dict(run.stats or {})
+                st.pop("lease", None)
+                run.stats = st
 
     def write_floor(self, run_id: int, floor: str, results: Sequence[WalkResult], loops: Sequence = (), stats: dict | None = None) -> None:
         """A floor of a running batch run: its walks' points, its loops and its checkpoint, in one transaction
@@ -410,25 +514,39 @@ class SlamStore:
             if floor is not None and not any(r[2] == floor for r in rows):
                 continue
             st = states[wid]
-            nan = float("nan")
-            cov = np.array(
-                [
-                    [[nan if r[5] is None else r[5], nan if r[6] is None else r[6]], [nan if r[6] is None else r[6], nan if r[7] is None else r[7]]]
-                    for r in rows
-                ]
-            )
-            out[wid] = CorrectedTrack(
-                wid,
-                np.array([r[0] for r in rows]),
-                np.array([[r[3], r[4]] for r in rows]),
-                cov,
-                tuple(r[2] for r in rows),
-                tuple(r[1] for r in rows),
-                st.anchored,
-                st.scale if st.scale is not None else 1.0,
-                st.heading_bias if st.heading_bias is not None else 0.0,
-            )
+            out[wid] = _track_of(wid, rows, st.anchored, st.scale, st.heading_bias)
         return out
+
+    def run_tracks(self, run_id: int, floors: Iterable[str] | None = None, statuses: Iterable[str] | None = None) -> dict[int, CorrectedTrack]:
+        """The tracks a batch run wrote (walk id -> track), finished or still running: what its floors
+        solved (``floors``: of those floors only; ``statuses``: of walks in those states), read from its
+        checkpoints. A resumed run reads the
+        floors it solved before it was killed through this."""
+        keep = None if floors is None else set(floors)
+        keep_st = None if statuses is None else set(statuses)
+        with Session(self.engine) as s:
+            meta: dict[int, dict] = {}
+            for fd in s.execute(select(m.SlamFloorDone).where(m.SlamFloorDone.run_id == run_id)).scalars():
+                if keep is not None and fd.floor not in keep:
+                    continue
+                for wid, w in (fd.stats or {}).get("walks", {}).items():
+                    if w["n_points"] > 0 and (keep_st is None or w["status"] in keep_st):
+                        meta[int(wid)] = w
+            if not meta:
+                return {}
+            q = (
+                select(
+                    m.TrackPoint.walk_id, m.TrackPoint.t, m.TrackPoint.kind, m.TrackPoint.floor, m.TrackPoint.x, m.TrackPoint.y,
+                    m.TrackPoint.cov_xx, m.TrackPoint.cov_xy, m.TrackPoint.cov_yy,
+                )
+                .where(m.TrackPoint.run_id == run_id, m.TrackPoint.walk_id.in_(list(meta)))
+                .order_by(m.TrackPoint.walk_id, m.TrackPoint.t, m.TrackPoint.id)
+            )  # fmt: skip
+            pts: dict[int, list] = {}
+            for row in s.execute(q):
+                if keep is None or row[3] in keep:
+                    pts.setdefault(row[0], []).append(row[1:])
+        return {wid: _track_of(wid, rows, meta[wid]["anchored"], meta[wid]["scale"], meta[wid]["heading_bias"]) for wid, rows in pts.items()}
 
     def track(self, site: str, walk_id: int) -> CorrectedTrack | None:
         return self.tracks(site, walk_ids=[walk_id]).get(int(walk_id))
@@ -515,3 +633,24 @@ class SlamStore:
 
     def quarantined(self, site: str) -> list[WalkState]:
         return [w for w in self.walk_states(site).values() if w.status == QUARANTINED]
+
+
+def _track_of(walk_id: int, rows: list, anchored: str, scale: float | None, heading_bias: float | None) -> CorrectedTrack:
+    """A CorrectedTrack from track_point rows (t, kind, floor, x, y, cov_xx, cov_xy, cov_yy) in time order."""
+    nan = float("nan")
+
+    def v(x):
+        return nan if x is None else x
+
+    cov = np.array([[[v(r[5]), v(r[6])], [v(r[6]), v(r[7])]] for r in rows]).reshape(-1, 2, 2)
+    return CorrectedTrack(
+        walk_id,
+        np.array([r[0] for r in rows], float),
+        np.array([[r[3], r[4]] for r in rows], float).reshape(-1, 2),
+        cov,
+        tuple(r[2] for r in rows),
+        tuple(r[1] for r in rows),
+        anchored,
+        scale if scale is not None else 1.0,
+        heading_bias if heading_bias is not None else 0.0,
+    )

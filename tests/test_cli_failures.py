@@ -51,6 +51,7 @@ CASES: dict[str, list[str]] = {
     "floorplan export": ["--config", "{f}", "floorplan", "export", "--site", "s", "--db", "{o}/h.db", "--out", "{o}/p.geojson"],
     "slam run": ["slam", "run", "{f}", "--out", "{o}/slam", "--workers", "1"],
     "slam show": ["slam", "show", "{f}", "--floor", "F1", "--out", "{o}/s.png"],
+    "slam rebuild": ["slam", "rebuild", "--db", "{f}"],
     "demo": ["--config", "{f}", "demo", "--out", "{o}"],
 }
 

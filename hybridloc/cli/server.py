@@ -15,7 +15,18 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     check_db_driver(args.db)
     from ..server.service import Server, serve_forever
 
-    server = Server(args.endpoint, args.db, security(args), method=args.method)
+    slam_sites, slam_options = [], None
+    if args.slam is not False and args.site:
+        from ..server.slam_worker import SlamOptions
+
+        for name, v in (("--slam-idle", args.slam_idle), ("--slam-interval", args.slam_interval)):
+            if v < 0:
+                raise BadInput(f"{name} must be >= 0 s, got {v:g}")
+        if args.slam_batch_every < 0:
+            raise BadInput(f"--slam-batch-every must be >= 0, got {args.slam_batch_every}")
+        slam_sites = list(args.site)
+        slam_options = SlamOptions(idle_timeout_s=args.slam_idle, batch_every_walks=args.slam_batch_every, batch_interval_s=args.slam_interval)
+    server = Server(args.endpoint, args.db, security(args), method=args.method, slam_sites=slam_sites, slam_options=slam_options)
     for spec in args.map or []:
         site, _, path = spec.partition("=")
         if not path:
@@ -24,6 +35,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     for site in args.site or []:
         if server.load_map(site) is None:
             print(f"warning: no stored radio map for site {site!r}", file=sys.stderr)
+    for site in slam_sites:
+        assert slam_options is not None
+        print(
+            f"crowd SLAM of site {site}: walks end after {slam_options.idle_timeout_s:g} s idle; batch re-solve every "
+            f"{slam_options.batch_every_walks or '-'} walks or {slam_options.batch_interval_s:g} s",
+            file=sys.stderr,
+        )
     serve_forever(server)
     return 0
 
@@ -52,6 +70,24 @@ def _cmd_status(args: argparse.Namespace) -> int:
     print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
     print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
     print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
+    slam = st.get("slam") or st["db"].get("slam") or {}
+    for site, sm in sorted(slam.items()):
+        cov = f"{100 * sm['coverage']:.0f} %" if sm.get("coverage") is not None else "-"
+        mv = f"v{sm['map_version']} ({sm['map_source']})" if sm.get("map_version") is not None else "none"
+        print(
+            f"slam {site}: walks corrected {sm['walks_corrected']}, relative {sm['walks_relative']}, quarantined {sm['walks_quarantined']}, "
+            f"failed {sm['walks_failed']}, pending {sm['walks_pending']}; loops accepted {sm['loops_accepted']}, rejected {sm['loops_rejected']}; "
+            f"coverage {cov}; map {mv}"
+        )
+        w = sm.get("worker") or {}
+        c = w.get("counts", {})
+        err = w.get("last_error")
+        print(
+            f"  worker: added {c.get('walks_added', 0)}, quarantined {c.get('walks_quarantined', 0)}, errors {c.get('walk_errors', 0) + c.get('errors', 0)}, "
+            f"batch runs {c.get('batch_runs', 0)}"
+            + (f", busy: {w['busy']}" if w.get("busy") else "")
+            + (f"; last error{' (walk ' + str(err['walk']) + ')' if err.get('walk') is not None else ''}: {err['error']}" if err else "")
+        )
     return 0
 
 
@@ -116,6 +152,10 @@ def register(sub) -> None:
     sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
     sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
     sv.add_argument("--tls-key", help="server private key (PEM)")
+    sv.add_argument("--no-slam", dest="slam", action="store_const", const=False, help="no crowd-SLAM worker for the --site sites")
+    sv.add_argument("--slam-idle", type=float, metavar="S", help="a walk whose device sent nothing for S seconds is finished (default 180)")
+    sv.add_argument("--slam-batch-every", type=int, metavar="N", help="re-solve the site in batch after N new walks (default 25; 0: not by count)")
+    sv.add_argument("--slam-interval", type=float, metavar="S", help="... or S seconds after the last batch run (default 3600; 0: not by time)")
     sv.set_defaults(
         func=_cmd_serve,
         _settings={
@@ -127,6 +167,10 @@ def register(sub) -> None:
             "acl_devices": "security.acl_devices",
             "tls_cert": "security.tls_cert",
             "tls_key": "security.tls_key",
+            "slam": "slam.enabled",
+            "slam_idle": "slam.idle_s",
+            "slam_batch_every": "slam.batch_every",
+            "slam_interval": "slam.interval_s",
         },
     )
 

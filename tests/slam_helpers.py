@@ -1,0 +1,107 @@
+"""Shared by the SLAM worker tests: the bundled real sample as stored walks, and the child-process hook.
+
+The bundled sample (Indoor Location Competition site1, floor F1, 35 real walks) has one floor; a batch
+run checkpoints floor by floor, so the tests that kill a run midway split it in two: F2 is a copy of
+F1's plan (same walls, level 1) and every other walk is stored as walked there. Each floor is then a
+real crowd of 17-18 real walks, solved apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hybridloc.io.msft import find_ilc_traces, read_ilc_site
+from hybridloc.samples import ILC_SITE1_F1
+from hybridloc.types import AbsoluteFix, FloorPlan, StepEvent, SurveyMark, Walk
+from hybridloc.wire.messages import Batch
+
+#: the sample's site id (what its traces name)
+SITE = "5dd3d7732a57a34356595932"
+
+
+def sample_plan(two_floors: bool = False) -> FloorPlan:
+    plan = read_ilc_site(ILC_SITE1_F1)
+    floors = plan.floors
+    if two_floors:
+        floors = (floors[0], dataclasses.replace(floors[0], name="F2", level=1))
+    return FloorPlan(SITE, floors, (), plan.origin)
+
+
+def sample_walks(marks_every: int = 3) -> list[Walk]:
+    """The 35 sample walks through the phone PDR; walks 0, k, 2k... keep their survey marks."""
+    from hybridloc.slam.walkgraph import walks_from_files
+
+    paths = find_ilc_traces(ILC_SITE1_F1)
+    return [w for w, _ in walks_from_files(paths, marks=[i % marks_every == 0 for i in range(len(paths))], workers=2)]
+
+
+def floor_of(i: int, two_floors: bool) -> str:
+    return "F2" if two_floors and i % 2 else "F1"
+
+
+def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str = "dev") -> list[str]:
+    """Each walk as one device's ended walk (batches of at most 500 records, the last with the end-of-walk
+    marker); a walk without marks names its floor through a fix, as the server does when it answers a
+    scan. Returns the device ids."""
+    devices = []
+    for i, w in enumerate(walks):
+        dev = f"{prefix}{i:02d}"
+        fl = floor_of(i, two_floors)
+        recs = [("s", r) for r in w.steps] + [("c", r) for r in w.scans] + [("m", SurveyMark(r.t, r.x, r.y, fl)) for r in w.marks]
+        recs.sort(key=lambda x: x[1].t)
+        chunks = [recs[k : k + 500] for k in range(0, len(recs), 500)] or [[]]
+        batches = []
+        for seq, ch in enumerate(chunks, 1):
+            batches.append(
+                Batch(
+                    SITE,
+                    dev,
+                    seq,
+                    w.device_model,
+                    [r for k, r in ch if k == "s"],
+                    [r for k, r in ch if k == "c"],
+                    [r for k, r in ch if k == "m"],
+                    end_of_walk=seq == len(chunks),
+                )
+            )
+        store.persist(batches)
+        if not w.marks and w.scans:
+            store.add_fixes([(dev, AbsoluteFix(w.scans[0].t, np.zeros(2), np.eye(2), "wifi", fl))])
+        devices.append(dev)
+    return devices
+
+
+def stretched(walk: Walk, factor: float) -> Walk:
+    """The walk with every step ``factor`` times as long (10 m steps: no person walks so)."""
+    steps = tuple(dataclasses.replace(s, length=s.length * factor) for s in walk.steps)
+    return dataclasses.replace(walk, steps=steps)
+
+
+def straight_steps(n: int, t0: float, length: float = 0.7) -> list[StepEvent]:
+    return [StepEvent(t0 + 0.5 * i, length, 0.0, 0.05, 0.1) for i in range(n)]
+
+
+# ------------------------------------------------------------------------------------------ child hook
+def hook(event: str, site: str, subject, arg: str) -> None:
+    """The SLAM child's test hook (``SlamOptions.child_hook = "tests.slam_helpers:hook"``), driven by
+    files in the folder ``arg`` so a test steers it from outside the child:
+
+    * walk of device D: ``D.block`` -> write ``D.entered`` and wait until ``D.release`` exists;
+      ``D.raise`` -> raise RuntimeError; ``D.crash`` -> the child process dies (os._exit);
+    * floor F of a batch run: ``floor-F.block`` -> write ``floor-F.entered``, wait for ``floor-F.release``.
+    """
+    d = Path(arg)
+    name = subject.device if event == "walk" else f"floor-{subject}"
+    if (d / f"{name}.crash").exists():
+        os._exit(3)
+    if (d / f"{name}.raise").exists():
+        raise RuntimeError(f"test hook: the solve of {name} fails")
+    if (d / f"{name}.block").exists():
+        (d / f"{name}.entered").write_text(str(os.getpid()))
+        while not (d / f"{name}.release").exists():
+            time.sleep(0.05)
