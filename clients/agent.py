@@ -7,6 +7,14 @@ pose - one row per step or fix, each the estimate available at that moment - as 
 (``t,x,y,floor,sigma_x,sigma_y``), JSON lines or NMEA-0183, and publishes it on its ``pose`` key.
 When the server is down it keeps dead reckoning; the spool catches up after.
 
+The crowd SLAM talks back (docs/protocol.md): the agent subscribes to its own ``track`` key and to its
+site's ``map/version``. A corrected track of its current walk re-anchors the filter
+(``fusion.reanchor``: the filter's estimate at the track's latest time is replaced by the smoothed one,
+the steps since are re-applied, heading bias and step scale taken where the filter holds them), so the
+live pose improves after every correction; a new map version is fetched (a get on ``map``, never
+waiting in a Zenoh callback) when the agent was given a ``map_refresh`` hook. Callbacks only queue
+bytes; everything is decoded and applied on the agent's thread, in :meth:`Agent.drain_fixes`.
+
 Replay (``--replay FILE --speed K``) feeds a recording at K times real time: the agent sleeps so that
 recording time t is reached at wall time (t - t0) / K.
 """
@@ -17,6 +25,8 @@ import json
 import math
 import queue
 import time
+from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +41,7 @@ from hybridloc.types import RSSI_MAX_DBM, RSSI_MIN_DBM, AbsoluteFix, Displacemen
 from hybridloc.units import DEG
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import MapInfo, MapVersion, Track
 
 from .uplink import Uplink
 
@@ -107,6 +118,16 @@ class AgentResult:
     local_fixes: int = 0  # the device's own GPS / RFID fixes offered, accepted, and GPS displacements used
     local_accepted: int = 0
     displacements: int = 0
+    # the crowd SLAM's corrected tracks: received (every payload), applied (re-anchored the filter),
+    # ignored (well formed, not applicable; by reason in track_ignored), rejected (refused by the codec)
+    tracks_received: int = 0
+    tracks_applied: int = 0
+    tracks_ignored: int = 0
+    tracks_rejected: int = 0
+    track_ignored: dict = field(default_factory=dict)  # reason -> count
+    walk_id: int | None = None  # the server's id of this walk (from the first track taken)
+    map_version: int | None = None  # the newest map version announced (or held at the start)
+    maps_fetched: int = 0  # new map versions fetched and handed to the map-refresh hook
 
     @property
     def raw_fixes(self) -> list[tuple]:
@@ -127,6 +148,12 @@ class Agent:
       (send everything now), :meth:`drain_fixes` (fuse the server's answers that arrived),
       :meth:`wait_answers` (lock-step);
     * :attr:`estimate` (the newest pose), :meth:`close` (-> :class:`AgentResult`).
+
+    The server's corrected tracks and map versions arrive by themselves (subscriptions) and are applied
+    in :meth:`drain_fixes`; ``map_refresh(payload, info)`` (optional) is called on the agent's thread
+    with each new map version's file (npz bytes) and its :class:`~hybridloc.wire.messages.MapInfo`,
+    e.g. :func:`walk_prior_refresh` for the particle filter; ``map_version`` is the version the agent
+    holds at the start (None: none or unknown).
     """
 
     def __init__(
@@ -141,6 +168,9 @@ class Agent:
         init: tuple[float, float, float] | None = None,
         fusion=None,
         floor: str | None = None,
+        map_refresh: Callable[[bytes, MapInfo | None], None] | None = None,
+        map_version: int | None = None,
+        map_timeout: float = 10.0,
     ):
         self.session = session
         self.site, self.device = site, device
@@ -151,7 +181,29 @@ class Agent:
         self.batch_period = batch_period
         self.fixes: queue.Queue = queue.Queue()
         self._fix_sub = session.declare_subscriber(P.key_fix(site, device), lambda s: self.fixes.put(s.payload.to_bytes()))
+        # the crowd SLAM's messages: the callbacks only queue the bytes (decoded on the agent's thread);
+        # remote origin only: the server announces, never this session
+        self.inbox: queue.Queue = queue.Queue()
+        remote = zenoh.Locality.REMOTE
+        self._track_sub = session.declare_subscriber(
+            P.key_track(site, device), lambda s: self.inbox.put(("track", s.payload.to_bytes())), allowed_origin=remote
+        )
+        self._version_sub = session.declare_subscriber(
+            P.key_map_version(site), lambda s: self.inbox.put(("map-version", s.payload.to_bytes())), allowed_origin=remote
+        )
         self._token = session.liveliness().declare_token(P.key_alive(site, device))
+        self.map_refresh = map_refresh
+        self.map_timeout = map_timeout
+        self.map_version = map_version  # newest announced (or held at the start)
+        self._map_applied = map_version  # newest handed to map_refresh
+        self.maps_fetched = self.map_fetch_failed = self.map_refresh_failed = 0
+        self.map_versions_rejected = 0
+        self.walk_id: int | None = None  # the server's id of this walk, from the first track taken
+        self._track_run = 0  # the newest SLAM run whose track was applied
+        self.tracks_received = self.tracks_applied = 0
+        self.track_ignored: Counter = Counter()  # reason -> count (well formed, not applied)
+        self.track_rejected: Counter = Counter()  # codec reason -> count
+        self._t_first = math.inf  # the first step or fix this agent took: its walk's start
         self.n_accepted = 0
         self.n_answers = 0  # server answers (fix or "no fix") received
         self.n_local = self.n_local_accepted = self.n_displacements = 0  # the device's own GPS / RFID fixes
@@ -172,6 +224,7 @@ class Agent:
         """A step (or stride): fused at once, the new pose written and published, and queued for the next batch."""
         self._steps.append(step)
         self.all_steps.append(step)
+        self._t_first = min(self._t_first, step.t)
         e = self.fusion.predict(step)
         if self.fusion.initialised:
             self._write(e)
@@ -201,12 +254,114 @@ class Agent:
         self._estimate = Pose(e.t, float(e.pos[0]), float(e.pos[1]), e.floor, np.asarray(e.cov)[:2, :2])
 
     def drain_fixes(self) -> None:
+        """Apply what the server sent: corrected tracks, map versions and fetched maps first, then fixes."""
+        while True:
+            try:
+                kind, *item = self.inbox.get_nowait()
+            except queue.Empty:
+                break
+            if kind == "track":
+                self._handle_track(item[0])
+            elif kind == "map-version":
+                self._handle_map_version(item[0])
+            elif kind == "map":
+                self._handle_map(*item)
+            elif kind == "map-failed":
+                self.map_fetch_failed += 1
         while True:
             try:
                 raw = self.fixes.get_nowait()
             except queue.Empty:
                 return
             self._handle(raw)
+
+    # ------------------------------------------------------------ the crowd SLAM's messages
+    def _ignore_track(self, reason: str) -> None:
+        self.track_ignored[reason] += 1
+
+    def _handle_track(self, raw: bytes) -> None:
+        """A corrected track: re-anchor the filter from its latest point when it is this walk's and new.
+
+        The agent learns its walk's id from the server's tracks only: the first one taken after the agent
+        started is its walk (a track ending before the agent's first step or fix is an earlier walk's);
+        later tracks apply when they name that walk and come from a newer SLAM run.
+        """
+        self.tracks_received += 1
+        try:
+            msg: Track = C.TRACK.decode(raw, self.site, self.device)
+        except P.Rejected as exc:
+            self.track_rejected[exc.reason] += 1
+            return
+        tr = msg.track
+        if len(tr) == 0:
+            return self._ignore_track("empty")
+        if tr.anchored == "relative":  # a shape in its own frame, never a position (types.TRACK_ANCHORS)
+            return self._ignore_track("relative")
+        if not tr.t[-1] >= self._t_first:  # ends before this agent's walk began (or nothing began yet)
+            return self._ignore_track("before-start")
+        if self.walk_id is not None and msg.walk_id != self.walk_id:
+            return self._ignore_track("other-walk")
+        if msg.run <= self._track_run:
+            return self._ignore_track("old-run")
+        reanchor = getattr(self.fusion, "reanchor", None)
+        if reanchor is None:
+            return self._ignore_track("filter-cannot-reanchor")
+        try:
+            e = reanchor(float(tr.t[-1]), tr.pos_enu[-1], tr.cov[-1], tr.floor[-1] or None, heading_bias=tr.heading_bias, scale=tr.scale)
+        except ValueError:  # older than the steps the filter keeps, or a cold particle cloud without a covariance
+            return self._ignore_track("too-old")
+        self.walk_id = msg.walk_id
+        self._track_run = msg.run
+        self.tracks_applied += 1
+        self._write(e)
+
+    def _handle_map_version(self, raw: bytes) -> None:
+        """A new map version: recorded, and fetched (a get on ``map`` with a timeout, its replies queued by
+        the get's callback) when the agent has a map-refresh hook."""
+        try:
+            mv: MapVersion = C.MAP_VERSION.decode(raw)
+        except P.Rejected:
+            self.map_versions_rejected += 1
+            return
+        if mv.site != self.site or (self.map_version is not None and mv.version <= self.map_version):
+            return
+        self.map_version = mv.version
+        if self.map_refresh is None:
+            return
+        got = []
+
+        def on_reply(r) -> None:  # a Zenoh thread: only queue
+            if r.ok is not None:
+                att = r.ok.attachment
+                got.append(True)
+                self.inbox.put(("map", r.ok.payload.to_bytes(), att.to_bytes() if att is not None else None, mv.version))
+
+        def on_done() -> None:  # the get is over (all replies, or the timeout)
+            if not got:
+                self.inbox.put(("map-failed",))
+
+        self.session.get(P.key_map(self.site), zenoh.handlers.Callback(on_reply, on_done), timeout=self.map_timeout)
+
+    def _handle_map(self, payload: bytes, attachment: bytes | None, announced: int) -> None:
+        """A fetched map: handed to the hook once per version (its attachment's; the announced one if none)."""
+        info = None
+        if attachment is not None:
+            try:
+                info = C.MAP_INFO.decode(attachment)
+            except P.Rejected:
+                info = None
+        version = info.version if info is not None else announced
+        if self._map_applied is not None and version <= self._map_applied:
+            return
+        if self.map_refresh is None:
+            return
+        try:
+            self.map_refresh(payload, info)
+        except Exception:  # noqa: BLE001 - a map the hook cannot use (corrupt file ...) never stops the agent
+            self.map_refresh_failed += 1
+            return
+        self._map_applied = version
+        self.maps_fetched += 1
 
     def _handle(self, raw: bytes) -> None:
         """One server answer: a fix is fused; "no fix" is only counted."""
@@ -218,6 +373,7 @@ class Agent:
         self._answers_flowing = True
         if fix is None:
             return
+        self._t_first = min(self._t_first, fix.t)
         self.fix_lags.append(max(self.fusion.t - fix.t, 0.0) if math.isfinite(self.fusion.t) else 0.0)
         self.fix_log.append((len(self.all_steps), fix))
         ok, e = self.fusion.correct(fix)
@@ -230,6 +386,7 @@ class Agent:
         pairs of accepted GPS fixes a few seconds apart also give a displacement (Kourogi's GPS
         differential mode, :class:`hybridloc.fusion.GpsDifferencer`)."""
         self.n_local += 1
+        self._t_first = min(self._t_first, fix.t)
         ok, e = self.fusion.correct(fix)
         if ok:
             self.n_local_accepted += 1
@@ -299,7 +456,7 @@ class Agent:
     def close(self, wait: float = 10.0) -> AgentResult:
         self.uplink.wait_acked(timeout=wait)
         self.drain_fixes()
-        for e in (self._fix_sub, self._token):
+        for e in (self._fix_sub, self._track_sub, self._version_sub, self._token):
             try:
                 e.undeclare()
             except Exception:  # noqa: BLE001
@@ -320,20 +477,54 @@ class Agent:
             self.n_local,
             self.n_local_accepted,
             self.n_displacements,
+            self.tracks_received,
+            self.tracks_applied,
+            sum(self.track_ignored.values()),
+            sum(self.track_rejected.values()),
+            dict(self.track_ignored),
+            self.walk_id,
+            self.map_version,
+            self.maps_fetched,
         )
 
 
 def fetch_walk_prior(session: zenoh.Session, site: str, plan=None, timeout: float = 10.0):
     """The site's radio map from the server (``map`` queryable) turned into a walk prior for
     :class:`hybridloc.fusion.ParticleFusion`; None when the server has no map for the site."""
+    got = fetch_map(session, site, timeout)
+    return walk_prior(got[0], plan) if got is not None else None
+
+
+def walk_prior(payload: bytes, plan=None):
+    """The walk prior of a radio map file (npz bytes) for :class:`hybridloc.fusion.ParticleFusion`."""
     import io
 
     from hybridloc.fusion import WalkPrior
     from hybridloc.radio.radiomap import RadioMap
 
+    return WalkPrior.from_radio_map(RadioMap.load(io.BytesIO(payload)), plan)
+
+
+def walk_prior_refresh(fusion, plan=None) -> Callable[[bytes, MapInfo | None], None]:
+    """A map-refresh hook for :class:`Agent`: each new radio map version becomes the particle filter's
+    walk prior (:meth:`hybridloc.fusion.ParticleFusion.set_prior`)."""
+
+    def refresh(payload: bytes, info: MapInfo | None) -> None:
+        fusion.set_prior(walk_prior(payload, plan))
+
+    return refresh
+
+
+def fetch_map(session: zenoh.Session, site: str, timeout: float = 10.0) -> tuple[bytes, MapInfo | None] | None:
+    """The site's current radio map file (npz bytes) and its attachment; None when the server has none."""
     for r in session.get(P.key_map(site), timeout=timeout):
         if r.ok:
-            return WalkPrior.from_radio_map(RadioMap.load(io.BytesIO(r.ok.payload.to_bytes())), plan)
+            att = r.ok.attachment
+            try:
+                info = C.MAP_INFO.decode(att.to_bytes()) if att is not None else None
+            except P.Rejected:
+                info = None
+            return r.ok.payload.to_bytes(), info
     return None
 
 

@@ -10,7 +10,7 @@ from hybridloc.wire.zconfig import Security, client_config
 
 
 def query_status(endpoint: str, security: Security | None = None, timeout: float = 5.0) -> dict | None:
-    """The server's status as the message's dict (schema, online, counts, db, maps_loaded; validated
+    """The server's status as the message's dict (schema, online, counts, db, maps_loaded, slam; validated
     by :data:`hybridloc.wire.codecs.STATUS`); None when no server answers."""
     with zenoh.open(client_config(endpoint, security)) as s:
         for r in s.get(P.KEY_STATUS, timeout=timeout):

@@ -434,3 +434,162 @@ def test_end_of_walk_marker_closes_the_walk_on_the_server(tmp_path):
     finally:
         store.close()
     assert ends == {"marked": WalkEnd.MARKER, "older": WalkEnd.OPEN}
+
+
+def _wait_for(cond, timeout=10.0):
+    import time
+
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _corrected(walk_id, t, pos_last, anchored="map", bias=0.0, scale=1.0):
+    """A corrected track at times t (the last point at pos_last), its earlier points along +x."""
+    from hybridloc.types import CorrectedTrack
+
+    t = np.asarray(t, float)
+    pos = np.column_stack([np.linspace(0.0, pos_last[0], len(t)), np.full(len(t), pos_last[1])])
+    cov = np.tile(np.eye(2) * 0.25, (len(t), 1, 1))
+    cov[-1] = np.diag([0.04, 0.09])
+    return CorrectedTrack(walk_id, t, pos, cov, ("F1",) * len(t), ("step",) * len(t), anchored, scale, bias)
+
+
+def test_agent_reanchors_on_its_walks_corrected_track_and_ignores_the_rest(tmp_path):
+    """A router session (the project's server_config) puts tracks on the agent's ``track`` key while steps
+    are fed by hand: the first track of this walk re-anchors the filter (the pose moves to the corrected
+    position at the track's last time plus the steps since, turned by its heading bias and scaled; the
+    Kalman filter does that exactly), the filter takes its bias and scale; a track of an earlier walk,
+    of another walk, of an older run, a relative one and malformed bytes are counted and change nothing."""
+    from hybridloc.clients.agent import Agent, PoseWriter
+    from hybridloc.wire import codecs as C
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.messages import Track
+    from hybridloc.wire.zconfig import client_config, free_port, server_config
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    site, dev = "site1", "phoneT"
+    with zenoh.open(server_config(ep)) as router, zenoh.open(client_config(ep)) as s:
+        ag = Agent(s, site, dev, tmp_path / "spool", PoseWriter(None), init=(0.0, 0.0, 0.5), floor="F1")
+        pub = router.declare_publisher(P.key_track(site, dev))
+        assert _wait_for(lambda: pub.matching_status.matching)
+        sent = 0
+
+        def put(payload, applied=None):
+            nonlocal sent
+            pub.put(payload)
+            sent += 1
+            assert _wait_for(lambda: (ag.drain_fixes(), ag.tracks_received == sent)[1])
+
+        def track(walk_id, run, t, pos_last, **kw):
+            return C.TRACK.encode(Track(site, dev, walk_id, 1, run, _corrected(walk_id, t, pos_last, **kw)))
+
+        put(track(6, 1, [0.0, 1.0], (5.0, 5.0)))  # before any step: an earlier walk's track
+        steps = _walk(30, 0.0)  # t = 0 .. 14.5, 0.7 m along +x
+        for st in steps:
+            ag.add_step(st)
+        before = np.array([ag.estimate.x, ag.estimate.y])
+        put(b"{not json")
+        put(C.TRACK.encode(Track(site, "phoneU", 7, 1, 3, _corrected(7, [0.0, 10.0], (50.0, 20.0)))))  # another device's payload on this key
+        put(track(7, 1, [0.0, 10.0], (50.0, 20.0), anchored="relative"))  # a shape, not a position
+        assert np.allclose([ag.estimate.x, ag.estimate.y], before) and ag.walk_id is None
+        bias, scale = 0.2, 1.1
+        put(track(7, 3, np.arange(21) * 0.5, (50.0, 20.0), bias=bias, scale=scale))  # this walk, up to t = 10 s
+        since = [st for st in steps if st.t > 10.0]
+        want = np.array([50.0, 20.0]) + sum(scale * st.length * np.array([math.cos(st.heading + bias), math.sin(st.heading + bias)]) for st in since)
+        assert len(since) == 9 and ag.walk_id == 7 and ag.tracks_applied == 1
+        assert np.allclose([ag.estimate.x, ag.estimate.y], want, atol=1e-9), (ag.estimate, want)
+        assert ag.fusion.x[2] == bias and ag.fusion.x[3] == scale
+        # the pose carries the filter's covariance: the track's at t, grown by the nine steps since
+        assert np.allclose(ag.estimate.cov, ag.fusion.P[:2, :2]) and np.linalg.eigvalsh(ag.estimate.cov - np.diag([0.04, 0.09])).min() > 0
+        for walk_id, run in ((8, 4), (7, 2), (7, 3)):  # another walk; an older run; the same run again
+            put(track(walk_id, run, np.arange(21) * 0.5, (0.0, 0.0)))
+        assert np.allclose([ag.estimate.x, ag.estimate.y], want, atol=1e-9)
+        more = _walk(5, 0.0, t0=15.0)
+        for st in more:
+            ag.add_step(st)
+        put(track(7, 5, np.arange(33) * 0.5, (60.0, 25.0), bias=0.0, scale=1.0))  # a newer run, up to t = 16 s
+        want2 = np.array([60.0, 25.0]) + sum(st.length * np.array([1.0, 0.0]) for st in more if st.t > 16.0)
+        assert np.allclose([ag.estimate.x, ag.estimate.y], want2, atol=1e-9)
+        pub.undeclare()
+        r = ag.close(wait=0.1)
+    assert (r.tracks_received, r.tracks_applied, r.tracks_rejected, r.tracks_ignored) == (9, 2, 2, 5)
+    assert r.track_ignored == {"before-start": 1, "relative": 1, "other-walk": 1, "old-run": 2} and r.walk_id == 7
+    assert dict(ag.track_rejected) == {"malformed-json": 1, "key-mismatch": 1}
+    assert [row[6] for row in r.poses].count("reanchor") == 2
+
+
+def test_agent_fetches_each_new_map_version_once_into_its_particle_filter(tmp_path):
+    """The server announces map versions on ``map/version``; the agent (a particle filter with the
+    :func:`walk_prior_refresh` hook) fetches the map from the real server's ``map`` queryable for each
+    new version, once, on its own thread: a repeated or older announcement and malformed bytes fetch
+    nothing, and the filter's walk prior is the new map's."""
+    from hybridloc.clients.agent import Agent, PoseWriter, walk_prior_refresh
+    from hybridloc.fusion import ParticleConfig, ParticleFusion
+    from hybridloc.radio.radiomap import BuildParams, build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+    from hybridloc.server.service import Server
+    from hybridloc.types import RfScan
+    from hybridloc.wire import codecs as C
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.messages import MapVersion
+    from hybridloc.wire.zconfig import client_config, free_port
+
+    rng = np.random.default_rng(0)
+    aps = {"a1": (0, 0), "a2": (30, 0), "a3": (0, 20)}
+    refs = [
+        LabelledScan(
+            RfScan(float(i), "wifi", {k: -40 - 30 * np.log10(max(1.0, np.hypot(p[0] - q[0], p[1] - q[1]))) for k, q in aps.items()}), p, 0.5, "F1"
+        )
+        for i, p in enumerate(rng.uniform(0, [30, 20], (200, 2)))
+    ]
+    build_radio_map(refs, site="site1", params=BuildParams()).save(tmp_path / "m.npz")
+    blob = (tmp_path / "m.npz").read_bytes()
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    srv = Server(ep, str(tmp_path / "db.sqlite")).start()
+    try:
+        assert srv.load_map("site1", blob) == 1
+        with zenoh.open(client_config(ep)) as s:
+            pf = ParticleFusion(None, ParticleConfig(n_particles=100), init=(5.0, 5.0, 1.0), floor="F1")
+            first_prior = pf.prior
+            refresh = walk_prior_refresh(pf)
+            seen = []
+
+            def hook(payload, info):
+                seen.append(info.version)
+                refresh(payload, info)
+
+            ag = Agent(s, "site1", "phoneM", tmp_path / "spool", PoseWriter(None), fusion=pf, map_refresh=hook)
+            pub = srv.session.declare_publisher(P.key_map_version("site1"))
+            assert _wait_for(lambda: pub.matching_status.matching)
+            rejected = 0
+
+            def announce(version):
+                pub.put(C.MAP_VERSION.encode(MapVersion("site1", version, "survey", 1.7e9, 3, None)))
+
+            def settle():  # malformed bytes after the announcements: once counted, the announcements before are handled
+                nonlocal rejected
+                pub.put(b"[]")
+                rejected += 1
+                assert _wait_for(lambda: (ag.drain_fixes(), ag.map_versions_rejected == rejected)[1])
+
+            announce(1)
+            assert _wait_for(lambda: (ag.drain_fixes(), seen == [1])[1]), seen
+            assert pf.prior is not first_prior and ag.map_version == 1
+            prior_1 = pf.prior
+            announce(1)  # again: nothing to fetch
+            settle()
+            assert srv.load_map("site1", blob) == 2
+            announce(2)
+            assert _wait_for(lambda: (ag.drain_fixes(), seen == [1, 2])[1]), seen
+            assert pf.prior is not prior_1
+            announce(1)  # older than held
+            settle()
+            pub.undeclare()
+            r = ag.close(wait=0.1)
+    finally:
+        srv.stop()
+    assert seen == [1, 2] and r.maps_fetched == 2 and r.map_version == 2 and ag.map_fetch_failed == 0

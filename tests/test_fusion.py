@@ -363,3 +363,140 @@ def test_a_cloud_behind_a_wall_is_redrawn_around_fixes_beyond_it():
             assert ok
         ends.append(e.pos[1])
     assert ends[0] < 5.0 < 5.5 < ends[1]
+
+
+# ---------------------------------------------------------------------------------------------- re-anchoring
+def _reanchor_walk():
+    """20 steps of 0.7 m along +x every 0.5 s (t = 0.5 .. 10), one floor change up at the 15th."""
+    steps = _walk(20, 0.0)
+    steps[14] = StepEvent(steps[14].t, 0.7, 0.0, 0.05, math.radians(2), 0.0, math.radians(1), floor_change=1)
+    return steps
+
+
+def test_kalman_reanchor_replaces_the_estimate_at_t_and_reapplies_the_steps_since():
+    """The smoothed estimate at t = 5 s (after step 10) replaces the filter's, and steps 11-20 are
+    propagated again from it with the track's heading bias and scale: the result is exactly a filter
+    started at t from (p_s, C_s) with (b', s') and the filter's own (b, s) variances, fed the same steps."""
+    steps = _reanchor_walk()
+    f = LocalFusion(init=(0.0, 0.0, 0.5), floor="F1")
+    for st in steps:
+        f.predict(st)
+    P_bs = f.P[2:, 2:].copy()
+    p_s, C_s, bias, scale = np.array([10.0, 3.0]), np.array([[0.04, 0.01], [0.01, 0.09]]), 0.1, 1.1
+    e = f.reanchor(5.0, p_s, C_s, "F2", heading_bias=bias, scale=scale)
+    since = [st for st in steps if st.t > 5.0]
+    assert len(since) == 10
+    want = p_s + sum(scale * 0.7 * np.array([math.cos(bias), math.sin(bias)]) for _ in since)
+    assert e.kind == "reanchor" and e.t == 10.0 and np.allclose(e.pos, want, atol=1e-12)
+    assert f.x[2] == bias and f.x[3] == scale and f.floor == "F3"  # the track's floor, then the step's floor change
+    ref = LocalFusion(init=(0.0, 0.0, 0.5))
+    ref.x[:] = [*p_s, bias, scale]
+    ref.P[:] = 0.0
+    ref.P[:2, :2], ref.P[2:, 2:] = C_s, P_bs
+    for st in since:
+        ref.predict(st)
+    assert np.allclose(f.x, ref.x, atol=1e-12) and np.allclose(f.P, ref.P, atol=1e-12)
+    # without bias and scale the filter keeps its own; a covariance that is not finite keeps the filter's
+    g = LocalFusion(init=(0.0, 0.0, 0.5))
+    for st in steps:
+        g.predict(st)
+    P_before = g.P[:2, :2].copy()
+    e = g.reanchor(10.0, [1.0, 2.0], np.full((2, 2), np.nan), "")
+    assert np.allclose(e.pos, [1.0, 2.0]) and np.allclose(e.cov, P_before) and g.x[3] == 1.0 and g.x[2] == 0.0
+
+
+def test_kalman_reanchor_starts_a_cold_filter_and_a_late_fix_is_compared_with_the_new_track():
+    steps = _reanchor_walk()
+    f = LocalFusion()  # no start position, no fix yet
+    with pytest.raises(ValueError):
+        f.reanchor(1.0, [0.0, 0.0], np.eye(2), "F1")  # before the filter started: it has taken nothing
+    for st in steps:
+        f.predict(st)
+    assert not f.initialised
+    with pytest.raises(ValueError):
+        f.reanchor(0.2, [0.0, 0.0], np.eye(2), "F1")  # before its first step
+    e = f.reanchor(7.5, [20.0, 5.0], np.eye(2) * 0.25, "F1")
+    assert f.initialised and np.allclose(e.pos, [20.0 + 5 * 0.7, 5.0])
+    # a fix for the scan at t = 9 s (four steps ago ... two steps after the anchor): compared with the new track then
+    ok, _ = f.correct(AbsoluteFix(9.0, [20.0 + 3 * 0.7, 5.0], np.eye(2) * 1.0, "wifi", "F1", 0.9))
+    assert ok
+
+
+def test_reanchor_refuses_a_time_older_than_the_steps_kept():
+    from hybridloc.fusion.kalman import REANCHOR_STEPS
+
+    f = LocalFusion(init=(0.0, 0.0, 0.5))
+    for st in _walk(REANCHOR_STEPS + 10, 0.0):
+        f.predict(st)
+    assert f.reanchor_horizon == 0.5 * 10  # the 10th step was the newest forgotten
+    with pytest.raises(ValueError):
+        f.reanchor(4.0, [0.0, 0.0], np.eye(2), "F1")
+    f.reanchor(5.0, [0.0, 0.0], np.eye(2), "F1")  # every step after it is kept
+
+
+def test_kourogi_reanchor_moves_the_position_and_takes_the_heading_bias():
+    steps = _reanchor_walk()
+    f = KourogiFusion(init=(0.0, 0.0, 0.5))
+    for st in steps:
+        f.predict(st)
+    e = f.reanchor(5.0, [10.0, 3.0], np.eye(2) * 0.04, "F1", heading_bias=math.radians(90), scale=1.3)
+    # the ten steps since, turned by 90 deg: 7 m north of the anchor (no scale state: the steps' own length).
+    # The velocity kept from before t (east, the old steps) is projected over the first step: that step's
+    # estimate lies between the projection and the turned step, at most |v dt - l d| = 0.7 sqrt(2) m apart
+    assert f.heading_offset == math.radians(90)
+    assert np.linalg.norm(e.pos - [10.0, 3.0 + 10 * 0.7]) < 0.7 * math.sqrt(2), e.pos
+
+
+def test_particle_reanchor_redraws_the_cloud_at_t_and_samples_the_steps_again():
+    """The cloud at t is N(p_s, C_s) with the walk's mean bias and scale; after the steps since, its mean
+    is p_s + the steps turned by the bias and scaled. Tolerances from the sampling: N = 2000 particles
+    whose spread after 10 steps is about 0.5 m give a mean within 4 sigma / sqrt(N) = 0.05 m; a bias
+    spread of ~2.5 deg shortens the mean step by 1 - cos(2.5 deg) = 0.1 % (7 mm over 7 m)."""
+    steps = _reanchor_walk()
+    cfg = ParticleConfig(n_particles=2000, sigma_scale0=0.01, seed=3)
+    pf = ParticleFusion(None, cfg, init=(0.0, 0.0, 0.5), floor="F1", heading_bias=(0.0, math.radians(1.0)))
+    for st in steps:
+        pf.predict(st)
+    p_s, C_s, bias, scale = np.array([10.0, 3.0]), np.array([[0.04, 0.01], [0.01, 0.09]]), 0.1, 1.1
+    # at the newest step (nothing since): the cloud is the smoothed Gaussian, with the walk's bias and scale
+    e = pf.reanchor(10.0, p_s, C_s, "F2", heading_bias=bias, scale=scale)
+    n = cfg.n_particles
+    assert e.kind == "reanchor" and pf.floor == "F2"
+    assert np.linalg.norm(e.pos - p_s) < 4 * math.sqrt(0.09 / n)
+    assert np.allclose(e.cov, C_s, rtol=0.15, atol=0.01)  # a sample covariance of 2000 draws: ~3 % each
+    w = pf.w
+    assert math.atan2(float(w @ np.sin(pf.b)), float(w @ np.cos(pf.b))) == pytest.approx(bias, abs=1e-9)
+    assert float(w @ pf.s) == pytest.approx(scale, abs=1e-9)
+    # at t = 5 s: ten steps since, sampled again
+    pf2 = ParticleFusion(None, cfg, init=(0.0, 0.0, 0.5), floor="F1", heading_bias=(0.0, math.radians(1.0)))
+    for st in steps:
+        pf2.predict(st)
+    e = pf2.reanchor(5.0, p_s, C_s, "F2", heading_bias=bias, scale=scale)
+    want = p_s + 10 * scale * 0.7 * np.array([math.cos(bias), math.sin(bias)])
+    assert e.t == 10.0 and np.linalg.norm(e.pos - want) < 0.05 + 0.007, (e.pos, want)
+    assert pf2.floor == "F3"  # the floor change of step 15 re-applied
+    # a fix right after, where the re-anchored cloud is, is taken (the history holds the new track)
+    ok, _ = pf2.correct(AbsoluteFix(9.0, p_s + 8 * scale * 0.7 * np.array([math.cos(bias), math.sin(bias)]), np.eye(2), "wifi", "F3", 0.9))
+    assert ok
+
+
+def test_particle_reanchor_keeps_to_the_map_and_a_new_prior_replaces_the_old():
+    plan = _corridor_plan()
+    prior = WalkPrior.from_points({}, plan)
+    pf = ParticleFusion(prior, ParticleConfig(n_particles=500, seed=1), init=(5.0, 0.0, 0.3), floor="F1")
+    for st in _walk(10, 0.0, t0=0.0):
+        pf.predict(st)
+    e = pf.reanchor(5.0, [20.0, 0.0], np.eye(2) * 4.0, "F1")  # 2 m sigma in a 2 m wide corridor
+    # drawn where the map allows (what a few rounds of rejection leave outside weighs nothing)
+    alive = pf.w > 0
+    assert abs(e.pos[1]) < 1.0 and alive.mean() > 0.95 and np.all(np.abs(pf.p[alive, 1]) < 1.0)
+    wide = np.array([[10.0, 1.5]])  # beyond the old walls, inside the new ones
+    assert pf.constraint.log_density("F1", wide)[0] == -np.inf
+    pf.set_prior(WalkPrior.from_points({}, _corridor_plan(width=4.0)))
+    assert pf.constraint.prior is pf.prior and np.isfinite(pf.constraint.log_density("F1", wide)[0])
+    assert np.isfinite(pf._logpi[pf.w > 0]).all()  # the living particles' prior, from the new map
+    cold = ParticleFusion(prior, ParticleConfig(n_particles=100))
+    cold.predict(_walk(1, 0.0)[0])
+    with pytest.raises(ValueError):
+        cold.reanchor(0.5, [1.0, 0.0], np.full((2, 2), np.nan), "F1")  # a cold cloud needs a covariance
+    assert cold.reanchor(0.5, [1.0, 0.0], np.eye(2) * 0.1, "F1").kind == "reanchor" and cold.initialised

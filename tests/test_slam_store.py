@@ -125,3 +125,23 @@ def test_failed_run_leaves_nothing(st):
     assert st.slam.runs("s1")[0].status == "failed" and st.slam.runs("s1")[0].error == "solver diverged"
     with pytest.raises(ValueError):
         WalkResult(w[0], "fine")
+
+
+def test_slam_show_from_the_database(st, tmp_path, capsys):
+    """``slam show --db URL --site S``: the stored tracks, their dead reckoning and the loop audit drawn
+    over the plan stored by ``floorplan import``; bad input one line, exit 2."""
+    from hybridloc.cli import main
+    from hybridloc.samples import ILC_SITE1_F1
+
+    w = _fill(st)
+    st.slam.save_walk("s1", WalkResult(w[0], CORRECTED, _track(w[0], T0, anchored="marks")), [])
+    st.slam.save_walk("s1", WalkResult(w[1], CORRECTED, _track(w[1], T0 + 1000)), [_loop(w[1], w[0], True)])
+    db = str(st.engine.url.database)
+    assert main(["floorplan", "import", str(ILC_SITE1_F1), "--site", "s1", "--db", db]) == 0
+    png = tmp_path / "show.png"
+    assert main(["slam", "show", "--db", db, "--site", "s1", "--floor", "F1", "--out", str(png)]) == 0
+    assert png.stat().st_size > 10_000
+    assert "2 walks, 1 accepted and 0 rejected loops" in capsys.readouterr().out
+    assert main(["slam", "show", "--db", db, "--site", "s1", "--floor", "F9", "--out", str(png)]) == 2
+    assert main(["slam", "show", "--db", db, "--site", "nowhere", "--floor", "F1", "--out", str(png)]) == 2
+    assert main(["slam", "show", "--db", db, "--floor", "F1", "--out", str(png)]) == 2

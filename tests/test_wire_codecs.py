@@ -15,8 +15,10 @@ from hypothesis import strategies as st
 from hybridloc.types import (
     RSSI_MAX_DBM,
     RSSI_MIN_DBM,
+    TRACK_ANCHORS,
     AbsoluteFix,
     ContainmentRegion,
+    CorrectedTrack,
     Fix,
     FixSource,
     Pose,
@@ -27,7 +29,7 @@ from hybridloc.types import (
 )
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
-from hybridloc.wire.messages import Ack, Batch, LocateRequest, MapInfo, Status
+from hybridloc.wire.messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
 
 # derandomize: a fixed sequence of examples (seeded), the same on every run and machine; no example database in the tree
 SETTINGS = settings(derandomize=True, deadline=None, max_examples=60, database=None, suppress_health_check=[HealthCheck.too_slow])
@@ -146,16 +148,69 @@ def poses(draw):
 locates = st.builds(LocateRequest, scans(min_readings=0))
 acks = st.builds(Ack, ids, st.integers(0, 2**62))
 db_values = st.integers(0, 10**9) | st.dictionaries(st.text(max_size=16), st.integers(0, 10**9), max_size=4)
+slam_values = st.none() | st.integers(0, 10**9) | st.floats(0.0, 1.0) | st.text(max_size=8)
 statuses = st.builds(
     Status,
     st.lists(ids, max_size=5).map(lambda v: tuple(sorted(v))),
     st.dictionaries(st.text(max_size=32), st.integers(0, 10**9), max_size=6),
     st.dictionaries(st.text(max_size=16), db_values, max_size=6),
     st.dictionaries(ids, st.integers(1, 10**6), max_size=4),
+    st.dictionaries(ids, st.dictionaries(st.text(max_size=20), slam_values, max_size=5), max_size=3),
 )
 map_infos = st.builds(MapInfo, ids, st.integers(1, 10**9))
 
-MESSAGES = {"batch": batches(), "ack": acks, "fix": fixes(), "pose": poses(), "locate": locates, "status": statuses, "map-info": map_infos}
+
+@st.composite
+def corrected_tracks(draw, walk_id):
+    n = draw(st.integers(0, 8))
+    t = sorted(draw(st.lists(finite, min_size=n, max_size=n)))
+    pos = draw(st.lists(st.tuples(coord, coord), min_size=n, max_size=n))
+    # a covariance, or none (all NaN: what the wire's null reads as)
+    cov = [draw(st.just(np.full((2, 2), np.nan)) | covariances()) for _ in range(n)]
+    few_floors = draw(st.lists(floor_names, min_size=1, max_size=3))  # repeated names make runs
+    floor = tuple(draw(st.sampled_from(few_floors)) for _ in range(n))
+    kind = tuple(draw(st.sampled_from(["step", "scan"])) for _ in range(n))
+    return CorrectedTrack(
+        walk_id,
+        np.array(t, float),
+        np.array(pos, float).reshape(n, 2),
+        np.array(cov, float).reshape(n, 2, 2),
+        floor,
+        kind,
+        draw(st.sampled_from(TRACK_ANCHORS)),
+        draw(st.floats(1e-3, 1e3)),
+        draw(st.floats(-10.0, 10.0)),
+    )
+
+
+@st.composite
+def tracks(draw):
+    walk_id = draw(st.integers(1, 2**62))
+    mv = draw(st.none() | st.integers(1, 10**9))
+    return Track(draw(ids), draw(ids), walk_id, mv, draw(st.integers(1, 2**62)), draw(corrected_tracks(walk_id)), draw(finite))
+
+
+map_versions = st.builds(MapVersion, ids, st.integers(1, 10**9), st.sampled_from(MAP_SOURCES), finite, st.integers(0, 10**9), st.none() | prob)
+
+
+@st.composite
+def progresses(draw):
+    total = draw(st.integers(0, 10**9))
+    return Progress(draw(ids), draw(st.text(min_size=1, max_size=32)), draw(floor_names), draw(st.integers(0, total)), total, draw(finite))
+
+
+MESSAGES = {
+    "batch": batches(),
+    "ack": acks,
+    "fix": fixes(),
+    "pose": poses(),
+    "locate": locates,
+    "status": statuses,
+    "map-info": map_infos,
+    "track": tracks(),
+    "map-version": map_versions,
+    "progress": progresses(),
+}
 
 
 # ---------------------------------------------------------------------------------------------- equality
@@ -183,7 +238,8 @@ def _same(a, b, where="record"):
     elif isinstance(a, shapely.Geometry):
         assert shapely.equals_exact(a, b, tolerance=0.0), where
     elif isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        assert a is not None and b is not None and np.array_equal(np.asarray(a), np.asarray(b)), (where, a, b)
+        # NaN equals NaN here: a track's missing covariance is NaN on both sides
+        assert a is not None and b is not None and np.array_equal(np.asarray(a, float), np.asarray(b, float), equal_nan=True), (where, a, b)
     elif isinstance(a, (tuple, list)):
         assert len(a) == len(b), (where, a, b)
         for i, (x, y) in enumerate(zip(a, b)):
@@ -254,6 +310,26 @@ def _golden_fix() -> AbsoluteFix:
     return AbsoluteFix(1700000001.0, [12.25, 40.5], [[4.0, 0.5], [0.5, 9.0]], "wifi", "F1", 0.875)
 
 
+def _golden_track() -> Track:
+    tr = CorrectedTrack(
+        None,
+        [1700000000.5, 1700000001.0, 1700000001.0],
+        [[12.5, 40.0], [13.25, 40.0], [13.25, 40.5]],
+        [[[0.04, 0.01], [0.01, 0.09]], np.full((2, 2), np.nan), [[0.25, 0.0], [0.0, 0.25]]],
+        ("F1", "F1", "F2"),
+        ("step", "step", "scan"),
+        "map",
+        1.05,
+        -0.02,
+    )
+    return Track("site1", "dev01", 42, 3, 7, tr, 1700000002.0)
+
+
+GOLDEN_TRACK = (
+    b'{"schema":"hybridloc.track/1","site":"site1","device":"dev01","walk_id":42,"run":7,"map_version":3,"sent_at":1700000002.0,'
+    b'"anchored":"map","scale":1.05,"heading_bias":-0.02,"t":[1700000000.5,1700000001.0,1700000001.0],"x":[12.5,13.25,13.25],"y":[40.0,40.0,40.5],'
+    b'"cov":[[0.04,0.01,0.09],null,[0.25,0.0,0.25]],"floor":[["F1",2],["F2",1]],"kind":["step","step","scan"]}'
+)
 FIX_PART = b'"fix": {"t": 1700000001.0, "x": 12.25, "y": 40.5, "cov": [[4.0, 0.5], [0.5, 9.0]], "floor": "F1", "floor_prob": 0.875, "source": "wifi"}'
 GOLDEN = [  # (record, the bytes hybridloc sent before the codecs, and sends now)
     ("batch", _golden_batch, GOLDEN_BATCH),
@@ -289,6 +365,23 @@ GOLDEN = [  # (record, the bytes hybridloc sent before the codecs, and sends now
         b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {"batches-received": 3}, "db": {"devices": 1}, "maps_loaded": {"site1": 2}}',
     ),
     ("map-info", lambda: MapInfo("site1", 2), b'{"site": "site1", "version": 2}'),
+    (
+        "status",
+        lambda: Status(("dev01",), {}, {}, {"site1": 4}, {"site1": {"walks_corrected": 3, "coverage": 0.5, "map_version": 4}}),
+        b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {}, "db": {}, "maps_loaded": {"site1": 4}, '
+        b'"slam": {"site1": {"walks_corrected": 3, "coverage": 0.5, "map_version": 4}}}',
+    ),
+    ("track", lambda: _golden_track(), GOLDEN_TRACK),
+    (
+        "map-version",
+        lambda: MapVersion("site1", 4, "slam", 1700000000.0, 12, 0.75),
+        b'{"schema": "hybridloc.map-version/1", "site": "site1", "version": 4, "source": "slam", "created_at": 1700000000.0, "walks": 12, "coverage": 0.75}',
+    ),
+    (
+        "progress",
+        lambda: Progress("site1", "solve", "F1", 3, 7, 1700000000.0),
+        b'{"schema": "hybridloc.progress/1", "site": "site1", "stage": "solve", "floor": "F1", "done": 3, "total": 7, "t": 1700000000.0}',
+    ),
 ]
 
 
@@ -345,6 +438,9 @@ GOLDEN_RECORDS = [
     ("locate", lambda: LocateRequest(RfScan(1.0, "wifi", {"a1": -50.5}, {"a1": 2.4e9}, {"a1": 0.5}, "pixel"))),
     ("status", lambda: Status(("dev01",), {"batches-received": 3}, {"devices": 1}, {"site1": 2})),
     ("map-info", lambda: MapInfo("site1", 2)),
+    ("track", _golden_track),
+    ("map-version", lambda: MapVersion("site1", 4, "slam", 1700000000.0, 12, 0.75)),
+    ("progress", lambda: Progress("site1", "solve", "F1", 3, 7, 1700000000.0)),
 ]
 
 
@@ -408,7 +504,7 @@ NON_FINITE = [b"NaN", b"Infinity", b"-Infinity", b"1e999", b"-1e999"]
 INTEGERS = {"seq", "acked_seq", "version"}  # integers on the wire: their reason is bad-seq / bad-value / count checks
 
 
-@pytest.mark.parametrize("name", ["batch", "fix", "pose", "locate"])
+@pytest.mark.parametrize("name", ["batch", "fix", "pose", "locate", "track", "map-version", "progress"])
 def test_any_non_finite_number_is_non_finite(name):
     """Every number of the message, replaced by NaN, +-Infinity or an overflowing literal (1e999,
     which JSON parsers read as infinity): non-finite."""
@@ -547,3 +643,98 @@ def test_batch_end_of_walk_is_optional_and_round_trips():
     with pytest.raises(Rejected) as exc:
         C.BATCH.decode(bad)
     assert exc.value.reason == "bad-value"
+
+
+# ---------------------------------------------------------------------------------------------- crowd SLAM messages
+def test_track_rejections():
+    msg = _msg("track")
+    assert C.TRACK.decode(_dumps(msg), site="site1", device="dev01").walk_id == 42
+    assert _reason(C.TRACK, _dumps(msg), site="site1", device="dev02") == "key-mismatch"
+    assert _reason(C.TRACK, _dumps({**msg, "device": "a/b"})) == "bad-id"
+    for field, bad in (("walk_id", 0), ("walk_id", 1.5), ("walk_id", True), ("walk_id", None), ("run", 0), ("run", "7"), ("map_version", 0)):
+        assert _reason(C.TRACK, _dumps({**msg, field: bad})) == "bad-value", (field, bad)
+    assert C.TRACK.decode(_dumps({**msg, "map_version": None})).map_version is None
+    assert _reason(C.TRACK, _dumps({**msg, "x": msg["x"][:-1]})) == "bad-value"  # lengths disagree
+    assert _reason(C.TRACK, _dumps({**msg, "kind": msg["kind"] + ["step"]})) == "bad-value"
+    assert _reason(C.TRACK, _dumps({**msg, "cov": msg["cov"][:-1]})) == "bad-value"
+    assert _reason(C.TRACK, _dumps({**msg, "t": [3.0, 2.0, 4.0]})) == "bad-value"  # times decrease
+    assert C.TRACK.decode(_dumps({**msg, "t": [2.0, 2.0, 2.0]})).track.t.tolist() == [2.0] * 3  # equal times are fine
+    assert _reason(C.TRACK, _dumps(_with(msg, ("kind", 1), "walk"))) == "bad-value"
+    assert _reason(C.TRACK, _dumps({**msg, "anchored": "gps"})) == "bad-value"
+    assert _reason(C.TRACK, _dumps({**msg, "scale": 0.0})) == "bad-value"
+    assert _reason(C.TRACK, _dumps(_with(msg, ("cov", 0), [1.0, 2.0, 1.0]))) == "bad-value"  # xy^2 > xx yy: not PSD
+    assert _reason(C.TRACK, _dumps(_with(msg, ("cov", 0), [-1.0, 0.0, 1.0]))) == "bad-value"
+    assert _reason(C.TRACK, _dumps(_with(msg, ("cov", 0), [1.0, 0.0]))) == "bad-value"
+    singular = C.TRACK.decode(_dumps(_with(msg, ("cov", 0), [1.0, 1.0, 1.0]))).track.cov[0]  # PSD, not PD: taken
+    assert singular.tolist() == [[1.0, 1.0], [1.0, 1.0]]
+    assert _reason(C.TRACK, _dumps({**msg, "floor": [["F1", 2]]})) == "bad-value"  # runs cover 2 of 3 points
+    assert _reason(C.TRACK, _dumps({**msg, "floor": [["F1", 10**12]]})) == "bad-value"  # refused, never allocated
+    assert _reason(C.TRACK, _dumps({**msg, "floor": [["F1", 0], ["F2", 3]]})) == "bad-value"
+    assert _reason(C.TRACK, _dumps({**msg, "floor": [["F1", 2], "F2"]})) == "malformed-json"
+    assert _reason(C.TRACK, _dumps({**msg, "t": "soon"})) == "malformed-json"
+    assert _reason(C.TRACK, _dumps({**msg, "cov": None})) == "malformed-json"
+    assert _reason(C.TRACK, _dumps(_with(msg, ("x", 0), "east"))) == "bad-value"
+
+
+def test_track_limits_and_the_encoder_keeps_the_newest_points():
+    n = P.MAX_TRACK_POINTS + 25
+    tr = CorrectedTrack(
+        None, np.arange(n) * 0.5, np.column_stack([np.arange(n) * 0.7, np.zeros(n)]), np.tile(np.eye(2) * 0.04, (n, 1, 1)),
+        ("F1",) * n, ("step",) * n, "loops", 0.97, 0.01,
+    )  # fmt: skip
+    payload = C.TRACK.encode(Track("site1", "dev01", 5, None, 2, tr))
+    assert len(payload) <= P.MAX_TRACK_BYTES
+    back = C.TRACK.decode(payload).track
+    assert len(back) == P.MAX_TRACK_POINTS and back.t[0] == tr.t[25] and back.t[-1] == tr.t[-1]  # the newest, the oldest dropped
+    assert np.array_equal(back.pos_enu, tr.pos_enu[25:]) and (back.scale, back.heading_bias, back.anchored) == (0.97, 0.01, "loops")
+    # a decoder refuses more points than the limit, and more bytes
+    msg = json.loads(payload)
+    msg.update(t=msg["t"] + [msg["t"][-1]], x=msg["x"] + [0.0], y=msg["y"] + [0.0], cov=msg["cov"] + [None], kind=msg["kind"] + ["scan"])
+    msg["floor"][-1][1] += 1
+    assert _reason(C.TRACK, _dumps(msg)) == "too-large"
+    small = _dumps(_msg("track"))
+    padded = small[:-1] + b', "pad": "' + b"x" * (P.MAX_TRACK_BYTES - len(small)) + b'"}'
+    assert len(padded) > P.MAX_TRACK_BYTES and _reason(C.TRACK, padded) == "too-large"
+    # a payload the point count allows but the byte limit does not (floor names of escaped characters,
+    # a new floor at every point): the encoder keeps fewer of the newest points, never sends what is refused
+    m = P.MAX_TRACK_POINTS
+    floors = tuple(chr(0x1F600 + i % 2) * 32 for i in range(m))  # 32 characters, 12 bytes each escaped (a surrogate pair)
+    wide = CorrectedTrack(None, np.arange(m) * 0.5, np.zeros((m, 2)), np.tile(np.eye(2), (m, 1, 1)), floors, ("scan",) * m, "map")
+    whole = json.dumps(C.TRACK._message(Track("site1", "dev01", 5, None, 2, wide), 0), separators=(",", ":")).encode()
+    assert len(whole) > P.MAX_TRACK_BYTES  # what the encoder must not send
+    payload = C.TRACK.encode(Track("site1", "dev01", 5, None, 2, wide))
+    back = C.TRACK.decode(payload).track
+    assert len(payload) <= P.MAX_TRACK_BYTES and 0 < len(back) < m and back.t[-1] == wide.t[-1] and back.floor[-1] == floors[-1]
+
+
+def test_track_record_fills_or_checks_its_walk_id():
+    tr = CorrectedTrack(None, [1.0], [[0.0, 0.0]], [np.eye(2)], ("F1",), ("step",))
+    assert Track("site1", "dev01", 9, None, 1, tr).track.walk_id == 9
+    with pytest.raises(ValueError):
+        Track("site1", "dev01", 9, None, 1, CorrectedTrack(8, [1.0], [[0.0, 0.0]], [np.eye(2)], ("F1",), ("step",)))
+
+
+def test_map_version_progress_and_status_slam_rejections():
+    mv = _msg("map-version")
+    for field, bad in (("version", 0), ("version", 1.5), ("walks", -1), ("coverage", 1.5), ("coverage", -0.1), ("created_at", "now")):
+        assert _reason(C.MAP_VERSION, _dumps({**mv, field: bad})) == "bad-value", (field, bad)
+    assert _reason(C.MAP_VERSION, _dumps({**mv, "source": "guess"})) == "bad-value"
+    assert _reason(C.MAP_VERSION, _dumps({**mv, "site": "a b"})) == "bad-id"
+    assert C.MAP_VERSION.decode(_dumps({**mv, "coverage": None})).coverage is None
+    pr = _msg("progress")
+    assert _reason(C.PROGRESS, _dumps({**pr, "done": 8})) == "bad-value"  # done > total
+    assert _reason(C.PROGRESS, _dumps({**pr, "total": -1})) == "bad-value"
+    assert _reason(C.PROGRESS, _dumps({**pr, "stage": ""})) == "bad-value"
+    assert _reason(C.PROGRESS, _dumps({**pr, "stage": 3})) == "malformed-json"
+    assert C.PROGRESS.decode(_dumps({**pr, "stage": "s" * 40})).stage == "s" * 32  # cut, as every text
+    # status: slam is optional (an older server's payload decodes with {}), per site an object
+    old = (
+        b'{"schema": "hybridloc.status/1", "online": ["dev01"], "counts": {"batches-received": 3}, "db": {"devices": 1}, "maps_loaded": {"site1": 2}}'
+    )
+    st_old = C.STATUS.decode(old)
+    assert st_old.slam == {} and st_old.as_dict()["slam"] == {}
+    assert C.STATUS.encode(st_old) == old
+    st_new = C.STATUS.decode(C.STATUS.encode(Status(slam={"site1": {"walks_pending": 2, "coverage": None}})))
+    assert st_new.as_dict()["slam"] == {"site1": {"walks_pending": 2, "coverage": None}}
+    assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": {"site1": 3}})) == "malformed-json"
+    assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": [1]})) == "malformed-json"

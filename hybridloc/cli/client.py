@@ -63,16 +63,19 @@ def _cmd_client(args: argparse.Namespace) -> int:
     pdr = None
     with open_client(args.endpoint, security(args), log=lambda m: print(f"{device}: {m}", file=sys.stderr)) as s:
         fusion = None
+        live_map: dict = {}  # the particle filter follows the site's new map versions (map/version key)
         if args.filter == "particle":
-            from ..clients.agent import fetch_walk_prior
+            from ..clients.agent import fetch_map, walk_prior, walk_prior_refresh
             from ..fusion import ParticleFusion
 
-            prior = fetch_walk_prior(s, args.site, plan)
+            got = fetch_map(s, args.site)
+            prior = walk_prior(got[0], plan) if got is not None else None
             if prior is None:
                 print(f"{device}: the server has no radio map for {args.site!r}: the particle filter runs without a walk prior", file=sys.stderr)
             from ..geo import corridor_axes
 
             fusion = ParticleFusion(prior, init=init, floor=args.floor, corridor_axes=corridor_axes(plan))
+            live_map = {"map_refresh": walk_prior_refresh(fusion, plan), "map_version": got[1].version if got is not None and got[1] else None}
         elif args.filter == "kourogi":
             from ..fusion import KourogiFusion
 
@@ -85,7 +88,7 @@ def _cmd_client(args: argparse.Namespace) -> int:
         if args.live:
             from ..clients.agent import live_phone
 
-            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map)
             src = sys.stdin if args.live == "-" else open(args.live, encoding="utf-8")
             try:
                 ls = live_phone(agent, src, args.rate, lockstep=args.lockstep, length_model=length_model, pdr_config=pdr_config)
@@ -98,10 +101,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
                 + (f" (first: {ls.first_bad})" if ls.first_bad else "")
             )
         elif args.kind == "foot":
-            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor)
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map)
             replay_foot(agent, imu, args.speed)
         else:
-            agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor)
+            agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor, **live_map)
             pdr = replay_phone(
                 agent,
                 tr,
@@ -117,7 +120,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
         _client_update_calibration(device, args, cal, cal_path, pdr, agent.fusion, tr if args.replay else None)
     print(
         f"{device}: {r.steps} steps, {r.batches} batches ({r.acked} acknowledged; the rest stay in the spool {spool}), "
-        f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted" + (f" -> {args.pose_out}" if args.pose_out else "")
+        f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted"
+        + (f", {r.tracks_applied} of {r.tracks_received} corrected tracks applied" if r.tracks_received else "")
+        + (f", {r.maps_fetched} new map versions" if r.maps_fetched else "")
+        + (f" -> {args.pose_out}" if args.pose_out else "")
     )
     return 0
 

@@ -86,11 +86,72 @@ def _cmd_slam_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _db_tracks(args: argparse.Namespace):
+    """(tracks, raw, loops, plan) of ``slam show --db URL --site S`` in the shapes :func:`plot_slam` reads:
+    the walks' current corrected tracks, their dead reckoning started where the corrected track starts,
+    the current loop audit, the floor plan stored with ``floorplan import``."""
+    import numpy as np
+
+    from ..pdr.deadreckoning import DeadReckoning
+    from ..server.store import Store
+    from ._common import check_db_driver
+
+    check_db_driver(args.db)
+    st = Store(args.db)
+    try:
+        if args.site not in {w.site for w in st.walks(args.site)}:
+            raise MissingData(f"no walks of site {args.site!r} in {args.db}")
+        stored = st.slam.tracks(args.site)
+        if not stored:
+            raise MissingData(
+                f"no corrected tracks of site {args.site!r} in {args.db} (is a server with SLAM running? 'hybridloc slam rebuild --db {args.db} --site {args.site}')"
+            )
+        loops = [
+            {
+                "walk_a": str(lp.walk_a),
+                "t_a": lp.t_a,
+                "walk_b": str(lp.walk_b),
+                "t_b": lp.t_b,
+                "accepted": "1" if lp.accepted else "0",
+                "reason": lp.reason,
+                "floor": lp.floor,
+            }
+            for lp in st.slam.loops(args.site)
+        ]
+        tracks, raw = {}, {}
+        for wid, tr in stored.items():
+            walk = st.read_walk(wid)
+            dr = DeadReckoning.from_steps(list(walk.steps), covariance=False) if len(walk.steps) >= 1 else None
+            fl = np.asarray(tr.floor)
+            for f in dict.fromkeys(tr.floor):
+                sel = fl == f
+                key = f"{wid}\0{f}"
+                tracks[key] = {"walk": str(wid), "t": tr.t[sel], "xy": tr.pos_enu[sel], "floor": f, "anchored": tr.anchored}
+                if dr is not None:
+                    q = dr.position_at(tr.t[sel])[:, :2]
+                    raw[key] = {"walk": str(wid), "t": tr.t[sel], "xy": q - q[0] + tr.pos_enu[sel][0], "floor": f, "anchored": tr.anchored}
+        plan = st.load_floor_plan(args.site)
+    finally:
+        st.close()
+    if args.floorplan:
+        from ..io.msft import read_ilc_site
+
+        plan = read_ilc_site(args.floorplan)
+    return tracks, raw, loops, plan
+
+
 def _cmd_slam_show(args: argparse.Namespace) -> int:
     from ..io.msft import read_ilc_site
-    from ..slam.output import plot_slam, read_loops_csv, read_tracks_csv
-    from ._common import pyplot
+    from ..slam.output import read_loops_csv, read_tracks_csv
 
+    if args.db is not None or args.dir is None:
+        if args.db is None or args.site is None or args.dir is not None:
+            raise BadInput("slam show takes a 'slam run' folder DIR, or --db URL --site S (not both)")
+        tracks, raw, loops, plan = _db_tracks(args)
+        floors = sorted({v["floor"] for v in tracks.values()})
+        if args.floor not in floors:
+            raise BadInput(f"floor {args.floor!r} has no corrected track of site {args.site!r} (floors: {floors})")
+        return _plot(args, plan, tracks, raw, loops)
     d = Path(args.dir)
     if not (d / "tracks.csv").is_file():
         raise MissingData(f"{d}: no tracks.csv (run 'hybridloc slam run SITE_DIR --out {d}' first)")
@@ -106,6 +167,13 @@ def _cmd_slam_show(args: argparse.Namespace) -> int:
         site_dir = json.loads((d / "summary.json").read_text(encoding="utf-8")).get("site_dir")
     if site_dir and Path(site_dir).is_dir():
         plan = read_ilc_site(site_dir)
+    return _plot(args, plan, tracks, raw, loops)
+
+
+def _plot(args: argparse.Namespace, plan, tracks: dict, raw: dict | None, loops: list[dict]) -> int:
+    from ..slam.output import plot_slam
+    from ._common import pyplot
+
     plt = pyplot("slam show")
     fig, ax = plt.subplots(figsize=(11, 9))
     try:
@@ -130,8 +198,10 @@ def register(sub) -> None:
     r.add_argument("--map", metavar="FILE", help="an existing radio map whose fixes anchor the walks (heavy-tailed)")
     r.add_argument("--workers", type=int, default=2, help="processes for reading the walks (phone PDR)")
     r.set_defaults(func=_cmd_slam_run)
-    s = ssub.add_parser("show", help="raw and corrected walks and loops of one floor over its plan")
-    s.add_argument("dir", help="a 'slam run' output folder")
+    s = ssub.add_parser("show", help="raw and corrected walks and loops of one floor over its plan (from a 'slam run' folder or the server database)")
+    s.add_argument("dir", nargs="?", help="a 'slam run' output folder (or give --db and --site)")
+    s.add_argument("--db", help="the server database (SQLite file or URL): its current corrected tracks and loop audit")
+    s.add_argument("--site", help="the site, with --db")
     s.add_argument("--floor", required=True)
     s.add_argument("--out", required=True, help="PNG file")
     s.add_argument("--floorplan", metavar="SITE_DIR", help="site folder of the plan (default: the one slam run read)")

@@ -21,11 +21,15 @@ position in the site frame (m), b_psi a heading bias (rad) and s a step-length s
   probability above ``floor_switch``, or when a step reports a floor change.
 * **Start**: until the first accepted fix the position is unknown; the first fix initialises it with
   its covariance (a client that knows its start passes ``init``).
+* **Re-anchor from the smoother** (:meth:`LocalFusion.reanchor`): the crowd SLAM's corrected track of
+  the walk replaces the filter's estimate at the track's latest time, and the steps taken since are
+  propagated again (a re-linearisation from the smoothed estimate, not a measurement update).
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -76,7 +80,57 @@ class Estimate:
     pos: np.ndarray
     cov: np.ndarray
     floor: str | None
-    kind: str  # "step" | "fix" | "init"
+    kind: str  # "step" | "fix" | "init" | "reanchor" | ...
+
+
+#: Steps a filter keeps for :meth:`LocalFusion.reanchor` (re-applied after the smoothed estimate's time):
+#: 2,000 steps are about 17 minutes of walking at 2 steps/s, far more than the crowd SLAM lags a live walk.
+REANCHOR_STEPS = 2000
+
+
+class StepMemory:
+    """The steps a filter took (the newest ``limit``) and when it started: what re-anchoring re-applies."""
+
+    def __init__(self, limit: int = REANCHOR_STEPS):
+        self.steps: deque[StepEvent] = deque(maxlen=limit)
+        self.t_start = math.inf  # the first step or position fix the filter took
+        self._forgotten = -math.inf  # time of the newest step no longer kept
+
+    def started(self, t: float) -> None:
+        self.t_start = min(self.t_start, t)
+
+    def add(self, step: StepEvent) -> None:
+        self.started(step.t)
+        if len(self.steps) == self.steps.maxlen:
+            self._forgotten = self.steps[0].t
+        self.steps.append(step)
+
+    @property
+    def horizon(self) -> float:
+        """The earliest time a re-anchoring can start from: every step after it is kept, and the filter
+        had started (inf before the first step or fix)."""
+        return max(self.t_start, self._forgotten)
+
+    def since(self, t: float) -> list[StepEvent]:
+        """The steps after time t, oldest first."""
+        return [s for s in self.steps if s.t > t]
+
+    def last_at_or_before(self, t: float) -> StepEvent | None:
+        for s in reversed(self.steps):
+            if s.t <= t:
+                return s
+        return None
+
+
+def check_reanchor(memory: StepMemory, t: float, pos, cov) -> tuple[np.ndarray, np.ndarray]:
+    """The position (2,) and covariance (2, 2) of a re-anchoring at time t; ValueError when t is before the
+    filter started or older than the steps it keeps, or the position is not finite."""
+    if not t >= memory.horizon:  # also NaN
+        raise ValueError(f"cannot re-anchor at t={t}: the filter keeps its steps from t={memory.horizon} on")
+    p, c = np.asarray(pos, float).reshape(2), np.asarray(cov, float).reshape(2, 2)
+    if not np.isfinite(p).all():
+        raise ValueError("a re-anchoring needs a finite position")
+    return p, 0.5 * (c + c.T)
 
 
 class LocalFusion:
@@ -111,6 +165,8 @@ class LocalFusion:
         self._gate_by_source = {src: ChiSquareGate(p) for src, p in self.cfg.gate_by_source.items()}
         self._hist: list[tuple[float, float, float]] = []  # (t, x, y) after each step, for delayed fixes
         self._raw = DeadReckoning(covariance=False, max_rows=200)  # the PDR's own track (sum of L (cos psi, sin psi)) since its first step
+        self._memory = StepMemory()  # the steps taken, for reanchor
+        self.n_reanchored = 0
         if init is not None:
             self.x[:2] = init[:2]
             self.P[0, 0] = self.P[1, 1] = init[2] ** 2
@@ -121,6 +177,16 @@ class LocalFusion:
 
     def predict(self, step: StepEvent) -> Estimate:
         """Dead-reckon one step (Kourogi eqs 9-14)."""
+        self._memory.add(step)
+        self._motion(step)
+        if self._raw.t_last is not None and step.t <= self._raw.t_last:  # a clock that went back: the PDR's track starts over
+            self._raw = DeadReckoning(pos0=self._raw.position, covariance=False, max_rows=200)
+        self._raw.add(step)
+        self._corridor(step)
+        return self._stepped(step)
+
+    def _motion(self, step: StepEvent) -> None:
+        """The state and covariance moved by one step (Kourogi eqs 9-14); what :meth:`reanchor` re-applies."""
         b, s = self.x[2], self.x[3]
         psi = step.heading + b
         c, sn = math.cos(psi), math.sin(psi)
@@ -140,11 +206,6 @@ class LocalFusion:
         self.P = F @ self.P @ F.T + Q
         self.P = 0.5 * (self.P + self.P.T)
         self.t = step.t
-        if self._raw.t_last is not None and step.t <= self._raw.t_last:  # a clock that went back: the PDR's track starts over
-            self._raw = DeadReckoning(pos0=self._raw.position, covariance=False, max_rows=200)
-        self._raw.add(step)
-        self._corridor(step)
-        return self._stepped(step)
 
     def _corridor(self, step: StepEvent) -> None:
         """Heuristic drift elimination after a step (see ``FusionConfig.corridor_*``)."""
@@ -169,6 +230,72 @@ class LocalFusion:
             self.floor = _shift_floor(self.floor, step.floor_change)
         return self.estimate("step")
 
+    # ------------------------------------------------------------------ re-anchoring from the smoother
+    @property
+    def reanchor_horizon(self) -> float:
+        """The earliest time :meth:`reanchor` takes (the filter's start, or its oldest kept step)."""
+        return self._memory.horizon
+
+    def reanchor(self, t: float, pos, cov, floor: str | None, heading_bias: float | None = None, scale: float | None = None) -> Estimate:
+        """Re-anchor on the smoother's estimate at time ``t``: position ``pos`` (2,) with covariance ``cov``
+        (2, 2; not finite: the filter keeps its own), ``floor``, and the walk's ``heading_bias`` and step
+        ``scale`` where known. Returns the new estimate (kind ``"reanchor"``).
+
+        This is an explicit re-linearisation, not a measurement update (predict/correct stay the step
+        API): the crowd SLAM's smoothed estimate at t, which has seen the whole walk so far, replaces
+        the filter's own estimate at t, and the state since then is propagated again with the same
+        steps (:meth:`_motion`, Kourogi eqs 9-14):
+
+            x(t) = (p_s, b', s'),   P(t) = blockdiag(C_s, P_bs)
+            x_k = f(x_(k-1), step_k),   P_k = F_k P_(k-1) F_k^T + Q_k   for every step k after t
+
+        with (p_s, C_s) the smoothed position and covariance, b' = ``heading_bias`` and s' = ``scale``
+        (the filter's own when None) and P_bs the filter's present covariance of (b, s): the smoother
+        gives no uncertainty for them, and its position is independent of the filter's (cross terms
+        0). The live pose is then p_s + sum_k s' L_k (cos(psi_k + b'), sin(psi_k + b')): it moves by the
+        correction at t and goes on with the steps, instead of jumping to where the walker was at t.
+        Fixes fused after t are dropped (the smoother had not seen them; the next ones correct again).
+
+        Conventions (checked against :class:`hybridloc.types.CorrectedTrack` and
+        :mod:`hybridloc.slam.factors`, where a segment's odometry is T(n) D = s R(beta) D): the track's
+        heading bias beta is the CCW angle that rotates the PDR's headings onto the corrected track,
+        which is b_psi here (psi = heading + b_psi); its scale multiplies the PDR's step lengths, as s.
+
+        Raises ValueError when t is before the filter started or older than the steps it keeps
+        (:data:`REANCHOR_STEPS`, :attr:`reanchor_horizon`). A filter not yet initialised starts here.
+        """
+        p, c = check_reanchor(self._memory, t, pos, cov)
+        since = self._memory.since(t)
+        t_now = self.t
+        self._anchor(t, p, c, heading_bias, scale)
+        if floor:
+            self.floor = floor
+        self._hist.clear()
+        _keep(self._hist, (t, float(self.x[0]), float(self.x[1])))
+        for step in since:  # the same steps, from the smoothed state
+            self._motion(step)
+            _keep(self._hist, (step.t, float(self.x[0]), float(self.x[1])))
+            if step.floor_change and self.floor is not None:
+                self.floor = _shift_floor(self.floor, step.floor_change)
+        self.t = max(t_now, t)
+        self.initialised = True
+        self._rejected_run = 0
+        self.n_reanchored += 1
+        return self.estimate("reanchor")
+
+    def _anchor(self, t: float, pos: np.ndarray, cov: np.ndarray, heading_bias: float | None, scale: float | None) -> None:
+        """The state at the re-anchoring time: x(t) = (p_s, b', s'), P(t) = blockdiag(C_s, P_bs)."""
+        self.x[:2] = pos
+        if np.isfinite(cov).all():
+            self.P[:2, :2] = cov
+        self.P[:2, 2:] = 0.0
+        self.P[2:, :2] = 0.0
+        if heading_bias is not None:
+            self.x[2] = heading_bias
+        if scale is not None:
+            self.x[3] = scale
+        self._constrain()
+
     def _position_at(self, t: float) -> np.ndarray:
         if not self._hist or t >= self._hist[-1][0]:
             return self.x[:2].copy()
@@ -190,6 +317,7 @@ class LocalFusion:
     def _correct_position(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
         z = np.asarray(fix.pos_enu, float)[:2]
         R = np.asarray(fix.cov, float)[:2, :2]
+        self._memory.started(fix.t)
         if not self.initialised:
             self.x[:2] = z
             self._hist.clear()

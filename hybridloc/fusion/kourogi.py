@@ -26,7 +26,9 @@ the same steps and fixes.
   ``c`` for the timing uncertainty (eq 18); used only while t1 is recent (the velocity is now's).
 
 There is no heading-bias state: the filter trusts the PDR's azimuth, as the paper does (its PDR is
-magnetometer-aided). A known start heading enters as a fixed rotation of every step's azimuth.
+magnetometer-aided). A known start heading enters as a fixed rotation of every step's azimuth, and so
+does the heading bias of a corrected track (:meth:`~.kalman.LocalFusion.reanchor`, position and
+heading only: this state has no step scale).
 """
 
 from __future__ import annotations
@@ -107,6 +109,12 @@ class KourogiFusion(LocalFusion):
         return self.update(Measurement(np.asarray(v, float), Velocity(R, kind)), gate).accepted
 
     def predict(self, step: StepEvent) -> Estimate:
+        self._memory.add(step)
+        self._motion(step)
+        return self._stepped(step)
+
+    def _motion(self, step: StepEvent) -> None:
+        """Eqs 5-15 for one step (eq 10 first after a pause); what :meth:`reanchor` re-applies."""
         cfg = self.cfg
         if self._last_step_t is not None and step.t - self._last_step_t > cfg.still_after:
             self._project(self._last_step_t + cfg.still_after)  # eq 10: no movement observed
@@ -144,7 +152,21 @@ class KourogiFusion(LocalFusion):
         dx, Pa, _ = gated_update(xa, Pa, z, CloneStep(R), None, self.stats)
         xa = xa + dx
         self.x, self.P = xa[:n].copy(), Pa[:n, :n].copy()
-        return self._stepped(step)
+
+    def _anchor(self, t: float, pos: np.ndarray, cov: np.ndarray, heading_bias: float | None, scale: float | None) -> None:
+        """:meth:`LocalFusion.reanchor`'s state at t for this filter: the smoothed position with its
+        covariance (the velocity keeps its present value, uncorrelated with it), the heading bias as the
+        fixed rotation of the steps' azimuths; there is no scale state. The projection clock restarts at t."""
+        self.x[:2] = pos
+        if np.isfinite(cov).all():
+            self.P[:2, :2] = cov
+        self.P[:2, 2:] = 0.0
+        self.P[2:, :2] = 0.0
+        if heading_bias is not None:
+            self.heading_offset = heading_bias
+        last = self._memory.last_at_or_before(t)
+        self._last_step_t = last.t if last is not None else None
+        self._tp = t
 
     def _correct_displacement(self, fix: DisplacementFix) -> tuple[bool, Estimate]:
         """Eqs 17-18: the velocity of two GPS positions, while it is still the present one."""

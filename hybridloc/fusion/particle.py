@@ -27,6 +27,10 @@ filters answer alike; what the particles add is the map, which no Gaussian can c
 * **Start**: from the first fix (or ``init``): positions drawn from the fix's Gaussian where the map
   allows, bias and scale from their priors. After ``reinit_after`` consecutive rejected fixes the
   track is considered lost and restarts from the fix (as LocalFusion does).
+* **Re-anchor from the smoother** (:meth:`ParticleFusion.reanchor`, as
+  :meth:`~.kalman.LocalFusion.reanchor`): the cloud is redrawn at the corrected track's latest time
+  around its position and covariance (where the map allows), each particle's bias and scale shifted
+  so that the cloud's means are the walk's, and the steps since are sampled again on top.
 
 Random numbers come from an explicit ``numpy.random.Generator`` (default: seeded from ``config.seed``),
 so a replay is reproducible.
@@ -45,7 +49,17 @@ from ..estimation import resampler as make_resampler
 from ..estimation.resampling import Resampler
 from ..types import AbsoluteFix, DisplacementFix, StepEvent
 from ..units import wrap_angle
-from .kalman import Estimate, _shift_floor, correlated_fix_cov, fix_handler, floor_after_fix, nearest_grid_direction, straight_along
+from .kalman import (
+    Estimate,
+    StepMemory,
+    _shift_floor,
+    check_reanchor,
+    correlated_fix_cov,
+    fix_handler,
+    floor_after_fix,
+    nearest_grid_direction,
+    straight_along,
+)
 from .walkprior import WalkPrior
 
 #: log of the smallest prior a particle's old place counts with (the step's likelihood divides by it)
@@ -168,6 +182,8 @@ class ParticleFusion:
         self._hist_p = np.zeros((H, n, 2))
         self._hist_t = np.full(H, -math.inf)
         self._hist_k = 0  # number of steps recorded (ring index = k % H)
+        self._memory = StepMemory()  # the steps taken, for reanchor
+        self.n_reanchored = 0
         if init is not None:
             self._start(np.asarray(init[:2], float), np.eye(2) * init[2] ** 2, None)
 
@@ -193,23 +209,41 @@ class ParticleFusion:
         n = self.cfg.n_particles
         if floor is not None:
             self.floor = floor
+        p = self._draw(z, R)
+        b = self.rng.normal(self._bias0[0], self._bias0[1], n)
+        s = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
+        self._place(p, b, s)
+
+    def _draw(self, z: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """N positions from N(z, R) where the map allows (a few rounds of rejection; what is left stays where it fell)."""
+        n = self.cfg.n_particles
         L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
-        # draw where the map allows (a few rounds of rejection; what is left stays where it fell)
         p = z + self.rng.standard_normal((n, 2)) @ L.T
         for _ in range(10):
             bad = self.constraint.log_density(self.floor, p) == -np.inf
             if not bad.any():
                 break
             p[bad] = z + self.rng.standard_normal((int(bad.sum()), 2)) @ L.T
-        self.p = p
-        self.b = self.rng.normal(self._bias0[0], self._bias0[1], n)
-        self.s = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
+        return p
+
+    def _place(self, p: np.ndarray, b: np.ndarray, s: np.ndarray) -> None:
+        """A new cloud (positions, biases, scales): equal weights times the map's prior at each place, no history."""
+        n = len(p)
+        self.p, self.b, self.s = p, b, s
         self.logw = np.full(n, -math.log(n))
         self._logpi = self.constraint.log_density(self.floor, self.p)
         self._weigh(self._logpi.copy())
         self._hist_t[:] = -math.inf
         self._hist_k = 0
         self.initialised = True
+
+    def set_prior(self, prior: WalkPrior) -> None:
+        """Use a new walk prior (a new radio map version of the site): the map's constraint hook becomes
+        the prior's, and each particle's prior at its place is the new one's (the next step weighs by it)."""
+        self.prior = prior
+        self.constraint = WalkPriorConstraint(prior)
+        if self.initialised:
+            self._logpi = self.constraint.log_density(self.floor, self.p)
 
     # ------------------------------------------------------------------ weights
     def _weigh(self, loglike: np.ndarray) -> bool:
@@ -240,11 +274,19 @@ class ParticleFusion:
     # ------------------------------------------------------------------ predict
     def predict(self, step: StepEvent) -> Estimate:
         """Move every particle by one step (Kourogi eqs 9-14, sampled) and weigh it by the map."""
+        self._memory.add(step)
         self.t = step.t
         if step.floor_change and self.floor is not None:
             self.floor = _shift_floor(self.floor, step.floor_change)
         if not self.initialised:
             return self.estimate("step")
+        self._move(step)
+        self._corridor(step)
+        self._record(step.t)
+        return self.estimate("step")
+
+    def _move(self, step: StepEvent) -> None:
+        """Every particle moved by one step, sampled, and weighed by the map; what :meth:`reanchor` re-applies."""
         n = len(self.w)
         cfg = self.cfg
         sig_l = max(step.sigma_length, cfg.min_sigma_length)
@@ -268,12 +310,67 @@ class ParticleFusion:
             # nobody is where the map allows: the map or the track is wrong here - keep dead reckoning
             self._logpi = prev_logpi
             self.n_map_conflicts += 1
-        self._corridor(step)
-        k = self._hist_k % cfg.history
+
+    def _record(self, t: float) -> None:
+        """Every particle's position at time t into the history ring (for late fixes)."""
+        k = self._hist_k % self.cfg.history
         self._hist_p[k] = self.p
-        self._hist_t[k] = step.t
+        self._hist_t[k] = t
         self._hist_k += 1
-        return self.estimate("step")
+
+    # ------------------------------------------------------------------ re-anchoring from the smoother
+    @property
+    def reanchor_horizon(self) -> float:
+        """The earliest time :meth:`reanchor` takes (the filter's start, or its oldest kept step)."""
+        return self._memory.horizon
+
+    def reanchor(self, t: float, pos, cov, floor: str | None, heading_bias: float | None = None, scale: float | None = None) -> Estimate:
+        """Re-anchor on the smoother's estimate at time ``t`` (as :meth:`.kalman.LocalFusion.reanchor`,
+        whose docstring has the math and the bias/scale conventions), the cloud's way:
+
+        * the positions at t are redrawn from N(p_s, C_s) where the map allows (C_s not finite: the
+          cloud's own spread at t); the smoothed position is independent of the filter's, so every
+          particle's place is drawn afresh;
+        * each particle keeps a bias and scale of the present cloud (drawn by weight), shifted so that
+          the cloud's circular mean bias is ``heading_bias`` and its mean scale ``scale`` (kept when
+          None): the filter's spread of them stays, as P_bs does in the Kalman filter;
+        * the steps since t are sampled again on top (:meth:`_move`, walls and walk prior included),
+          so the cloud moves by the correction at t and goes on with the steps.
+
+        Raises ValueError when t is before the filter started or older than the steps it keeps, and for
+        a cloud not yet initialised given no finite covariance (a cloud not yet initialised starts here).
+        """
+        z, R = check_reanchor(self._memory, t, pos, cov)
+        if not np.isfinite(R).all():
+            if not self.initialised:
+                raise ValueError("a particle filter not yet started needs the track's covariance to re-anchor")
+            R = self._mean_cov(self._positions_at(t))[1]
+        since = self._memory.since(t)
+        t_now = self.t
+        if floor:
+            self.floor = floor
+        n = self.cfg.n_particles
+        if self.initialised:
+            idx = self.resampler(self.w, self.rng)  # the cloud's (bias, scale) pairs, by weight
+            b, sc = self.b[idx].copy(), self.s[idx].copy()
+        else:
+            b = self.rng.normal(self._bias0[0], self._bias0[1], n)
+            sc = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
+        if heading_bias is not None:
+            b = heading_bias + wrap_angle(b - math.atan2(float(np.sin(b).mean()), float(np.cos(b).mean())))
+        if scale is not None:
+            sc = np.clip(scale + (sc - sc.mean()), 0.5, 1.5)
+        self._place(self._draw(z, R), b, sc)
+        self._record(t)
+        for step in since:  # the same steps, sampled again from the smoothed state
+            if step.floor_change and self.floor is not None:
+                self.floor = _shift_floor(self.floor, step.floor_change)
+            self._move(step)
+            self._record(step.t)
+        self.t = max(t_now, t)
+        self._rejected_run = 0
+        self.n_reanchored += 1
+        return self.estimate("reanchor")
 
     def _corridor(self, step: StepEvent) -> None:
         """Heuristic drift elimination (as :meth:`.kalman.LocalFusion._corridor`): after a straight
@@ -321,6 +418,7 @@ class ParticleFusion:
         R = correlated_fix_cov(np.asarray(fix.cov, float)[:2, :2], fix, self.cfg.fix_correlation)
         if not (np.isfinite(z).all() and np.isfinite(R).all()) or np.linalg.eigvalsh(0.5 * (R + R.T)).min() <= 0:
             raise ValueError("a fix needs a finite position and a positive-definite covariance")
+        self._memory.started(fix.t)
         if not self.initialised:
             self._start(z, R, fix.floor)
             self.t = max(self.t, fix.t)

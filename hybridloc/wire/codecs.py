@@ -10,6 +10,9 @@ codec                  record                       message
 :data:`LOCATE`         :class:`.messages.LocateRequest`  ``hybridloc.locate/1``, client -> server (get)
 :data:`STATUS`         :class:`.messages.Status`    ``hybridloc.status/1``, server reply
 :data:`MAP_INFO`       :class:`.messages.MapInfo`   the attachment of a ``map`` reply (its payload is npz bytes)
+:data:`TRACK`          :class:`.messages.Track`     ``hybridloc.track/1``, server -> client
+:data:`MAP_VERSION`    :class:`.messages.MapVersion`  ``hybridloc.map-version/1``, server -> clients
+:data:`PROGRESS`       :class:`.messages.Progress`  ``hybridloc.progress/1``, server -> anyone
 =====================  ===========================  =====================================================
 
 Validation lives in the decoders, and only there: a refused payload raises
@@ -17,12 +20,15 @@ Validation lives in the decoders, and only there: a refused payload raises
 escapes a decoder, whatever the bytes. Encoders trust their records.
 
 The bytes are the ones hybridloc has always sent, so old clients and spooled batches keep working:
-JSON in UTF-8, a batch with compact separators (``","``, ``":"``), every other message with
-``json.dumps``' defaults (``", "``, ``": "``), keys in the order below. Optional keys are left out
+JSON in UTF-8, a batch and a track with compact separators (``","``, ``":"``), every other message
+with ``json.dumps``' defaults (``", "``, ``": "``), keys in the order below. Optional keys are left out
 when empty. A few records cannot say everything their types can: a step's ``sigma_height_change``
 travels only with a non-zero ``height_change`` and ``sigma_heading_change`` only with a
 ``heading_change``; transmitter ids and the device model are cut at 64 characters, a mark's floor and ``degraded``
-at 32; a fix is 2-D; a region's time is its fix's.
+at 32; a fix is 2-D; a region's time is its fix's; a track carries the upper triangle of each
+covariance (null for one that is not finite: all four entries NaN again) and its newest
+:data:`~.protocol.MAX_TRACK_POINTS` points, floors cut at 32 characters; a progress's stage and floor
+are cut at 32 characters.
 """
 
 from __future__ import annotations
@@ -34,17 +40,34 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
-from ..types import AbsoluteFix, ContainmentRegion, Fix, Pose, RfScan, StepEvent, SurveyMark, Technology, rssi_in_range
-from .messages import Ack, Batch, LocateRequest, MapInfo, Status
+from ..types import (
+    TRACK_ANCHORS,
+    AbsoluteFix,
+    ContainmentRegion,
+    CorrectedTrack,
+    Fix,
+    Pose,
+    RfScan,
+    StepEvent,
+    SurveyMark,
+    Technology,
+    rssi_in_range,
+)
+from .messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
 from .protocol import (
     ACK_SCHEMA,
     BATCH_SCHEMA,
     FIX_SCHEMA,
     LOCATE_SCHEMA,
+    MAP_VERSION_SCHEMA,
     MAX_BATCH_BYTES,
     MAX_BATCH_ITEMS,
+    MAX_TRACK_BYTES,
+    MAX_TRACK_POINTS,
     POSE_SCHEMA,
+    PROGRESS_SCHEMA,
     STATUS_SCHEMA,
+    TRACK_SCHEMA,
     Rejected,
     check_id,
     encoding,
@@ -98,6 +121,22 @@ def _integer(v: Any, what: str) -> int:
     if x != int(x):
         raise Rejected("bad-value", f"{what} {v!r} is not an integer")
     return int(x)
+
+
+def _whole(v: Any, what: str, minimum: int = 0) -> int:
+    """A JSON integer >= ``minimum`` (booleans and fractions refused, ``bad-value``; an overflowing
+    literal such as 1e999, read as an infinity, ``non-finite``)."""
+    if isinstance(v, float) and not math.isfinite(v):
+        raise Rejected("non-finite", what)
+    if not isinstance(v, int) or isinstance(v, bool) or v < minimum:
+        raise Rejected("bad-value", f"{what} must be an integer >= {minimum}, got {v!r}")
+    return v
+
+
+def _finite_list(v: Any, what: str) -> list[float]:
+    if not isinstance(v, list):
+        raise Rejected("malformed-json", f"{what} must be a list")
+    return [_finite(x, what) for x in v]
 
 
 def _object(v: Any, what: str) -> dict:
@@ -405,9 +444,10 @@ class StatusCodec(Codec[Status]):
     schema = STATUS_SCHEMA
 
     def encode(self, s: Status) -> bytes:
-        return _dumps(
-            {"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)}
-        )
+        d = {"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)}
+        if s.slam:  # optional: servers without the crowd SLAM send the bytes they always sent
+            d["slam"] = {site: dict(v) for site, v in s.slam.items()}
+        return _dumps(d)
 
     def decode(self, payload: bytes) -> Status:
         msg = _load(payload, STATUS_SCHEMA)
@@ -418,7 +458,10 @@ class StatusCodec(Codec[Status]):
         for what, m in (("counts", counts), ("maps_loaded", maps)):
             if not all(isinstance(v, int) and not isinstance(v, bool) for v in m.values()):
                 raise Rejected("bad-value", f"{what} must be integers")
-        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps)
+        slam = _object(msg.get("slam") or {}, "slam")
+        if not all(isinstance(v, dict) for v in slam.values()):
+            raise Rejected("malformed-json", "slam must map each site to an object")
+        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps, slam)
 
 
 class MapInfoCodec(Codec[MapInfo]):
@@ -436,6 +479,168 @@ class MapInfoCodec(Codec[MapInfo]):
         return MapInfo(site, v)
 
 
+class TrackCodec(Codec[Track]):
+    """A corrected track, columnar: one list per field, a point per index.
+
+    ``{"schema", "site", "device", "walk_id", "run", "map_version", "sent_at", "anchored", "scale",
+    "heading_bias", "t": [...], "x": [...], "y": [...], "cov": [[xx, xy, yy] or null, ...],
+    "floor": [[name, count], ...] (runs of equal floors), "kind": ["step" | "scan", ...]}``.
+    """
+
+    schema = TRACK_SCHEMA
+
+    def encode(self, m: Track) -> bytes:
+        """The track's newest MAX_TRACK_POINTS points (fewer if even those would pass MAX_TRACK_BYTES)."""
+        keep = min(len(m.track), MAX_TRACK_POINTS)
+        while True:
+            payload = _dumps(self._message(m, len(m.track) - keep), compact=True)
+            if len(payload) <= MAX_TRACK_BYTES or keep == 0:
+                return payload
+            keep //= 2
+
+    @staticmethod
+    def _message(m: Track, start: int) -> dict:
+        tr = m.track
+        cov = np.asarray(tr.cov[start:], float)
+        ok = np.isfinite(cov).all(axis=(1, 2))
+        tri = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]], axis=1).tolist() if len(cov) else []
+        runs: list[list] = []
+        for f in tr.floor[start:]:
+            f = f[:32]
+            if runs and runs[-1][0] == f:
+                runs[-1][1] += 1
+            else:
+                runs.append([f, 1])
+        return {
+            "schema": TRACK_SCHEMA, "site": m.site, "device": m.device, "walk_id": int(m.walk_id), "run": int(m.run),
+            "map_version": None if m.map_version is None else int(m.map_version), "sent_at": float(m.sent_at),
+            "anchored": tr.anchored, "scale": float(tr.scale), "heading_bias": float(tr.heading_bias),
+            "t": tr.t[start:].tolist(), "x": tr.pos_enu[start:, 0].tolist(), "y": tr.pos_enu[start:, 1].tolist(),
+            "cov": [c if good else None for c, good in zip(tri, ok.tolist())],
+            "floor": runs, "kind": list(tr.kind[start:]),
+        }  # fmt: skip
+
+    def decode(self, payload: bytes, site: str | None = None, device: str | None = None) -> Track:
+        """The track in ``payload``; ``site``/``device``: the ids its key names (``key-mismatch`` otherwise)."""
+        msg = _load(payload, TRACK_SCHEMA, MAX_TRACK_BYTES)
+        m_site, m_device = _id(msg.get("site"), "site"), _id(msg.get("device"), "device")
+        if (site is not None and m_site != site) or (device is not None and m_device != device):
+            raise Rejected("key-mismatch", f"payload says {m_site}/{m_device}, key says {site}/{device}")
+        walk_id, run = _whole(msg.get("walk_id"), "walk_id", 1), _whole(msg.get("run"), "run", 1)
+        mv = msg.get("map_version")
+        map_version = None if mv is None else _whole(mv, "map_version", 1)
+        t = _finite_list(msg.get("t"), "t")
+        n = len(t)
+        if n > MAX_TRACK_POINTS:
+            raise Rejected("too-large", f"{n} points > {MAX_TRACK_POINTS}")
+        x, y = _finite_list(msg.get("x"), "x"), _finite_list(msg.get("y"), "y")
+        cov_in, kind, runs = msg.get("cov"), msg.get("kind"), msg.get("floor")
+        if not (isinstance(cov_in, list) and isinstance(kind, list) and isinstance(runs, list)):
+            raise Rejected("malformed-json", "cov, floor and kind must be lists")
+        cov = np.full((n, 2, 2), np.nan)
+        if len(x) != n or len(y) != n or len(cov_in) != n or len(kind) != n:
+            raise Rejected("bad-value", f"{n} times but {len(x)} x, {len(y)} y, {len(cov_in)} covariances, {len(kind)} kinds")
+        for i, c in enumerate(cov_in):
+            if c is not None:
+                cov[i] = _psd2(c)
+        if any(b < a for a, b in zip(t, t[1:])):
+            raise Rejected("bad-value", "times must not decrease")
+        if not all(k in ("step", "scan") for k in kind):
+            raise Rejected("bad-value", "a kind is not 'step' or 'scan'")
+        floor: list[str] = []
+        for r in runs:
+            if not (isinstance(r, list) and len(r) == 2 and isinstance(r[0], str)):
+                raise Rejected("malformed-json", "a floor run must be [name, count]")
+            count = _whole(r[1], "floor count", 1)
+            if len(floor) + count > n:  # checked before the list grows: a count of 10**12 is refused, not allocated
+                raise Rejected("bad-value", f"floor runs cover more than {n} points")
+            floor += [r[0][:32]] * count
+        if len(floor) != n:
+            raise Rejected("bad-value", f"floor runs cover {len(floor)} points, not {n}")
+        anchored = msg.get("anchored")
+        if anchored not in TRACK_ANCHORS:
+            raise Rejected("bad-value", f"anchored {anchored!r} is not one of {TRACK_ANCHORS}")
+        scale, bias = _finite(msg.get("scale"), "scale"), _finite(msg.get("heading_bias"), "heading_bias")
+        if scale <= 0:
+            raise Rejected("bad-value", f"scale {scale} must be positive")
+        sent = msg.get("sent_at")
+        sent_at = _finite(0.0 if sent is None else sent, "sent_at")
+        pos = np.column_stack([x, y]) if n else np.zeros((0, 2))
+
+        def record() -> Track:
+            track = CorrectedTrack(walk_id, np.array(t, float), pos, cov, tuple(floor), tuple(kind), anchored, scale, bias)
+            return Track(m_site, m_device, walk_id, map_version, run, track, sent_at)
+
+        return _structure(record)
+
+
+def _psd2(c: Any) -> np.ndarray:
+    """A 2x2 covariance from its upper triangle [xx, xy, yy], positive semi-definite (``bad-value``)."""
+    if not (isinstance(c, list) and len(c) == 3):
+        raise Rejected("bad-value", "a covariance must be [xx, xy, yy] or null")
+    xx, xy, yy = (_finite(v, "cov") for v in c)
+    # PSD: both variances >= 0 and the determinant >= 0 (xy^2 <= xx yy), a relative 1e-9 allowed for
+    # a marginal covariance rounded by the solver
+    if xx < 0 or yy < 0 or xy * xy > xx * yy * (1.0 + 1e-9):
+        raise Rejected("bad-value", f"covariance [{xx}, {xy}, {yy}] is not positive semi-definite")
+    return np.array([[xx, xy], [xy, yy]])
+
+
+class MapVersionCodec(Codec[MapVersion]):
+    schema = MAP_VERSION_SCHEMA
+
+    def encode(self, m: MapVersion) -> bytes:
+        return _dumps(
+            {
+                "schema": MAP_VERSION_SCHEMA, "site": m.site, "version": int(m.version), "source": m.source, "created_at": float(m.created_at),
+                "walks": int(m.walks), "coverage": None if m.coverage is None else float(m.coverage),
+            }
+        )  # fmt: skip
+
+    def decode(self, payload: bytes) -> MapVersion:
+        msg = _load(payload, MAP_VERSION_SCHEMA, MAX_MESSAGE_BYTES)
+        site = _id(msg.get("site"), "site")
+        version, walks = _whole(msg.get("version"), "version", 1), _whole(msg.get("walks", 0), "walks")
+        source = msg.get("source")
+        if source not in MAP_SOURCES:
+            raise Rejected("bad-value", f"source {source!r} is not one of {MAP_SOURCES}")
+        cov = msg.get("coverage")
+        coverage = None if cov is None else _finite(cov, "coverage")
+        if coverage is not None and not 0.0 <= coverage <= 1.0:
+            raise Rejected("bad-value", f"coverage {coverage} outside [0, 1]")
+        return MapVersion(site, version, source, _finite(msg.get("created_at"), "created_at"), walks, coverage)
+
+
+class ProgressCodec(Codec[Progress]):
+    schema = PROGRESS_SCHEMA
+
+    def encode(self, p: Progress) -> bytes:
+        return _dumps(
+            {
+                "schema": PROGRESS_SCHEMA,
+                "site": p.site,
+                "stage": p.stage,
+                "floor": p.floor,
+                "done": int(p.done),
+                "total": int(p.total),
+                "t": float(p.t),
+            }
+        )
+
+    def decode(self, payload: bytes) -> Progress:
+        msg = _load(payload, PROGRESS_SCHEMA, MAX_MESSAGE_BYTES)
+        site = _id(msg.get("site"), "site")
+        stage, floor = msg.get("stage"), msg.get("floor", "")
+        if not (isinstance(stage, str) and isinstance(floor, str)):
+            raise Rejected("malformed-json", "stage and floor must be texts")
+        if not stage:
+            raise Rejected("bad-value", "stage is empty")
+        done, total = _whole(msg.get("done"), "done"), _whole(msg.get("total"), "total")
+        if done > total:
+            raise Rejected("bad-value", f"done {done} > total {total}")
+        return Progress(site, stage[:32], floor[:32], done, total, _finite(msg.get("t"), "t"))
+
+
 BATCH = BatchCodec()
 ACK = AckCodec()
 FIX = FixCodec()
@@ -443,5 +648,19 @@ POSE = PoseCodec()
 LOCATE = LocateCodec()
 STATUS = StatusCodec()
 MAP_INFO = MapInfoCodec()
+TRACK = TrackCodec()
+MAP_VERSION = MapVersionCodec()
+PROGRESS = ProgressCodec()
 #: Every codec, by message name.
-CODECS: Mapping[str, Codec] = {"batch": BATCH, "ack": ACK, "fix": FIX, "pose": POSE, "locate": LOCATE, "status": STATUS, "map-info": MAP_INFO}
+CODECS: Mapping[str, Codec] = {
+    "batch": BATCH,
+    "ack": ACK,
+    "fix": FIX,
+    "pose": POSE,
+    "locate": LOCATE,
+    "status": STATUS,
+    "map-info": MAP_INFO,
+    "track": TRACK,
+    "map-version": MAP_VERSION,
+    "progress": PROGRESS,
+}

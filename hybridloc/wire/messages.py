@@ -1,5 +1,6 @@
 """Records that exist only on the wire: the batch (the unit of delivery), its acknowledgement, the
-locate request, the server's status and the radio map's attachment.
+locate request, the server's status, the radio map's attachment, and what the crowd SLAM tells the
+clients (a device's corrected track, a new map version, a running job's progress).
 
 The records every layer shares (:class:`~hybridloc.types.StepEvent`, :class:`~hybridloc.types.RfScan`,
 :class:`~hybridloc.types.SurveyMark`, :class:`~hybridloc.types.Fix`, :class:`~hybridloc.types.Pose`)
@@ -8,11 +9,12 @@ live in :mod:`hybridloc.types`; :mod:`.codecs` turns all of them into bytes and 
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..types import RfScan, StepEvent, SurveyMark
+from ..types import CorrectedTrack, RfScan, StepEvent, SurveyMark
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,19 +89,30 @@ class Status:
         reason and newest map version per site (:meth:`hybridloc.server.store.Store.status`).
     maps_loaded : Mapping[str, int]
         Site -> version of the radio map the server locates with.
+    slam : Mapping[str, Mapping[str, Any]]
+        Site -> the crowd SLAM's figures (walks_corrected, walks_quarantined, walks_pending,
+        loops_accepted, loops_rejected, coverage, map_version, ...: the server fills it). On the wire
+        only when not empty: older servers send none, and their payloads decode with ``{}``.
     """
 
     online: tuple[str, ...] = ()
     counts: Mapping[str, int] = field(default_factory=dict)
     db: Mapping[str, Any] = field(default_factory=dict)
     maps_loaded: Mapping[str, int] = field(default_factory=dict)
+    slam: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "online", tuple(self.online))
 
     def as_dict(self) -> dict:
         """The message as a plain dict (what ``hybridloc status`` reads), without the schema."""
-        return {"online": list(self.online), "counts": dict(self.counts), "db": dict(self.db), "maps_loaded": dict(self.maps_loaded)}
+        return {
+            "online": list(self.online),
+            "counts": dict(self.counts),
+            "db": dict(self.db),
+            "maps_loaded": dict(self.maps_loaded),
+            "slam": {site: dict(v) for site, v in self.slam.items()},
+        }
 
 
 @dataclass(frozen=True)
@@ -108,3 +121,96 @@ class MapInfo:
 
     site: str
     version: int
+
+
+#: Where a radio map version came from: the crowd SLAM, a survey rebuild, a map file imported.
+MAP_SOURCES = ("slam", "survey", "import")
+
+
+@dataclass(frozen=True, eq=False)
+class Track:
+    """The crowd SLAM's corrected track of a device's walk, sent on the device's ``track`` key.
+
+    Attributes
+    ----------
+    site, device : str
+        Ids (:func:`~.protocol.check_id`).
+    walk_id : int
+        The server's id of the walk (>= 1). The device learns its walk's id only from these messages.
+    map_version : int or None
+        The radio map version the solve used (None: none).
+    run : int
+        The server's SLAM run that made the track (>= 1): a newer run supersedes an older one.
+    track : CorrectedTrack
+        The track; its ``walk_id`` is ``walk_id`` (filled in when None). On the wire: the newest
+        :data:`~.protocol.MAX_TRACK_POINTS` points, covariances by their upper triangle.
+    sent_at : float
+        When the server sent it, s (Unix time on the server; 0 when unknown).
+    """
+
+    site: str
+    device: str
+    walk_id: int
+    map_version: int | None
+    run: int
+    track: CorrectedTrack
+    sent_at: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.track.walk_id is None:
+            object.__setattr__(self, "track", dataclasses.replace(self.track, walk_id=self.walk_id))
+        elif self.track.walk_id != self.walk_id:
+            raise ValueError(f"Track: walk {self.walk_id} carries the track of walk {self.track.walk_id}")
+
+
+@dataclass(frozen=True)
+class MapVersion:
+    """A new radio map version of a site, announced on ``hl/v1/<site>/map/version``.
+
+    Attributes
+    ----------
+    site : str
+    version : int
+        The version (>= 1); a client holding an older one fetches the map (get on ``map``).
+    source : str
+        One of :data:`MAP_SOURCES`.
+    created_at : float
+        When the version was made, Unix time s (the server's clock).
+    walks : int
+        Walks whose scans the map was built from.
+    coverage : float or None
+        Share of the site's crowd scans (walks without survey marks) with an absolute corrected
+        position, in [0, 1]; None when unknown (no crowd walk yet).
+    """
+
+    site: str
+    version: int
+    source: str
+    created_at: float
+    walks: int = 0
+    coverage: float | None = None
+
+
+@dataclass(frozen=True)
+class Progress:
+    """A running SLAM job's progress, on ``hl/v1/<site>/progress``.
+
+    Attributes
+    ----------
+    site : str
+    stage : str
+        What the job is doing (the server's stage names, at most 32 characters).
+    floor : str
+        The floor being worked on ("" for the whole site), at most 32 characters.
+    done, total : int
+        Units of the stage done so far and in all, 0 <= done <= total.
+    t : float
+        When, Unix time s (the server's clock).
+    """
+
+    site: str
+    stage: str
+    floor: str
+    done: int
+    total: int
+    t: float

@@ -14,9 +14,17 @@ key                                            direction               payload
 ``hl/v1/<site>/<device>/pose``                 client -> anyone (put)   ``hybridloc.pose/1``
 ``hl/v1/<site>/<device>/alive``                liveliness token         (none)
 ``hl/v1/<site>/<device>/locate``               client -> server (get)   ``hybridloc.locate/1`` -> ``fix/1``
+``hl/v1/<site>/<device>/track``                server -> client (put)   ``hybridloc.track/1``
 ``hl/v1/<site>/map``                           client -> server (get)   -> radio map file (npz bytes)
+``hl/v1/<site>/map/version``                   server -> clients (put)  ``hybridloc.map-version/1``
+``hl/v1/<site>/progress``                      server -> anyone (put)   ``hybridloc.progress/1``
 ``hl/v1/status``                               anyone -> server (get)   -> ``hybridloc.status/1``
 =============================================  ======================  ==============================
+
+``track`` carries the crowd SLAM's corrected track of the device's current walk (the newest
+:data:`MAX_TRACK_POINTS` points); ``map/version`` announces each new radio map version of a site (a
+client then fetches it with a get on ``map``: ``hl/v1/*/map`` does not match ``map/version``, one chunk
+more); ``progress`` reports a running SLAM job (stage, floor, done of total).
 
 Batches carry a per-device sequence number starting at 1. The server persists batch ``n`` only when
 ``n - 1`` is persisted (go-back-N): a lower or equal number is a ``duplicate`` (acknowledged again), a
@@ -42,10 +50,22 @@ FIX_SCHEMA = "hybridloc.fix/1"
 POSE_SCHEMA = "hybridloc.pose/1"
 LOCATE_SCHEMA = "hybridloc.locate/1"
 STATUS_SCHEMA = "hybridloc.status/1"
+TRACK_SCHEMA = "hybridloc.track/1"
+MAP_VERSION_SCHEMA = "hybridloc.map-version/1"
+PROGRESS_SCHEMA = "hybridloc.progress/1"
 
 #: Largest accepted batch payload, bytes, and item count per batch.
 MAX_BATCH_BYTES = 256 * 1024
 MAX_BATCH_ITEMS = 2000
+
+#: Largest corrected track on the wire, points: 10,000 is 80 minutes of walking at 2 steps/s plus a
+#: scan every 2 s; the encoder sends the newest points of a longer walk (what re-anchoring uses).
+MAX_TRACK_POINTS = 10_000
+#: Largest accepted track payload, bytes. A point is at most ~200 bytes of JSON (t, x, y: 24
+#: characters each at most; a covariance of three more; its kind; a run of a 32-character floor when
+#: every point changes floor), so MAX_TRACK_POINTS fit in 2 MB; the encoder drops the oldest points
+#: of a payload that would still be larger (floor names of escaped non-ASCII characters).
+MAX_TRACK_BYTES = 4 * 1024 * 1024
 
 _ID = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
@@ -89,11 +109,29 @@ def key_map(site: str) -> str:
     return f"{PREFIX}/{check_id(site, 'site')}/map"
 
 
+def key_track(site: str, device: str) -> str:
+    """The device's corrected track (server put, ``hybridloc.track/1``)."""
+    return f"{PREFIX}/{check_id(site, 'site')}/{check_id(device, 'device')}/track"
+
+
+def key_map_version(site: str) -> str:
+    """New radio map versions of the site (server put, ``hybridloc.map-version/1``)."""
+    return f"{PREFIX}/{check_id(site, 'site')}/map/version"
+
+
+def key_progress(site: str) -> str:
+    """The site's running SLAM job (server put, ``hybridloc.progress/1``)."""
+    return f"{PREFIX}/{check_id(site, 'site')}/progress"
+
+
 KEY_STATUS = f"{PREFIX}/status"
 SUB_BATCHES = f"{PREFIX}/*/*/batch"
 SUB_LOCATE = f"{PREFIX}/*/*/locate"
-SUB_MAPS = f"{PREFIX}/*/map"
+SUB_MAPS = f"{PREFIX}/*/map"  # the map queryable: one chunk short of every map/version key
 SUB_ALIVE = f"{PREFIX}/*/*/alive"
+SUB_TRACKS = f"{PREFIX}/*/*/track"
+SUB_MAP_VERSIONS = f"{PREFIX}/*/map/version"
+SUB_PROGRESS = f"{PREFIX}/*/progress"
 
 
 def parse_key(key: str) -> tuple[str, str, str]:

@@ -10,7 +10,8 @@ Every configuration turns multicast and gossip scouting off and names its endpoi
   of ``user:password`` lines), TLS (``tls/host:port`` endpoints; server certificate and key, client CA),
   and an access-control list generated from the device list: every device may publish and declare
   liveliness only under its own ``hl/v1/*/<device>/**`` keys, query only its own ``locate`` and the
-  site maps, and receive only its own ``ack`` and ``fix``.
+  site maps, and receive only its own ``ack``, ``fix`` and ``track`` and the sites' ``map/version`` and
+  ``progress`` announcements (which it may not put: only the server announces).
 """
 
 from __future__ import annotations
@@ -127,6 +128,22 @@ def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
                 "permission": "allow",
                 "key_exprs": [f"{P.PREFIX}/*/{d}/ack", f"{P.PREFIX}/*/{d}/fix"],
             },
+            # the server's announcements: the device may subscribe (ingress) and be sent puts (egress),
+            # never put them itself, so no device can fake another's track or a site's new map
+            {
+                "id": f"{rid}_listen",
+                "messages": ["declare_subscriber"],
+                "flows": ["ingress"],
+                "permission": "allow",
+                "key_exprs": [f"{P.PREFIX}/*/{d}/track", P.SUB_MAP_VERSIONS, P.SUB_PROGRESS],
+            },
+            {
+                "id": f"{rid}_hear",
+                "messages": ["put"],
+                "flows": ["egress"],
+                "permission": "allow",
+                "key_exprs": [f"{P.PREFIX}/*/{d}/track", P.SUB_MAP_VERSIONS, P.SUB_PROGRESS],
+            },
             {
                 "id": f"{rid}_query",
                 "messages": ["query", "reply"],
@@ -136,5 +153,5 @@ def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
             },
         ]
         subjects.append({"id": sid, "usernames": [d]})
-        policies.append({"rules": [f"{rid}_pub", f"{rid}_sub", f"{rid}_query"], "subjects": [sid]})
+        policies.append({"rules": [f"{rid}_pub", f"{rid}_sub", f"{rid}_listen", f"{rid}_hear", f"{rid}_query"], "subjects": [sid]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
