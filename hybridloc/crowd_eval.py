@@ -208,7 +208,6 @@ class ClientScore:
     wp_xy: np.ndarray
     live: np.ndarray  # per waypoint, m; NaN before the first fix
     corrected: np.ndarray | None = None  # per waypoint, m; NaN where no absolute corrected track covers it
-    received: np.ndarray | None = None  # the corrected track as the client received it, when it records one
     walk_ids: tuple[int, ...] = ()
     slam_status: str = ""  # the walk's SLAM state ("corrected", "relative", "quarantined", "failed", "" none)
     map_version: int | None = None  # the radio map version the server served when the client started
@@ -216,6 +215,8 @@ class ClientScore:
     fixes_accepted: int = 0
     unacked: int = 0  # batches the server had not acknowledged when the client closed
     wall: tuple[float, float] = (0.0, 0.0)  # (start, end) of its replay, time.monotonic()
+    tracks_received: int = 0  # corrected tracks of the crowd SLAM the client heard while it walked
+    tracks_applied: int = 0  # ... and re-anchored its filter with (its live rows after that include them)
 
     @property
     def waypoints(self) -> int:
@@ -491,6 +492,8 @@ def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: 
         fixes_accepted=r.fixes_accepted,
         unacked=max(r.batches - r.acked, 0),
         wall=rep.wall,
+        tracks_received=r.tracks_received,
+        tracks_applied=r.tracks_applied,
     )
 
 
@@ -571,6 +574,10 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         )
         if run.final_wait_ok is False:
             p("  WARNING: the server had not processed every finished walk within the timeout; the corrected figures are of what it had")
+        p(
+            f"  corrected tracks the clients heard while walking: {sum(c.tracks_received for c in C)}, re-anchored their filter: "
+            f"{sum(c.tracks_applied for c in C)} (the live figures above include them)"
+        )
     else:
         p("  corrected: undefined (the server runs no crowd SLAM)")
     sm = run.summary or {}
@@ -600,7 +607,6 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         f"coverage {cov_txt} (goal >= {100 * GOALS['coverage']:.0f} %)"
     )
     nan = float("nan")
-    rec = [c.received for c in C if c.received is not None]
     head = {
         "live_mean_m": live_all["mean"],
         "live_median_m": live_all["median"],
@@ -614,7 +620,6 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "corrected_mean_last_third_m": corr3[2]["mean"] if run.slam_on else nan,
         "live_mean_same_waypoints_m": live_same["mean"] if run.slam_on else nan,
         "corrected_mean_same_waypoints_m": corr_same["mean"] if run.slam_on else nan,
-        "received_mean_m": _stats(_cat(rec))["mean"] if rec else nan,
         "learning_gain": learning,
         "correction_gain": correction if run.slam_on else nan,
         "coverage": cov if cov is not None else nan,
@@ -623,6 +628,8 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "walks_pending": sm.get("walks_pending"),
         "loops_accepted": sm.get("loops_accepted"),
         "clients": len(C),
+        "tracks_received": sum(c.tracks_received for c in C),
+        "tracks_applied": sum(c.tracks_applied for c in C),
         "clients_corrected": n_corr if run.slam_on else None,
         "survey_walks": len(plan.surveys),
         "skipped_walks": len(run.skipped),
