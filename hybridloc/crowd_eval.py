@@ -207,7 +207,8 @@ class ClientScore:
     wp_t: np.ndarray  # the hidden waypoints (the truth stays in the harness; the client never sends them)
     wp_xy: np.ndarray
     live: np.ndarray  # per waypoint, m; NaN before the first fix
-    corrected: np.ndarray | None = None  # per waypoint, m; NaN where no absolute corrected track covers it
+    corrected: np.ndarray | None = None  # per waypoint, m, after the final batch re-solve; NaN where no absolute corrected track covers it
+    incremental: np.ndarray | None = None  # the same before it: the walk added one by one (and the batch runs the crowd triggered)
     walk_ids: tuple[int, ...] = ()
     slam_status: str = ""  # the walk's SLAM state ("corrected", "relative", "quarantined", "failed", "" none)
     map_version: int | None = None  # the radio map version the server served when the client started
@@ -247,7 +248,7 @@ def _gain(x: float, ref: float) -> float:
 
 # ---------------------------------------------------------------------------- the SLAM-dependent part
 class _Slam:
-    """What the evaluation asks of the server's crowd SLAM (``on`` False when the server has none:
+    """What the evaluation asks of the server's crowd SLAM (``on`` False when the server runs none:
     then every corrected figure is undefined and printed as null)."""
 
     def __init__(self, server, site: str, on: bool):
@@ -264,18 +265,47 @@ class _Slam:
         """(walk id -> current corrected track, walk id -> state) of ``walk_ids``."""
         if not self.on:
             return {}, {}
-        ids = list(walk_ids)
-        return self.server.store.slam.tracks(self.site, walk_ids=ids), {
-            k: v for k, v in self.server.store.slam.walk_states(self.site).items() if k in set(ids)
-        }
+        ids = set(walk_ids)
+        states = {k: v for k, v in self.server.store.slam.walk_states(self.site).items() if k in ids}
+        return self.server.store.slam.tracks(self.site, walk_ids=sorted(ids)), states
+
+    def last_batch_run(self) -> int:
+        """Id of the site's newest batch run (0 before any)."""
+        runs = self.server.store.slam.runs(self.site, kind="batch", limit=1) if self.on else []
+        return runs[0].run_id if runs else 0
+
+    def batch(self, timeout: float) -> tuple[bool, str]:
+        """Ask the server for a batch re-solve of every floor (the smoother over all the walks) and wait
+        for a run newer than the newest one before the request to end; (complete?, what happened)."""
+        before = self.last_batch_run()
+        self.server.request_batch(self.site)
+
+        def ended() -> bool:
+            runs = self.server.store.slam.runs(self.site, kind="batch", limit=1)
+            return bool(runs) and runs[0].run_id > before and runs[0].status != "running"
+
+        ok, _ = _wait_until(ended, timeout, poll=0.5)
+        runs = self.server.store.slam.runs(self.site, kind="batch", limit=1)
+        status = runs[0].status if runs and runs[0].run_id > before else "not started"
+        return ok and status == "complete", status if ok else f"{status} (timed out after {timeout:g} s)"
 
 
-def _start_server(endpoint: str, db: str, site: str):
-    """The server, with its crowd SLAM on the site when the server has one; (server, slam)."""
+def _start_server(endpoint: str, db: str, site: str, slam: bool = True):
+    """The server, with its crowd SLAM worker on the site (unless ``slam`` is False: the survey map
+    alone, the control without any learning); (server, :class:`_Slam`)."""
+    import importlib.util
+
     from .server.service import Server
 
-    server = Server(endpoint, db).start()
-    return server, _Slam(server, site, on=False)
+    if not slam or importlib.util.find_spec("hybridloc.server.slam_worker") is None:  # the latter: a server without the worker
+        server = Server(endpoint, db).start()
+        return server, _Slam(server, site, on=False)
+    from .server.slam_worker import SlamOptions
+
+    # the worker's defaults, but its idle pause short: the crowd's time is compressed, and a worker
+    # sleeping a second between walks would pace the replay, not the solves
+    server = Server(endpoint, db, slam_sites=[site], slam_options=SlamOptions(poll_s=0.05)).start()
+    return server, _Slam(server, site, on=True)
 
 
 def _wait_until(cond, timeout: float, poll: float = 0.1) -> tuple[bool, float]:
@@ -337,6 +367,8 @@ class CrowdRun:
     pace_waits: int = 0  # client starts that waited for the server's SLAM
     pace_timeouts: int = 0  # ... and gave up after the timeout
     final_wait_ok: bool | None = None  # every finished walk processed before the corrected scoring
+    final_batch_ok: bool | None = None  # the final batch re-solve completed
+    final_batch: str = ""  # its outcome in words
     concurrency: int = 1
 
 
@@ -350,6 +382,7 @@ def run_crowd(
     speed: float = 0.0,
     wait_timeout: float = 600.0,
     progress: bool = True,
+    slam: bool = True,
 ) -> CrowdRun:
     """Replay the site as a crowd (module docstring) and score every client; returns the run."""
     from . import geo
@@ -375,7 +408,7 @@ def run_crowd(
         Path(str(db) + suffix).unlink(missing_ok=True)
     say = (lambda *a: print(*a, flush=True)) if progress else (lambda *a: None)
     ep = f"tcp/127.0.0.1:{free_port()}"
-    server, slam = _start_server(ep, str(db), plan.site)
+    server, slam = _start_server(ep, str(db), plan.site, slam)
     say(
         f"[eval crowd] server on {ep}, database {db} (crowd SLAM {'on' if slam.on else 'off: corrected figures undefined'}); "
         f"{len(plan.surveys)} surveys, {len(plan.clients)} clients on {', '.join(plan.floors)}"
@@ -461,11 +494,18 @@ def run_crowd(
         # ------------------------------------------------------------------ the server's correction
         t3 = time.monotonic()
         if slam.on:
+            # every finished walk processed (added one by one: the corrections the crowd lived with) ...
             ok, _ = _wait_until(lambda: (slam.summary() or {}).get("walks_pending", 0) == 0, wait_timeout, poll=0.5)
             run.final_wait_ok = ok
-            tracks, states = slam.tracks(wid for c in scores for wid in c.walk_ids)
+            ids = [wid for c in scores for wid in c.walk_ids]
+            tracks, states = slam.tracks(ids)
             for c in scores:
-                _score_corrected(c, tracks, states)
+                c.incremental = _corrected_errors(c, tracks, states)[0]
+            # ... then the server's batch re-solve of every floor: the correction after the crowd
+            run.final_batch_ok, run.final_batch = slam.batch(wait_timeout)
+            tracks, states = slam.tracks(ids)
+            for c in scores:
+                c.corrected, c.slam_status = _corrected_errors(c, tracks, states)
         run.summary = slam.summary()
         loc = server.locators.get(plan.site)
         run.map_version_final = loc[0] if loc else None
@@ -497,13 +537,13 @@ def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: 
     )
 
 
-def _score_corrected(c: ClientScore, tracks: dict, states: dict) -> None:
-    """The client's corrected track(s) at its waypoints; only absolute tracks of corrected walks are
-    positions (a relative track is a shape in its own frame, a quarantined one is kept out of the map)."""
-    st = [states[w].status for w in c.walk_ids if w in states]
-    c.slam_status = st[0] if len(set(st)) == 1 else ",".join(sorted(set(st)))
+def _corrected_errors(c: ClientScore, tracks: dict, states: dict) -> tuple[np.ndarray, str]:
+    """(errors of the client's corrected track(s) at its waypoints, its walk's SLAM status). Only the
+    absolute tracks of corrected walks are positions: a relative track is a shape in its own frame, a
+    quarantined one is kept out of the map; their waypoints are NaN."""
+    st = sorted({states[w].status for w in c.walk_ids if w in states})
     usable = [tracks[w] for w in c.walk_ids if w in tracks and w in states and states[w].status == "corrected" and tracks[w].anchored != "relative"]
-    c.corrected = track_errors(usable, c.wp_t, c.wp_xy) if usable else np.full(c.waypoints, np.nan)
+    return (track_errors(usable, c.wp_t, c.wp_xy) if usable else np.full(c.waypoints, np.nan)), ",".join(st)
 
 
 # ------------------------------------------------------------------------------------------- report
@@ -572,6 +612,12 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
             f"  live vs corrected on the same {live_same['n']} waypoints: live mean {live_same['mean']:.2f} m (median {live_same['median']:.2f}), "
             f"corrected mean {corr_same['mean']:.2f} m (median {corr_same['median']:.2f})"
         )
+        inc = _cat(c.incremental for c in C if c.incremental is not None and c.corrected is not None)
+        inc_same = _stats(inc[both & np.isfinite(inc)] if inc.size == both.size else np.zeros(0))
+        p(
+            f"  (corrected = after the server's final batch re-solve of every floor: {run.final_batch}; before it, the walks as added "
+            f"one by one and the crowd's own batch runs: mean {_stats(inc)['mean']:.2f} m (n={_stats(inc)['n']}), on the same waypoints {inc_same['mean']:.2f} m)"
+        )
         if run.final_wait_ok is False:
             p("  WARNING: the server had not processed every finished walk within the timeout; the corrected figures are of what it had")
         p(
@@ -618,6 +664,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "corrected_mean_first_third_m": corr3[0]["mean"] if run.slam_on else nan,
         "corrected_mean_middle_third_m": corr3[1]["mean"] if run.slam_on else nan,
         "corrected_mean_last_third_m": corr3[2]["mean"] if run.slam_on else nan,
+        "corrected_incremental_mean_m": _stats(_cat(c.incremental for c in C if c.incremental is not None))["mean"] if run.slam_on else nan,
         "live_mean_same_waypoints_m": live_same["mean"] if run.slam_on else nan,
         "corrected_mean_same_waypoints_m": corr_same["mean"] if run.slam_on else nan,
         "learning_gain": learning,
@@ -626,6 +673,8 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "walks_quarantined": sm.get("walks_quarantined"),
         "walks_corrected": sm.get("walks_corrected"),
         "walks_pending": sm.get("walks_pending"),
+        "walks_relative": sm.get("walks_relative"),
+        "final_batch_complete": run.final_batch_ok,
         "loops_accepted": sm.get("loops_accepted"),
         "clients": len(C),
         "tracks_received": sum(c.tracks_received for c in C),
@@ -659,9 +708,10 @@ def run_crowd_eval(
     concurrency: int = 3,
     speed: float = 0.0,
     wait_timeout: float = 600.0,
+    slam: bool = True,
 ) -> dict:
     """``hybridloc eval crowd``: run (:func:`run_crowd`), print the report, return the JSON line's figures."""
-    run = run_crowd(site_dir, survey_fraction, seed, floors, out, concurrency, speed, wait_timeout)
+    run = run_crowd(site_dir, survey_fraction, seed, floors, out, concurrency, speed, wait_timeout, slam=slam)
     head = crowd_report(run)
     head.update(survey_fraction=survey_fraction, seed=seed)
     return head

@@ -395,6 +395,7 @@ def _cmd_eval_crowd(args: argparse.Namespace) -> int:
             concurrency=args.concurrency,
             speed=args.speed,
             wait_timeout=args.wait_timeout,
+            slam=not args.no_slam,
         )
     )
     return 0
@@ -467,5 +468,10 @@ def register(sub) -> None:
     ecr.add_argument("--speed", type=float, default=0.0, help="replay speed K x real time; 0 (default) as fast as the lock-step allows")
     ecr.add_argument(
         "--wait-timeout", type=float, default=600.0, help="longest wait, s, for the server's SLAM to catch up (each time; reported when reached)"
+    )
+    ecr.add_argument(
+        "--no-slam",
+        action="store_true",
+        help="the control: the server without its crowd SLAM, the survey map alone (what the learning curve is without any learning)",
     )
     ecr.set_defaults(func=_cmd_eval_crowd)
