@@ -47,6 +47,7 @@ CASES: dict[str, list[str]] = {
     "eval sim-realism": ["eval", "sim-realism", "--ilc", "{f}"],
     "eval fusion": ["eval", "fusion", "{f}", "--out", "{o}"],
     "eval slam": ["eval", "slam", "{f}", "--workers", "1"],
+    "eval crowd": ["eval", "crowd", "{f}", "--out", "{o}"],
     "floorplan import": ["floorplan", "import", "{f}", "--site", "s", "--db", "{o}/h.db"],
     "floorplan export": ["--config", "{f}", "floorplan", "export", "--site", "s", "--db", "{o}/h.db", "--out", "{o}/p.geojson"],
     "slam run": ["slam", "run", "{f}", "--out", "{o}/slam", "--workers", "1"],

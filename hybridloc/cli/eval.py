@@ -376,6 +376,31 @@ def _cmd_eval_slam(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval_crowd(args: argparse.Namespace) -> int:
+    from ..crowd_eval import run_crowd_eval
+    from ..errors import BadInput
+
+    floors = None
+    if args.floors is not None:
+        floors = [f.strip() for f in args.floors.split(",") if f.strip()]
+        if not floors:
+            raise BadInput(f"--floors expects floor names separated by commas (e.g. F1,F2), got {args.floors!r}")
+    print_headline(
+        run_crowd_eval(
+            args.dir,
+            args.survey_fraction,
+            args.seed,
+            floors,
+            out=Path(args.out),
+            concurrency=args.concurrency,
+            speed=args.speed,
+            wait_timeout=args.wait_timeout,
+            slam=not args.no_slam,
+        )
+    )
+    return 0
+
+
 def register(sub) -> None:
     ev = sub.add_parser("eval", help="evaluation commands that print figures")
     esub = ev.add_subparsers(dest="eval_command", required=True)
@@ -426,3 +451,27 @@ def register(sub) -> None:
     esl.add_argument("--data-fraction", type=float, default=1.0, help="share P of the unmarked crowd walks used (the data-amount curve)")
     esl.add_argument("--workers", type=int, default=2, help="processes reading the walks")
     esl.set_defaults(func=_cmd_eval_slam)
+
+    ecr = esub.add_parser(
+        "crowd",
+        help="the site replayed as a crowd through a real server: surveys first, then every other walk as a phone client in time order; "
+        "live (causal) and corrected errors, the learning curve",
+    )
+    ecr.add_argument("dir", help="Indoor Location Competition site folder, e.g. ../shared/data/msft-ilc/site1")
+    ecr.add_argument(
+        "--survey-fraction", type=float, default=0.1, help="share F of the walks replayed first as surveys with their marks (default 0.1)"
+    )
+    ecr.add_argument("--seed", type=int, default=0, help="seed of the survey draw (default 0)")
+    ecr.add_argument("--floors", metavar="F1,F2", help="floors to evaluate (default all of the site)")
+    ecr.add_argument("--out", default="out/eval-crowd", help="folder of the server database and the clients' spools")
+    ecr.add_argument("--concurrency", type=int, default=3, help="clients replayed at a time, in time order (default 3)")
+    ecr.add_argument("--speed", type=float, default=0.0, help="replay speed K x real time; 0 (default) as fast as the lock-step allows")
+    ecr.add_argument(
+        "--wait-timeout", type=float, default=600.0, help="longest wait, s, for the server's SLAM to catch up (each time; reported when reached)"
+    )
+    ecr.add_argument(
+        "--no-slam",
+        action="store_true",
+        help="the control: the server without its crowd SLAM, the survey map alone (what the learning curve is without any learning)",
+    )
+    ecr.set_defaults(func=_cmd_eval_crowd)

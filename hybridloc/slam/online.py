@@ -419,8 +419,9 @@ class CrowdSlam:
                     prv = np.maximum(nxt - 1, 0)
                     near = np.where(np.abs(tt[prv] - pc.t) <= np.abs(tt[nxt] - pc.t), prv, nxt)
                     h.cov = cv[near].copy()
-                    b = track.scale * math.tan(track.heading_bias)
-                    h.nuisance = np.tile([track.scale, b], (pc.n_segments, 1))
+                    # (a, b) = s (cos beta, sin beta): the track's scale s and bias beta (types.CorrectedTrack)
+                    ab = track.scale * np.array([math.cos(track.heading_bias), math.sin(track.heading_bias)])
+                    h.nuisance = np.tile(ab, (pc.n_segments, 1))
                     h.status, h.frame = track.anchored, frame
             self._floor(pc.floor).put(h)
 
@@ -908,7 +909,8 @@ def corrected_track(walk: Walk, helds: list[_Held], cfg: SlamConfig | None = Non
     if not np.all(np.isfinite(pos)):
         return None, "diverged: non-finite corrected position"
     nu = np.concatenate([h.nuisance for h in helds if h.nuisance is not None])
-    scale = float(np.median(nu[:, 0]))
+    # a D + b D_perp = s R(beta) D: the step-length factor s = |(a, b)|, the bias beta = atan2(b, a)
+    scale = float(np.median(np.hypot(nu[:, 0], nu[:, 1])))
     bias = float(np.median(np.arctan2(nu[:, 1], nu[:, 0])))
     if not (math.isfinite(scale) and math.isfinite(bias)):
         return None, "diverged: non-finite step-length scale or heading bias"

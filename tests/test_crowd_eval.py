@@ -1,0 +1,188 @@
+"""``hybridloc eval crowd`` (issue #21 point 6): the bundled 35-walk sample replayed as a crowd through a
+real server (Zenoh on loopback, SQLite with its migrations), the causal scoring, the survey draw, the
+learning curve's thirds and the command's refusals."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from contextlib import redirect_stdout
+
+import numpy as np
+import pytest
+
+from hybridloc.cli import main
+from hybridloc.crowd_eval import crowd_report, live_errors, plan_crowd, run_crowd, thirds, track_errors
+from hybridloc.samples import ILC_SITE1_F1
+from hybridloc.types import CorrectedTrack
+from hybridloc.wire.protocol import check_id
+
+#: the keys the issue names for the JSON line
+ISSUE_KEYS = ("live_mean_m", "live_mean_first_third_m", "live_mean_last_third_m", "corrected_mean_m", "coverage", "walks_quarantined", "seconds")
+
+
+# ------------------------------------------------------------------------------------- scoring
+def test_live_errors_hold_the_newest_row_and_leave_waypoints_before_the_first_fix_unscored():
+    # rows (t, x, y, floor, ...): the first at t = 10 s (the client's first fix), then one per step
+    poses = [(10.0, 0.0, 0.0, "F1"), (12.0, 3.0, 4.0, "F1"), (12.0, 6.0, 8.0, "F1"), (20.0, 10.0, 0.0, "F1")]
+    wp_t = np.array([0.0, 9.99, 10.0, 11.0, 12.0, 15.0, 25.0])
+    wp_xy = np.zeros((7, 2))
+    e = live_errors(poses, wp_t, wp_xy)
+    # before the first row: not scored; at and after it: the newest row at or before the waypoint
+    # (at equal times the later row: two rows at 12 s, the second is what the phone showed)
+    assert np.isnan(e[:2]).all()
+    np.testing.assert_allclose(e[2:], [0.0, 0.0, 10.0, 10.0, 10.0])
+    assert np.isnan(live_errors([], wp_t, wp_xy)).all() and live_errors(poses, [], np.zeros((0, 2))).size == 0
+
+
+def test_live_errors_take_rows_in_time_order_whatever_their_order_in_the_list():
+    poses = [(5.0, 1.0, 0.0, "F1"), (1.0, 0.0, 2.0, "F1")]
+    np.testing.assert_allclose(live_errors(poses, [2.0, 6.0], np.zeros((2, 2))), [2.0, 1.0])
+
+
+def _track(t, xy, anchored="map"):
+    n = len(t)
+    return CorrectedTrack(1, np.asarray(t, float), np.asarray(xy, float), np.tile(np.eye(2), (n, 1, 1)), ("F1",) * n, ("step",) * n, anchored)
+
+
+def test_track_errors_interpolate_the_corrected_track_and_leave_times_outside_it_unscored():
+    a = _track([0.0, 10.0], [[0.0, 0.0], [10.0, 0.0]])
+    b = _track([20.0, 30.0], [[0.0, 5.0], [0.0, 15.0]])  # the same device's second stored walk
+    e = track_errors([a, b], [5.0, 15.0, 25.0, 40.0], [[5.0, 1.0], [0.0, 0.0], [0.0, 10.0], [0.0, 0.0]])
+    np.testing.assert_allclose(e[[0, 2]], [1.0, 0.0])
+    assert np.isnan(e[[1, 3]]).all()
+    assert np.isnan(track_errors([], [1.0], [[0.0, 0.0]])).all()
+
+
+# ----------------------------------------------------------------------------------- the draw
+def test_the_survey_draw_is_seeded_and_the_clients_are_the_other_walks_in_time_order():
+    from hybridloc.io.msft import find_ilc_traces
+
+    n = len(find_ilc_traces(ILC_SITE1_F1))
+    plan = plan_crowd(ILC_SITE1_F1, 0.2, seed=0)
+    assert len(plan.surveys) == round(0.2 * n) and len(plan.surveys) + len(plan.clients) == n
+    assert {w.path for w in plan.surveys}.isdisjoint(w.path for w in plan.clients)
+    starts = [w.t_start for w in plan.clients]
+    assert starts == sorted(starts) and all(math.isfinite(t) for t in starts)
+    devices = [w.device for w in plan.surveys + plan.clients]
+    assert len(set(devices)) == n and all(check_id(d) == d for d in devices)
+    assert plan.floors == ("F1",) and check_id(plan.site, "site") == plan.site
+    again = plan_crowd(ILC_SITE1_F1, 0.2, seed=0)
+    other = plan_crowd(ILC_SITE1_F1, 0.2, seed=1)
+    assert [w.path for w in again.surveys] == [w.path for w in plan.surveys]
+    assert {w.path for w in other.surveys} != {w.path for w in plan.surveys}
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 7, 28])
+def test_thirds_partition_the_positions_in_order(n):
+    parts = thirds(n)
+    assert len(parts) == 3
+    assert np.concatenate(parts).tolist() == list(range(n))
+    sizes = [len(p) for p in parts]
+    assert max(sizes) - min(sizes) <= 1
+
+
+# ---------------------------------------------------------------------------- refusals
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        (["--survey-fraction", "0"], "--survey-fraction"),
+        (["--survey-fraction", "1"], "--survey-fraction"),
+        (["--survey-fraction", "1.5"], "--survey-fraction"),
+        (["--survey-fraction", "-0.1"], "--survey-fraction"),
+        (["--survey-fraction", "0.001"], "at least one survey"),
+        (["--floors", "F9"], "F9"),
+        (["--floors", ","], "--floors"),
+        (["--concurrency", "0"], "--concurrency"),
+    ],
+)
+def test_bad_options_are_one_line_and_exit_2(extra, needle, tmp_path, capsys):
+    rc = main(["eval", "crowd", str(ILC_SITE1_F1), "--out", str(tmp_path), *extra])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and needle in err[0], err
+
+
+@pytest.mark.parametrize("kind", ["missing", "file", "empty folder"])
+def test_a_site_folder_that_is_not_one_is_one_line_and_exit_2(kind, tmp_path, capsys):
+    site = tmp_path / "site"
+    if kind == "file":
+        site.write_text("not a site\n")
+    elif kind == "empty folder":
+        site.mkdir()
+    rc = main(["eval", "crowd", str(site), "--out", str(tmp_path / "out")])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and str(site) in err[0], err
+
+
+# --------------------------------------------------------------------- the crowd, end to end
+@pytest.fixture(scope="module")
+def crowd(tmp_path_factory):
+    """The bundled sample as a crowd: 7 surveys (F = 0.2), 28 phone clients, 3 at a time, unpaced."""
+    out = tmp_path_factory.mktemp("crowd")
+    return run_crowd(ILC_SITE1_F1, 0.2, seed=0, out=out, concurrency=3, progress=False)
+
+
+def test_every_other_walk_is_a_client_scored_in_time_order(crowd):
+    C = crowd.clients
+    assert len(C) == len(crowd.plan.clients) and not crowd.skipped
+    assert [c.order for c in C] == list(range(len(C)))
+    assert [c.walk for c in C] == list(crowd.plan.clients)
+    # each client is one device, one walk on the server
+    assert all(len(c.walk_ids) == 1 for c in C) and len({c.walk_ids[0] for c in C}) == len(C)
+    assert all(c.unacked == 0 for c in C)
+    assert crowd.map_version_survey == 1 and all(c.map_version == 1 for c in C)
+    # every client heard the server, and its live scoring covers each of its waypoints
+    for c in C:
+        assert c.fixes_received > 0 and c.live.shape == (c.waypoints,)
+        scored = np.isfinite(c.live)
+        assert np.all(c.live[scored] >= 0)
+        # unscored waypoints are exactly a leading run: those before its first fix
+        k = c.unscored
+        assert not scored[:k].any() and scored[k:].all()
+
+
+def test_the_thirds_follow_each_other(crowd):
+    C = crowd.clients
+    first, middle, last = (C[int(p[0]) : int(p[-1]) + 1] for p in thirds(len(C)))
+    # a third starts when the previous one has finished (wall clock of the replays)
+    assert max(c.wall[1] for c in first) <= min(c.wall[0] for c in middle)
+    assert max(c.wall[1] for c in middle) <= min(c.wall[0] for c in last)
+    assert [c.walk.t_start for c in C] == sorted(c.walk.t_start for c in C)
+
+
+def test_the_report_ends_with_the_json_line_of_the_issue(crowd):
+    buf = io.StringIO()
+    head = crowd_report(crowd, out=buf)
+    text = buf.getvalue()
+    for phrase in ("survey walks", "clients", "unscored", "learning curve", "first  third", "last   third", "goals:", "time: surveys"):
+        assert phrase in text, phrase
+    from hybridloc.cli._common import print_headline
+
+    with redirect_stdout(io.StringIO()) as line:
+        print_headline(head)
+    fig = json.loads(line.getvalue().strip().splitlines()[-1])
+    assert set(ISSUE_KEYS) <= set(fig)
+    for k in ("live_mean_m", "live_median_m", "live_mean_first_third_m", "live_mean_middle_third_m", "live_mean_last_third_m", "seconds"):
+        assert isinstance(fig[k], float) and math.isfinite(fig[k]) and fig[k] >= 0, k
+    assert fig["clients"] == len(crowd.clients) and fig["survey_walks"] == len(crowd.plan.surveys)
+    assert fig["unscored_waypoints"] == sum(c.unscored for c in crowd.clients)
+    assert fig["waypoints"] == sum(c.waypoints for c in crowd.clients)
+    if not crowd.slam_on:  # the server runs no crowd SLAM: nothing corrected, null in the JSON
+        assert fig["corrected_mean_m"] is None and fig["coverage"] is None and fig["walks_quarantined"] is None
+    else:
+        assert fig["corrected_mean_m"] is None or math.isfinite(fig["corrected_mean_m"])
+        assert fig["coverage"] is None or 0.0 <= fig["coverage"] <= 1.0
+        assert isinstance(fig["walks_quarantined"], int)
+
+
+def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, capsys):
+    argv = ["eval", "crowd", str(ILC_SITE1_F1), "--survey-fraction", "0.6", "--seed", "3", "--floors", "F1"]
+    rc = main([*argv, "--out", str(tmp_path), "--concurrency", "4"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    fig = json.loads(out.strip().splitlines()[-1])
+    assert set(ISSUE_KEYS) <= set(fig)
+    assert fig["survey_fraction"] == 0.6 and fig["seed"] == 3 and fig["survey_walks"] == 21 and fig["clients"] == 14
+    assert math.isfinite(fig["live_mean_m"])
+    assert (tmp_path / "server.db").is_file()
