@@ -304,6 +304,21 @@ class Rejection(Base):
     __table_args__ = (UniqueConstraint("device_id", "reason"),)
 
 
+def retry_unique(fn, attempts: int = 8):
+    """``fn()`` (one whole transaction) again when it fails on a unique constraint: two writers that both
+    took "the newest radio map version + 1" (a batch run of the SLAM worker and a ``map rebuild``, say)
+    collide on ``radio_map (site_id, version)``; the loser's transaction was rolled back, so running it
+    again takes the next number. Other errors, and the last attempt's, propagate."""
+    from sqlalchemy.exc import IntegrityError
+
+    for k in range(attempts):
+        try:
+            return fn()
+        except IntegrityError:
+            if k == attempts - 1:
+                raise
+
+
 def make_engine(url: str) -> Engine:
     """An engine for a SQLite file path / URL (WAL, foreign keys, busy timeout) or any SQLAlchemy URL."""
     if "://" not in url:

@@ -277,6 +277,9 @@ class SlamStore:
 
     def begin_run(self, site: str, floors: Sequence[str] | None = None, stats: dict | None = None) -> int:
         """A new batch run of ``floors`` (None: all) in state "running"; returns its id."""
+        return m.retry_unique(lambda: self._begin_run(site, floors, stats))  # the site's row may be created beside us
+
+    def _begin_run(self, site: str, floors: Sequence[str] | None, stats: dict | None) -> int:
         with Session(self.engine) as s, s.begin():
             if s.get(m.Site, site) is None:
                 s.add(m.Site(id=site, name=site))
@@ -296,6 +299,9 @@ class SlamStore:
         lease is live (``is_stale(lease)`` False) refuses the claim (:class:`SlamBusy`); a stale one -
         killed midway - is resumed when it solves the same ``floors`` (None: all), else ended as failed
         (superseded); without one a new run begins."""
+        return m.retry_unique(lambda: self._claim_batch(site, floors, lease, is_stale))  # the site's row may be created beside us
+
+    def _claim_batch(self, site: str, floors: Sequence[str] | None, lease: dict, is_stale: Callable[[dict], bool]) -> tuple[int, bool, dict | None]:
         with Session(self.engine) as s, s.begin():
             if s.get(m.Site, site) is None:
                 s.add(m.Site(id=site, name=site))
@@ -383,7 +389,10 @@ class SlamStore:
         self, run_id: int, map_data: bytes | None = None, n_scans: int = 0, provenance: dict | None = None, stats: dict | None = None
     ) -> int | None:
         """Complete a batch run atomically (module docstring); returns the new radio map version (None when
-        no map was given)."""
+        no map was given). Safe beside another writer of map versions (:func:`~.db.retry_unique`)."""
+        return m.retry_unique(lambda: self._finish_run(run_id, map_data, n_scans, provenance, stats))
+
+    def _finish_run(self, run_id: int, map_data: bytes | None, n_scans: int, provenance: dict | None, stats: dict | None) -> int | None:
         with Session(self.engine) as s, s.begin():
             run = s.get(m.SlamRun, run_id)
             if run is None or run.status != RUNNING:

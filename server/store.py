@@ -449,7 +449,11 @@ class Store:
     # -------------------------------------------------------------- radio maps
     def save_map(self, site: str, data: bytes, n_scans: int = 0, source: str = "import", provenance: dict | None = None) -> int:
         """Store ``data`` as the site's next radio map version; ``source`` "import" / "survey" / "slam", and
-        what built it (``provenance``: walk ids, survey walks, marks)."""
+        what built it (``provenance``: walk ids, survey walks, marks). Safe beside another writer of map
+        versions (:func:`~.db.retry_unique`)."""
+        return m.retry_unique(lambda: self._save_map(site, data, n_scans, source, provenance))
+
+    def _save_map(self, site: str, data: bytes, n_scans: int, source: str, provenance: dict | None) -> int:
         with Session(self.engine) as s, s.begin():
             if s.get(m.Site, site) is None:
                 s.add(m.Site(id=site, name=site))

@@ -145,3 +145,39 @@ def test_slam_show_from_the_database(st, tmp_path, capsys):
     assert main(["slam", "show", "--db", db, "--site", "s1", "--floor", "F9", "--out", str(png)]) == 2
     assert main(["slam", "show", "--db", db, "--site", "nowhere", "--floor", "F1", "--out", str(png)]) == 2
     assert main(["slam", "show", "--db", db, "--floor", "F1", "--out", str(png)]) == 2
+
+
+def test_map_versions_from_concurrent_writers_never_collide(tmp_path):
+    """A batch run of the SLAM worker and a ``map rebuild`` both take "newest version + 1": on one
+    SQLite file from two connections at once, every map is stored, under distinct versions 1..n."""
+    import threading
+
+    stores = [Store(str(tmp_path / "race.db")) for _ in range(2)]
+    errors: list[BaseException] = []
+    got: list[int] = []
+    lock = threading.Lock()
+    barrier = threading.Barrier(2)
+
+    def writer(st: Store, k: int) -> None:
+        try:
+            barrier.wait()
+            for i in range(15):
+                if k == 0:
+                    v = st.save_map("s1", b"survey %d" % i, 1, source="survey")
+                else:
+                    run = st.slam.begin_run("s1")
+                    v = st.slam.finish_run(run, map_data=b"slam %d" % i, n_scans=1)
+                with lock:
+                    got.append(int(v))
+        except BaseException as exc:  # noqa: BLE001 - reported by the assertion below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=writer, args=(st, k)) for k, st in enumerate(stores)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(120)
+    for st in stores:
+        st.close()
+    assert not errors, errors
+    assert sorted(got) == list(range(1, 31))
