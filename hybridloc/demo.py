@@ -20,6 +20,7 @@ import dataclasses
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -53,18 +54,59 @@ def _pdr_only_errors(steps, wp_t, wp_xy) -> np.ndarray:
     return oracle_start_errors(_pdr_track_at(steps, wp_t), wp_xy)
 
 
+@dataclass
+class CrowdOutcome:
+    """What the server's crowd SLAM made of a pipeline's walks (:func:`run_platform` with ``slam``)."""
+
+    tracks: dict  # phone device -> its walk's current corrected track (absolute ones only; none when relative or quarantined)
+    states: dict  # phone device -> its walk's SLAM state ("corrected", "relative", "quarantined", "failed", "" none)
+    summary: dict  # the site's SLAM summary (:meth:`~hybridloc.server.slam_store.SlamStore.summary`)
+    batch: str  # the outcome of the final batch re-solve, in words
+    batch_ok: bool
+    maps: list  # [(version, source, RadioMap)] of every map version the site got, oldest first
+    crowd_walks: frozenset = frozenset()  # the phone clients' walk ids, as the labels' ``source`` names them
+
+
+@dataclass
+class PlatformRun:
+    results: list  # [(trace, AgentResult)] of the phone clients, by device
+    crowd: CrowdOutcome | None  # None when the server ran no crowd SLAM
+
+
 def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: int = 4, progress: bool = True, corridor_axes: dict | None = None):
-    """Server + survey clients + map rebuild + phone clients, all real (Zenoh on loopback, SQLite).
-    ``corridor_axes`` (floor -> grid direction, :func:`hybridloc.geo.corridor_axes`) go to the phones' Kalman filters.
+    """Server + survey clients + map rebuild + phone clients, all real (Zenoh on loopback, SQLite), the
+    server without its crowd SLAM (:func:`run_platform` for the one with it). ``corridor_axes`` (floor ->
+    grid direction, :func:`hybridloc.geo.corridor_axes`) go to the phones' Kalman filters.
 
     Returns [(trace, AgentResult)] of the phone clients.
     """
+    return run_platform(survey, others, out, speed, workers, progress, corridor_axes).results
+
+
+def run_platform(
+    survey: list,
+    others: list,
+    out: Path,
+    speed: float,
+    workers: int = 4,
+    progress: bool = True,
+    corridor_axes: dict | None = None,
+    plan=None,
+    slam: bool = False,
+    wait_timeout: float = 300.0,
+) -> PlatformRun:
+    """:func:`run_pipeline`, and with ``slam`` the server's crowd SLAM worker on the site as ``hybridloc
+    serve`` runs it: the floor plan ``plan`` stored first (what ``floorplan import`` does), every walk
+    added to the graph when it ends (the surveys with their marks, the phone clients without), the
+    clients hearing their walks' provisional corrections and new map versions while they walk; after
+    the clients, a batch re-solve of every floor on demand (what ``slam rebuild`` does), whose corrected
+    tracks and crowd map the returned :class:`CrowdOutcome` holds."""
     import shutil
 
     from .clients.agent import Agent, PoseWriter, open_client, replay_phone
+    from .crowd_eval import _start_server, _wait_until
     from .fusion import LocalFusion
     from .server.rebuild import rebuild
-    from .server.service import Server
     from .wire.zconfig import free_port
 
     out.mkdir(parents=True, exist_ok=True)
@@ -78,9 +120,17 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
         Path(str(db) + suffix).unlink(missing_ok=True)
     ep = f"tcp/127.0.0.1:{free_port()}"
     say = print if progress else (lambda *a, **k: None)
-    say(f"[pipeline] server on {ep}, database {db}; {len(survey)} survey traces, {len(others)} phone clients", flush=True)
-    server = Server(ep, str(db)).start()
+    say(
+        f"[pipeline] server on {ep}, database {db}{', crowd SLAM on' if slam else ''}; {len(survey)} survey traces, {len(others)} phone clients",
+        flush=True,
+    )
+    if slam and plan is None:
+        raise ValueError("run_platform: the crowd SLAM needs the site's floor plan")
+    server, crowd_slam = _start_server(ep, str(db), site, slam)
+    crowd = None
     try:
+        if slam:
+            server.store.save_floor_plan(site, plan)  # the operator's `floorplan import`
 
         def run_agent(path, kind, spd):
             tr = read_ilc_trace(path)
@@ -119,6 +169,9 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
             raise ComputationFailed("no radio map could be built from the surveys")
         server.load_map(site)
         say(f"[pipeline] radio map version {v} rebuilt from {n_lab} labelled scans of the stored surveys", flush=True)
+        if crowd_slam.on:  # the surveys are in the graph before the phones walk (as a live server would have them)
+            ids = {w.walk_id for w in server.store.walks(site, ended_only=True)}
+            _wait_until(lambda: ids <= crowd_slam.processed(), wait_timeout)
         results = []
         bar = Progress(f"[pipeline] phone clients (replayed at {speed:g}x) finished", len(others), sys.stdout) if progress else None
         with cf.ThreadPoolExecutor(workers) as ex:
@@ -127,9 +180,47 @@ def run_pipeline(survey: list, others: list, out: Path, speed: float, workers: i
                 results.append(f.result())
                 if bar:
                     bar.update(i)
+        results.sort(key=lambda x: x[1].device)
+        if crowd_slam.on:
+            crowd = _crowd_outcome(server, crowd_slam, site, [r.device for _, r in results], wait_timeout, say)
     finally:
         server.stop()
-    return sorted(results, key=lambda x: x[1].device)
+    return PlatformRun(results, crowd)
+
+
+def _crowd_outcome(server, crowd_slam, site: str, devices: list[str], timeout: float, say) -> CrowdOutcome:
+    """After the clients: every ended walk processed, then a batch re-solve of every floor; the phone
+    walks' corrected tracks and every map version of the site."""
+    import io
+
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from .crowd_eval import _wait_until
+    from .radio.radiomap import RadioMap
+    from .server import db as m
+
+    _wait_until(lambda: (crowd_slam.summary() or {}).get("walks_pending", 0) == 0, timeout, poll=0.2)
+    say("[pipeline] every walk added to the crowd graph; batch re-solve of every floor ...", flush=True)
+    ok, what = crowd_slam.batch(timeout)
+    walk_of = {w.walk_id: w.device for d in devices for w in server.store.walks(site, device=d)}
+    tracks, states = crowd_slam.tracks(list(walk_of))
+    by_dev: dict = {}
+    state_of: dict = {}
+    for wid, dev in sorted(walk_of.items()):  # a device's newest walk last
+        st = states.get(wid)
+        state_of[dev] = st.status if st is not None else ""
+        tr = tracks.get(wid)
+        if st is not None and st.status == "corrected" and tr is not None and tr.anchored != "relative":
+            by_dev[dev] = tr
+    with Session(server.store.engine) as s:
+        rows = s.execute(
+            select(m.RadioMapVersion.version, m.RadioMapVersion.source, m.RadioMapVersion.data)
+            .where(m.RadioMapVersion.site_id == site)
+            .order_by(m.RadioMapVersion.version)
+        ).all()
+    maps = [(int(v), str(src), RadioMap.load(io.BytesIO(data))) for v, src, data in rows]
+    return CrowdOutcome(by_dev, state_of, crowd_slam.summary() or {}, what, ok, maps, frozenset(str(w) for w in walk_of))
 
 
 def bundled_split(sample: Path = ILC_SITE1_F1):
@@ -142,7 +233,7 @@ def bundled_split(sample: Path = ILC_SITE1_F1):
     return [t for t in traces if t not in others], others, read_ilc_site(sample)
 
 
-def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4, sample: Path = ILC_SITE1_F1) -> int:
+def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4, sample: Path = ILC_SITE1_F1, slam: bool = True) -> int:
     t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     if sim:
@@ -158,11 +249,16 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
     else:
         survey, others, plan = bundled_split(sample)
     axes = geo.corridor_axes(plan)
-    results = run_pipeline(survey, others, out, speed, workers, corridor_axes=axes)
+    run = run_platform(survey, others, out, speed, workers, corridor_axes=axes, plan=plan, slam=slam)
+    results, crowd = run.results, run.crowd
     from .fusion import LocalFusion
 
     all_pdr, all_fused, all_known = [], [], []
-    print(f"{'client':<22} {'waypoints':>9} {'PDR alone':>10} {'fused':>7} {'fused, start known':>18} {'fixes used':>11} {'own GPS/RFID used':>18}")
+    live_same, corr_same = [], []  # fused live and corrected, on the waypoints both answer
+    corr_head = f" {'corrected':>10}" if crowd is not None else ""
+    print(
+        f"{'client':<22} {'waypoints':>9} {'PDR alone':>10} {'fused':>7}{corr_head} {'fused, start known':>18} {'fixes used':>11} {'own GPS/RFID used':>18}"
+    )
     for tr, r in results:
         wt, wxy = tr.waypoints.t, tr.waypoints.pos_enu
         e_p = _pdr_only_errors(r.step_events, wt, wxy)
@@ -175,8 +271,16 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         all_known += e_k.tolist()
         own = f"{r.local_accepted}/{r.local_fixes} (+{r.displacements} diff.)" if r.local_fixes else "-"
         mean = lambda e: float(np.nanmean(e)) if np.isfinite(e).any() else float("nan")  # noqa: E731
+        corr = ""
+        if crowd is not None:
+            # the corrected (smoothed) track at the same waypoints as the live score: after the first
+            e_c = _corrected_at(crowd.tracks.get(r.device), wt, wxy)
+            both = np.isfinite(e_c) & np.isfinite(e_f)
+            live_same += e_f[both].tolist()
+            corr_same += e_c[both].tolist()
+            corr = f" {mean(e_c):9.2f}m" if np.isfinite(e_c).any() else f" {crowd.states.get(r.device) or 'none':>10}"
         print(
-            f"{r.device[:22]:<22} {len(wt) - 1:9d} {mean(e_p):9.2f}m {mean(e_f):6.2f}m {mean(e_k):17.2f}m "
+            f"{r.device[:22]:<22} {len(wt) - 1:9d} {mean(e_p):9.2f}m {mean(e_f):6.2f}m{corr} {mean(e_k):17.2f}m "
             f"{r.fixes_accepted:5d}/{r.fixes_received:<5d} {own:>18}"
         )
     sp, sf, sk = summarize_errors(all_pdr), summarize_errors(all_fused), summarize_errors(all_known)
@@ -184,9 +288,71 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}; started at the true pose), fused mean "
         f"{sf.mean:.2f} m (p75 {sf.p75:.2f}; started by the fixes), fused from PDR alone's start pose mean {sk.mean:.2f} m (p75 {sk.p75:.2f})"
     )
-    _write_outputs(out, plan, results)
+    if crowd is not None:
+        _crowd_lines(plan, results, crowd, live_same, corr_same)
+    _write_outputs(out, plan, results, crowd)
     print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
     return 0
+
+
+#: radius of a radio-map label's reach in the demo's coverage figure, m: the bundled sample was chosen
+#: by 4 m cells of walked path (hybridloc/data/ilc_site1_F1/README.md), and a kNN fix from labels
+#: farther than this is an extrapolation
+COVERAGE_RADIUS_M = 4.0
+
+
+def _corrected_at(track, wp_t, wp_xy) -> np.ndarray:
+    """A corrected track's error at each waypoint after the first (the waypoints the live score uses);
+    NaN where it has no position (no track, or outside its span)."""
+    from .crowd_eval import track_errors
+
+    n = max(len(wp_t) - 1, 0)
+    if track is None or n == 0:
+        return np.full(n, np.nan)
+    return track_errors([track], np.asarray(wp_t, float)[1:], np.asarray(wp_xy, float).reshape(-1, 2)[1:])
+
+
+def map_coverage(plan, rmap, radius_m: float = COVERAGE_RADIUS_M) -> float:
+    """Share of the site's walkable area (every floor of ``plan``) within ``radius_m`` of one of the radio
+    map's labelled scans on that floor (:func:`hybridloc.metrics.walkable_coverage`, area-weighted)."""
+    from .metrics import walkable_coverage
+
+    num = den = 0.0
+    for fl in plan.floors:
+        area = fl.walkable.area if fl.walkable is not None else 0.0
+        if not area > 0:
+            continue
+        xy = [ls.pos_enu for ls in rmap.references if ls.floor == fl.name]
+        num += area * walkable_coverage(fl.walkable, np.asarray(xy, float).reshape(-1, 2), radius_m)
+        den += area
+    return num / den if den else float("nan")
+
+
+def _crowd_lines(plan, results, crowd: CrowdOutcome, live_same: list, corr_same: list) -> None:
+    """The demo's crowd-SLAM report: live versus corrected, what the crowd added to the map."""
+    sm = crowd.summary
+    n_corr = sum(r.device in crowd.tracks for _, r in results)
+    lv, co = summarize_errors(live_same), summarize_errors(corr_same)
+    gain = 100.0 * (1.0 - co.mean / lv.mean) if lv.n and lv.mean > 0 else float("nan")
+    heard = sum(r.tracks_received for _, r in results)
+    applied = sum(r.tracks_applied for _, r in results)
+    print(
+        f"crowd SLAM on the server: {n_corr} of {len(results)} clients' walks corrected (batch re-solve of every floor: {crowd.batch}); "
+        f"on the {co.n} waypoints both answer: fused live mean {lv.mean:.2f} m (p75 {lv.p75:.2f}), corrected mean {co.mean:.2f} m "
+        f"(p75 {co.p75:.2f}), {abs(gain):.0f} % {'below' if gain >= 0 else 'ABOVE'} live; the clients heard {heard} provisional "
+        f"corrections while walking and re-anchored their filters with {applied}"
+    )
+    if crowd.maps:
+        v0, src0, m0 = crowd.maps[0]
+        v1, src1, m1 = crowd.maps[-1]
+        c0, c1 = map_coverage(plan, m0), map_coverage(plan, m1)
+        cov = sm.get("coverage")
+        print(
+            f"coverage the crowd added: walkable area within {COVERAGE_RADIUS_M:g} m of a radio-map label {100 * c0:.1f} % "
+            f"(map v{v0}, {src0}, {len(m0.references)} labelled scans) -> {100 * c1:.1f} % (map v{v1}, {src1}, {len(m1.references)} "
+            f"labelled scans); {'-' if cov is None else f'{100 * cov:.0f} %'} of the crowd walks' scans have an absolute corrected position; "
+            f"loops accepted {sm.get('loops_accepted', '-')}, rejected {sm.get('loops_rejected', '-')}, walks quarantined {sm.get('walks_quarantined', '-')}"
+        )
 
 
 def _true_motion_average_errors(fixes, wp_t, wp_xy, window_s: float) -> np.ndarray:
@@ -449,8 +615,9 @@ def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:
     return {str(p) for p, g in zip(traces, groups) if g in walked and str(p) not in surveyed}
 
 
-def _write_outputs(out: Path, plan, results) -> None:
-    """``demo.png`` (:func:`plot_demo`) and ``demo.geojson`` (:func:`demo_features`)."""
+def _write_outputs(out: Path, plan, results, crowd: CrowdOutcome | None = None) -> None:
+    """``demo.png`` (:func:`plot_demo`, and with the crowd SLAM :func:`plot_coverage` beside it) and
+    ``demo.geojson`` (:func:`demo_features`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -458,25 +625,34 @@ def _write_outputs(out: Path, plan, results) -> None:
 
     from .io.writers import write_geojson
 
-    fig, ax = plt.subplots(figsize=(11, 8))
-    plot_demo(ax, plan, results)
+    if crowd is None:
+        fig, ax = plt.subplots(figsize=(11, 8))
+        plot_demo(ax, plan, results)
+    else:
+        fig, (ax, ax2) = plt.subplots(1, 2, figsize=(20, 8))
+        plot_demo(ax, plan, results, crowd)
+        plot_coverage(ax2, plan, crowd)
     fig.tight_layout()
     fig.savefig(out / "demo.png", dpi=90)
     plt.close(fig)
-    write_geojson(out / "demo.geojson", demo_features(plan, results))
+    write_geojson(out / "demo.geojson", demo_features(plan, results, crowd))
 
 
-def plot_demo(ax, plan, results) -> None:
-    """The demo's figure into ``ax``: the first floor's outline and rooms, each client's true waypoints
-    (dashed) and fused track (solid), and a 95 % disc at its last fix."""
-    from matplotlib import colormaps
-    from matplotlib.patches import Circle
-
-    fl = plan.floors[0]
+def _draw_floor(ax, fl) -> None:
     for poly in fl.outline.geoms:
         ax.plot(*poly.exterior.xy, color="0.3", lw=1)
     for _, room in fl.rooms:
         ax.fill(*room.exterior.xy, color="0.9", ec="0.75", lw=0.5)
+
+
+def plot_demo(ax, plan, results, crowd: CrowdOutcome | None = None) -> None:
+    """The demo's figure into ``ax``: the first floor's outline and rooms, each client's true waypoints
+    (dashed), fused live track (solid) and, with the crowd SLAM, its corrected track (dash-dot), and a
+    95 % disc at its last fix."""
+    from matplotlib import colormaps
+    from matplotlib.patches import Circle
+
+    _draw_floor(ax, plan.floors[0])
     colors = colormaps["tab10"].colors
     for i, (tr, r) in enumerate(results):
         c = colors[i % len(colors)]
@@ -484,20 +660,67 @@ def plot_demo(ax, plan, results) -> None:
         ax.plot(wp[:, 0], wp[:, 1], "o--", color=c, ms=4, lw=0.8, alpha=0.6)
         if r.poses:
             xy = np.array([[p[1], p[2]] for p in r.poses])
-            ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=r.device)
+            ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=f"{r.device} live")
             # a containment-style disc of 2 sigma at the last fix, for the eye
             last = r.poses[-1]
             ax.add_patch(Circle((last[1], last[2]), 2.45 * max(last[4], last[5]), color=c, alpha=0.15))
+        ct = crowd.tracks.get(r.device) if crowd is not None else None
+        if ct is not None:
+            ax.plot(ct.pos_enu[:, 0], ct.pos_enu[:, 1], "-.", color=c, lw=1.4, alpha=0.9, label=f"{r.device} corrected")
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title("hybridloc demo: fused tracks (solid), true waypoints (dashed), 95 % regions at the last fix")
+    what = "fused live tracks (solid), corrected by the crowd SLAM (dash-dot)" if crowd is not None else "fused tracks (solid)"
+    ax.set_title(f"hybridloc demo: {what}, true waypoints (dashed), 95 % regions at the last fix", fontsize=9)
     ax.legend(fontsize=7, loc="upper right")
 
 
-def demo_features(plan, results) -> list[dict]:
+def plot_coverage(ax, plan, crowd: CrowdOutcome, radius_m: float = COVERAGE_RADIUS_M) -> None:
+    """The coverage panel: the first floor's walkable area within ``radius_m`` of the survey map's labels
+    (grey) and of the labels the crowd added in the newest map (green), the labels as dots."""
+    import shapely
+
+    fl = plan.floors[0]
+    _draw_floor(ax, fl)
+    v0, _, m0 = crowd.maps[0]
+    v1, src1, m1 = crowd.maps[-1]
+    p0 = np.array([ls.pos_enu for ls in m0.references if ls.floor == fl.name], float).reshape(-1, 2)
+    # the crowd's labels in the newest map: its scans of the phone clients' walks (the map's survey
+    # walks are labelled there too, from their corrected tracks: the grey area is the survey map's own)
+    p1 = np.array([ls.pos_enu for ls in m1.references if ls.floor == fl.name and ls.source in crowd.crowd_walks], float).reshape(-1, 2)
+
+    def reach(p):
+        if not len(p) or fl.walkable is None or fl.walkable.is_empty:
+            return None
+        return fl.walkable.intersection(shapely.union_all(shapely.buffer(shapely.points(p), radius_m, quad_segs=16)))
+
+    def fill(geom, color, label):
+        if geom is None or geom.is_empty:
+            return
+        polys = getattr(geom, "geoms", [geom])
+        for k, g in enumerate(polys):
+            if g.geom_type == "Polygon":
+                ax.fill(*g.exterior.xy, color=color, alpha=0.45, lw=0, label=label if k == 0 else None)
+
+    r0 = reach(p0)
+    r1 = reach(np.vstack([p0, p1]))
+    fill(r1.difference(r0) if r1 is not None and r0 is not None else r1, "tab:green", f"added by the crowd (map v{v1}, {src1})")
+    fill(r0, "0.55", f"survey map v{v0}")
+    if len(p0):
+        ax.plot(p0[:, 0], p0[:, 1], ".", color="0.25", ms=2)
+    if len(p1):
+        ax.plot(p1[:, 0], p1[:, 1], ".", color="darkgreen", ms=2)
+    c0, c1 = map_coverage(plan, m0, radius_m), map_coverage(plan, m1, radius_m)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_title(f"walkable area within {radius_m:g} m of a radio-map label: survey {100 * c0:.0f} %, with the crowd {100 * c1:.0f} %", fontsize=9)
+    ax.legend(fontsize=7, loc="upper right")
+
+
+def demo_features(plan, results, crowd: CrowdOutcome | None = None) -> list[dict]:
     """GeoJSON features of the demo: the floor plan, each client's fused track (time-ordered, one
-    point per time) and its true waypoints."""
+    point per time), its corrected track (kind "corrected_track", with the crowd SLAM) and its true
+    waypoints."""
     from .io.writers import floorplan_features, point_features
 
     feats = floorplan_features(plan)
@@ -512,6 +735,15 @@ def demo_features(plan, results) -> list[dict]:
                     "type": "Feature",
                     "geometry": {"type": "LineString", "coordinates": xy[order][idx].round(3).tolist()},
                     "properties": {"kind": "track", "device": r.device},
+                }
+            )
+        ct = crowd.tracks.get(r.device) if crowd is not None else None
+        if ct is not None and len(ct.t) >= 2:
+            feats.append(
+                {
+                    "type": "Feature",
+                    "geometry": {"type": "LineString", "coordinates": ct.pos_enu.round(3).tolist()},
+                    "properties": {"kind": "corrected_track", "device": r.device, "anchored": ct.anchored, "scale": round(float(ct.scale), 4)},
                 }
             )
         feats += point_features(tr.waypoints.t, tr.waypoints.pos_enu, kind="true_waypoint", trace=Path(tr.path).name)

@@ -244,3 +244,23 @@ def causal_errors(poses, wp_t, wp_xy) -> np.ndarray:
         xy = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]])
         out[ok] = np.linalg.norm(xy - np.asarray(wp_xy[1:])[ok], axis=1)
     return out
+
+
+# ------------------------------------------------------------------ radio-map coverage
+def walkable_coverage(walkable, xy, radius_m: float) -> float:
+    """Share of a floor's walkable area within ``radius_m`` of any of the points ``xy`` (m, 2) (a radio
+    map's labelled scans, say): area(walkable ∩ ∪ disc(p, r)) / area(walkable), in [0, 1]; NaN when the
+    walkable area is empty. The discs are buffered polygons (64 segments per circle: the area of each
+    within 0.2 % of pi r^2)."""
+    import shapely
+
+    if not (math.isfinite(radius_m) and radius_m > 0):
+        raise ValueError(f"walkable_coverage: radius must be positive, got {radius_m}")
+    if walkable is None or walkable.is_empty or not walkable.area > 0:
+        return float("nan")
+    p = np.asarray(xy, float).reshape(-1, 2)
+    p = p[np.isfinite(p).all(axis=1)]
+    if not len(p):
+        return 0.0
+    discs = shapely.union_all(shapely.buffer(shapely.points(p), radius_m, quad_segs=16))
+    return float(min(1.0, walkable.intersection(discs).area / walkable.area))

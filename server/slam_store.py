@@ -487,6 +487,11 @@ class SlamStore:
         with Session(self.engine) as s:
             return set(s.execute(select(m.SlamFloorDone.floor).where(m.SlamFloorDone.run_id == run_id)).scalars())
 
+    def processed_walks(self, site: str) -> set[int]:
+        """Ids of the site's walks that have a SLAM state (whatever it is): one column, cheap to poll."""
+        with Session(self.engine) as s:
+            return {int(w) for w in s.execute(select(m.WalkSlam.walk_id).where(m.WalkSlam.site_id == site)).scalars()}
+
     def walk_states(self, site: str) -> dict[int, WalkState]:
         with Session(self.engine) as s:
             return {
@@ -587,6 +592,34 @@ class SlamStore:
                 )
         return out
 
+    def loop_counts(self, site: str) -> tuple[int, int]:
+        """(accepted, rejected) loops of the current audit (the rows :meth:`loops` returns), counted in
+        the database: a site's audit grows to tens of thousands of rows, and the summary answers every
+        status query."""
+        with Session(self.engine) as s:
+            kind = dict(s.execute(select(m.SlamRun.id, m.SlamRun.kind).where(m.SlamRun.site_id == site, m.SlamRun.status == COMPLETE)).all())
+            latest_batch: dict[str, int] = {}
+            batch_ids = [rid for rid, k in kind.items() if k == "batch"]
+            if batch_ids:
+                q = select(m.SlamFloorDone.floor, func.max(m.SlamFloorDone.run_id)).where(m.SlamFloorDone.run_id.in_(batch_ids))
+                latest_batch = {str(f): int(r) for f, r in s.execute(q.group_by(m.SlamFloorDone.floor)).all()}
+            q = (
+                select(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted, func.count())
+                .where(m.LoopClosure.site_id == site)
+                .group_by(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted)
+            )
+            acc = rej = 0
+            for rid, floor, accepted, n in s.execute(q).all():
+                if rid not in kind:
+                    continue  # a running or failed run's
+                base = latest_batch.get(floor, 0)
+                if (kind[rid] == "batch" and rid == base) or (kind[rid] == "walk" and rid > base):
+                    if accepted:
+                        acc += int(n)
+                    else:
+                        rej += int(n)
+        return acc, rej
+
     def summary(self, site: str) -> dict:
         """Per-site SLAM figures (what ``hybridloc status`` shows): walks by state, pending walks, loops
         accepted and rejected, coverage (share of the scans of walks without survey marks that have an
@@ -616,7 +649,7 @@ class SlamStore:
                 select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.kind == "batch").order_by(m.SlamRun.id.desc()).limit(1)
             ).scalar_one_or_none()
             last_info = self._run_info(s, last_batch) if last_batch is not None else None
-        loops = self.loops(site)
+        loops_accepted, loops_rejected = self.loop_counts(site)
         seen = sum(by.values())
         return {
             "walks_ended": int(ended),
@@ -625,8 +658,8 @@ class SlamStore:
             "walks_quarantined": int(by.get(QUARANTINED, 0)),
             "walks_failed": int(by.get(FAILED, 0)),
             "walks_pending": int(ended) - int(seen),
-            "loops_accepted": sum(lp.accepted for lp in loops),
-            "loops_rejected": sum(not lp.accepted for lp in loops),
+            "loops_accepted": loops_accepted,
+            "loops_rejected": loops_rejected,
             "coverage": (float(covered) / float(crowd)) if crowd else None,
             "map_version": int(newest[0]) if newest else None,
             "map_source": str(newest[1]) if newest else None,

@@ -1,6 +1,7 @@
 """`hybridloc demo` end to end: server, surveys, map rebuild, phone clients, scores, PNG and GeoJSON."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -11,11 +12,18 @@ def test_demo_runs_end_to_end(tmp_path):
     r = subprocess.run([sys.executable, "-m", "hybridloc.cli", "demo", "--out", str(tmp_path)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     assert "overall at" in r.stdout and "PDR alone mean" in r.stdout and "fused mean" in r.stdout
+    # the server's crowd SLAM: live against corrected, and the coverage the crowd added (two shares)
+    assert "crowd SLAM on the server" in r.stdout and "corrected mean" in r.stdout, r.stdout[-3000:]
+    cov = re.search(r"radio-map label ([0-9.]+) % \(map v1, survey.*-> ([0-9.]+) % \(map v(\d+)", r.stdout)
+    assert cov, r.stdout[-3000:]
+    assert 0.0 < float(cov[1]) <= 100.0 and 0.0 < float(cov[2]) <= 100.0
     assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
     fc = json.loads((tmp_path / "demo.geojson").read_text())
     kinds = {f["properties"].get("kind") for f in fc["features"]}
     assert {"track", "true_waypoint", "floor"} <= kinds
     assert list((tmp_path / "poses").glob("*.csv"))
+    n_corr = int(re.search(r"(\d+) of \d+ clients' walks corrected", r.stdout)[1])
+    assert sum(f["properties"].get("kind") == "corrected_track" for f in fc["features"]) == n_corr
 
 
 def test_true_motion_average_keeps_a_map_bias_and_averages_noise():

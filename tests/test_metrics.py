@@ -81,3 +81,25 @@ def test_percentiles_floor_and_steps():
     assert step_count_error(101, 100) == pytest.approx(0.01)
     with pytest.raises(ValueError):
         step_count_error(3, 0)
+
+
+def test_walkable_coverage_is_the_area_of_the_discs_inside():
+    """A 10 m x 10 m walkable square: one label in the middle reaches pi r^2 of it (the buffered disc's
+    area within 0.2 % of the circle's, 64 segments), a label repeated counts once, one on the edge half a
+    disc, one far outside nothing; an empty area has no coverage, a radius <= 0 is an error."""
+    import shapely
+
+    from hybridloc.metrics import walkable_coverage
+
+    sq = shapely.box(0.0, 0.0, 10.0, 10.0)
+    r = 2.0
+    disc = math.pi * r * r / 100.0
+    assert walkable_coverage(sq, [[5.0, 5.0]], r) == pytest.approx(disc, rel=2e-3)
+    assert walkable_coverage(sq, [[5.0, 5.0]] * 3, r) == pytest.approx(disc, rel=2e-3)
+    assert walkable_coverage(sq, [[5.0, 0.0]], r) == pytest.approx(disc / 2, rel=2e-3)
+    assert walkable_coverage(sq, [[50.0, 50.0], [np.nan, 1.0]], r) == 0.0
+    assert walkable_coverage(sq, np.zeros((0, 2)), r) == 0.0
+    assert walkable_coverage(sq, [[x, y] for x in range(11) for y in range(11)], 1.0) == 1.0
+    assert math.isnan(walkable_coverage(shapely.MultiPolygon(), [[0.0, 0.0]], r))
+    with pytest.raises(ValueError):
+        walkable_coverage(sq, [[5.0, 5.0]], 0.0)

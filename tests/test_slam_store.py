@@ -114,6 +114,13 @@ def test_batch_run_is_atomic_resumable_and_replaces_tracks(st):
         assert rm.source == "slam" and rm.run_id == run and rm.provenance["survey_walks"] == [w[0]]
     with pytest.raises(ValueError):
         st.slam.finish_run(run)
+    # the summary's counts (counted in the database) are those of the audit's rows: the batch run's
+    # loop, then a walk added after it (its loops count; the walks' loops before the batch do not)
+    assert st.slam.loop_counts("s1") == (1, 0)
+    st.slam.save_walk("s1", WalkResult(w[1], CORRECTED, _track(w[1], T0 + 1000)), [_loop(w[1], w[0], False)])
+    rows = st.slam.loops("s1")
+    assert st.slam.loop_counts("s1") == (sum(r.accepted for r in rows), sum(not r.accepted for r in rows)) == (1, 1)
+    assert st.slam.processed_walks("s1") == set(w)
 
 
 def test_failed_run_leaves_nothing(st):

@@ -12,7 +12,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     pyplot("the demo's figure")  # before minutes of work, not after
 
-    return run_demo(Path(args.out), sim=args.sim, speed=args.speed)
+    return run_demo(Path(args.out), sim=args.sim, speed=args.speed, slam=not args.no_slam)
 
 
 def register(sub) -> None:
@@ -20,4 +20,9 @@ def register(sub) -> None:
     demo.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     demo.add_argument("--sim", action="store_true", help="use a simulated building instead of the bundled real sample")
     demo.add_argument("--speed", type=float, default=20.0, help="replay speed of the phone clients (default 20x)")
+    demo.add_argument(
+        "--no-slam",
+        action="store_true",
+        help="the server without its crowd SLAM (the demo as it was before it: no corrected tracks, the survey map alone)",
+    )
     demo.set_defaults(func=_cmd_demo)
