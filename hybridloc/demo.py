@@ -660,7 +660,7 @@ def plot_demo(ax, plan, results, crowd: CrowdOutcome | None = None) -> None:
         ax.plot(wp[:, 0], wp[:, 1], "o--", color=c, ms=4, lw=0.8, alpha=0.6)
         if r.poses:
             xy = np.array([[p[1], p[2]] for p in r.poses])
-            ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=f"{r.device} live")
+            ax.plot(xy[:, 0], xy[:, 1], "-", color=c, lw=1.6, label=r.device if crowd is None else f"{r.device} live")
             # a containment-style disc of 2 sigma at the last fix, for the eye
             last = r.poses[-1]
             ax.add_patch(Circle((last[1], last[2]), 2.45 * max(last[4], last[5]), color=c, alpha=0.15))
@@ -670,8 +670,13 @@ def plot_demo(ax, plan, results, crowd: CrowdOutcome | None = None) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    what = "fused live tracks (solid), corrected by the crowd SLAM (dash-dot)" if crowd is not None else "fused tracks (solid)"
-    ax.set_title(f"hybridloc demo: {what}, true waypoints (dashed), 95 % regions at the last fix", fontsize=9)
+    if crowd is None:
+        ax.set_title("hybridloc demo: fused tracks (solid), true waypoints (dashed), 95 % regions at the last fix")
+    else:
+        ax.set_title(
+            "hybridloc demo: fused live tracks (solid), corrected by the crowd SLAM (dash-dot), true waypoints (dashed), 95 % regions at the last fix",
+            fontsize=9,
+        )
     ax.legend(fontsize=7, loc="upper right")
 
 

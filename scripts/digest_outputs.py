@@ -26,6 +26,7 @@ SHARED = "../shared/data"
 COMMANDS: dict[str, list[str]] = {
     "demo": ["demo", "--out", "{out}"],
     "demo-sim": ["demo", "--sim", "--out", "{out}"],
+    "demo-no-slam": ["demo", "--no-slam", "--out", "{out}"],  # the demo as it was before the server's crowd SLAM (issue #21)
     "eval-pdr-phone": ["eval", "pdr-phone", f"{SHARED}/msft-ilc/site1"],
     "eval-pdr-foot": ["eval", "pdr-foot", f"{SHARED}/pyshoe-vicon"],
     "eval-fingerprint": ["eval", "fingerprint"],
