@@ -193,12 +193,8 @@ def _crowd_outcome(server, crowd_slam, site: str, devices: list[str], timeout: f
     walks' corrected tracks and every map version of the site."""
     import io
 
-    from sqlalchemy import select
-    from sqlalchemy.orm import Session
-
     from .crowd_eval import _wait_until
     from .radio.radiomap import RadioMap
-    from .server import db as m
 
     _wait_until(lambda: (crowd_slam.summary() or {}).get("walks_pending", 0) == 0, timeout, poll=0.2)
     say("[pipeline] every walk added to the crowd graph; batch re-solve of every floor ...", flush=True)
@@ -213,12 +209,7 @@ def _crowd_outcome(server, crowd_slam, site: str, devices: list[str], timeout: f
         tr = tracks.get(wid)
         if st is not None and st.status == "corrected" and tr is not None and tr.anchored != "relative":
             by_dev[dev] = tr
-    with Session(server.store.engine) as s:
-        rows = s.execute(
-            select(m.RadioMapVersion.version, m.RadioMapVersion.source, m.RadioMapVersion.data)
-            .where(m.RadioMapVersion.site_id == site)
-            .order_by(m.RadioMapVersion.version)
-        ).all()
+    rows = server.store.map_versions(site)
     maps = [(int(v), str(src), RadioMap.load(io.BytesIO(data))) for v, src, data in rows]
     return CrowdOutcome(by_dev, state_of, crowd_slam.summary() or {}, what, ok, maps, frozenset(str(w) for w in walk_of))
 

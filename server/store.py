@@ -465,6 +465,12 @@ class Store:
             s.add(m.RadioMapVersion(site_id=site, version=v, n_scans=n_scans, data=data, source=source, provenance=provenance))
             return v
 
+    def map_versions(self, site: str) -> list[tuple[int, str, bytes]]:
+        """Every stored radio map of ``site``, oldest first: (version, source, file bytes)."""
+        with Session(self.engine) as s:
+            q = select(m.RadioMapVersion.version, m.RadioMapVersion.source, m.RadioMapVersion.data).where(m.RadioMapVersion.site_id == site)
+            return [(int(v), str(src), bytes(d)) for v, src, d in s.execute(q.order_by(m.RadioMapVersion.version)).all()]
+
     def load_map(self, site: str) -> tuple[int, bytes] | None:
         with Session(self.engine) as s:
             row = (
