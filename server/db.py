@@ -304,11 +304,23 @@ class Rejection(Base):
     __table_args__ = (UniqueConstraint("device_id", "reason"),)
 
 
+def lock_site(s, site: str) -> None:
+    """Inside a transaction of session ``s``: the site's row, added when missing, then written, so that
+    writers deciding something per site (the next radio map version, the batch run to work on) are
+    serialised - SQLite's write lock, PostgreSQL's row lock - and each reads after the other's commit.
+    Two writers adding a missing site at once collide on its key: :func:`retry_unique`."""
+    from sqlalchemy import update
+
+    if s.get(Site, site) is None:
+        s.add(Site(id=site, name=site))
+        s.flush()
+    s.execute(update(Site).where(Site.id == site).values(name=Site.name))
+
+
 def retry_unique(fn, attempts: int = 8):
     """``fn()`` (one whole transaction) again when it fails on a unique constraint: two writers that both
-    took "the newest radio map version + 1" (a batch run of the SLAM worker and a ``map rebuild``, say)
-    collide on ``radio_map (site_id, version)``; the loser's transaction was rolled back, so running it
-    again takes the next number. Other errors, and the last attempt's, propagate."""
+    added a missing site's row (:func:`lock_site`) collide on its key; the loser's transaction was rolled
+    back, so running it again finds the row. Other errors, and the last attempt's, propagate."""
     from sqlalchemy.exc import IntegrityError
 
     for k in range(attempts):

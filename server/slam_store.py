@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import delete, func, insert, select, update
+from sqlalchemy import delete, func, insert, select
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
@@ -281,9 +281,7 @@ class SlamStore:
 
     def _begin_run(self, site: str, floors: Sequence[str] | None, stats: dict | None) -> int:
         with Session(self.engine) as s, s.begin():
-            if s.get(m.Site, site) is None:
-                s.add(m.Site(id=site, name=site))
-                s.flush()
+            m.lock_site(s, site)
             run = m.SlamRun(site_id=site, kind="batch", status=RUNNING, floors=list(floors) if floors is not None else None, stats=dict(stats or {}))
             s.add(run)
             s.flush()
@@ -303,10 +301,7 @@ class SlamStore:
 
     def _claim_batch(self, site: str, floors: Sequence[str] | None, lease: dict, is_stale: Callable[[dict], bool]) -> tuple[int, bool, dict | None]:
         with Session(self.engine) as s, s.begin():
-            if s.get(m.Site, site) is None:
-                s.add(m.Site(id=site, name=site))
-                s.flush()
-            s.execute(update(m.Site).where(m.Site.id == site).values(name=m.Site.name))
+            m.lock_site(s, site)
             runs = (
                 s.execute(
                     select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.kind == "batch", m.SlamRun.status == RUNNING).order_by(m.SlamRun.id)
@@ -389,7 +384,7 @@ class SlamStore:
         self, run_id: int, map_data: bytes | None = None, n_scans: int = 0, provenance: dict | None = None, stats: dict | None = None
     ) -> int | None:
         """Complete a batch run atomically (module docstring); returns the new radio map version (None when
-        no map was given). Safe beside another writer of map versions (:func:`~.db.retry_unique`)."""
+        no map was given). Safe beside another writer of map versions (:func:`~.db.lock_site`)."""
         return m.retry_unique(lambda: self._finish_run(run_id, map_data, n_scans, provenance, stats))
 
     def _finish_run(self, run_id: int, map_data: bytes | None, n_scans: int, provenance: dict | None, stats: dict | None) -> int | None:
@@ -422,6 +417,7 @@ class SlamStore:
                         row.attempts += 1
             version = None
             if map_data is not None:
+                m.lock_site(s, site)  # the next version is read after any other writer's commit
                 last = s.execute(select(func.max(m.RadioMapVersion.version)).where(m.RadioMapVersion.site_id == site)).scalar_one()
                 version = int(last or 0) + 1
                 s.add(
@@ -565,60 +561,53 @@ class SlamStore:
     def track(self, site: str, walk_id: int) -> CorrectedTrack | None:
         return self.tracks(site, walk_ids=[walk_id]).get(int(walk_id))
 
-    def loops(self, site: str, floor: str | None = None) -> list[LoopRow]:
-        """The current loop audit of ``site``: per floor, the loops of the newest complete batch run that
-        solved the floor, plus those of walks added one by one after it."""
-        with Session(self.engine) as s:
-            runs = s.execute(select(m.SlamRun).where(m.SlamRun.site_id == site, m.SlamRun.status == COMPLETE).order_by(m.SlamRun.id)).scalars().all()
-            cond = [m.LoopClosure.site_id == site] + ([m.LoopClosure.floor == floor] if floor is not None else [])
-            rows = s.execute(select(m.LoopClosure).where(*cond).order_by(m.LoopClosure.id)).scalars().all()
-            floors_of: dict[int, set | None] = {}
-            for r in runs:
-                if r.kind == "batch":
-                    floors_of[r.id] = set(s.execute(select(m.SlamFloorDone.floor).where(m.SlamFloorDone.run_id == r.id)).scalars())
-        kind = {r.id: r.kind for r in runs}
+    @staticmethod
+    def _audit_rule(s: Session, site: str) -> Callable[[int, str], bool]:
+        """Which loop rows the current audit holds: per floor, those of the newest complete batch run that
+        solved the floor, plus those of walks added one by one after it (never a running or failed
+        run's). Returns ``in_audit(run_id, floor)``."""
+        kind = dict(s.execute(select(m.SlamRun.id, m.SlamRun.kind).where(m.SlamRun.site_id == site, m.SlamRun.status == COMPLETE)).all())
         latest_batch: dict[str, int] = {}
-        for rid, fl in floors_of.items():
-            for f in fl or ():
-                latest_batch[f] = max(latest_batch.get(f, 0), rid)
-        out = []
-        for r in rows:
-            if r.run_id not in kind:
-                continue  # a running or failed run's
-            base = latest_batch.get(r.floor, 0)
-            if (kind[r.run_id] == "batch" and r.run_id == base) or (kind[r.run_id] == "walk" and r.run_id > base):
-                out.append(
-                    LoopRow(r.run_id, r.floor, r.walk_a, r.t_a, r.walk_b, r.t_b, r.similarity, r.weight, r.p_inlier, r.accepted, r.reason, r.kind)
-                )
-        return out
+        batch_ids = [rid for rid, k in kind.items() if k == "batch"]
+        if batch_ids:
+            q = select(m.SlamFloorDone.floor, func.max(m.SlamFloorDone.run_id)).where(m.SlamFloorDone.run_id.in_(batch_ids))
+            latest_batch = {str(f): int(r) for f, r in s.execute(q.group_by(m.SlamFloorDone.floor)).all()}
+
+        def in_audit(run_id: int, floor: str) -> bool:
+            base = latest_batch.get(floor, 0)
+            k = kind.get(run_id)
+            return (k == "batch" and run_id == base) or (k == "walk" and run_id > base)
+
+        return in_audit
+
+    def loops(self, site: str, floor: str | None = None) -> list[LoopRow]:
+        """The current loop audit of ``site`` (:meth:`_audit_rule`), of ``floor`` when given."""
+        cond = [m.LoopClosure.site_id == site] + ([m.LoopClosure.floor == floor] if floor is not None else [])
+        with Session(self.engine) as s:
+            in_audit = self._audit_rule(s, site)
+            rows = s.execute(select(m.LoopClosure).where(*cond).order_by(m.LoopClosure.id)).scalars().all()
+            return [
+                LoopRow(r.run_id, r.floor, r.walk_a, r.t_a, r.walk_b, r.t_b, r.similarity, r.weight, r.p_inlier, r.accepted, r.reason, r.kind)
+                for r in rows
+                if in_audit(r.run_id, r.floor)
+            ]
 
     def loop_counts(self, site: str) -> tuple[int, int]:
         """(accepted, rejected) loops of the current audit (the rows :meth:`loops` returns), counted in
         the database: a site's audit grows to tens of thousands of rows, and the summary answers every
         status query."""
+        q = (
+            select(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted, func.count())
+            .where(m.LoopClosure.site_id == site)
+            .group_by(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted)
+        )
+        counts = [0, 0]  # rejected, accepted
         with Session(self.engine) as s:
-            kind = dict(s.execute(select(m.SlamRun.id, m.SlamRun.kind).where(m.SlamRun.site_id == site, m.SlamRun.status == COMPLETE)).all())
-            latest_batch: dict[str, int] = {}
-            batch_ids = [rid for rid, k in kind.items() if k == "batch"]
-            if batch_ids:
-                q = select(m.SlamFloorDone.floor, func.max(m.SlamFloorDone.run_id)).where(m.SlamFloorDone.run_id.in_(batch_ids))
-                latest_batch = {str(f): int(r) for f, r in s.execute(q.group_by(m.SlamFloorDone.floor)).all()}
-            q = (
-                select(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted, func.count())
-                .where(m.LoopClosure.site_id == site)
-                .group_by(m.LoopClosure.run_id, m.LoopClosure.floor, m.LoopClosure.accepted)
-            )
-            acc = rej = 0
+            in_audit = self._audit_rule(s, site)
             for rid, floor, accepted, n in s.execute(q).all():
-                if rid not in kind:
-                    continue  # a running or failed run's
-                base = latest_batch.get(floor, 0)
-                if (kind[rid] == "batch" and rid == base) or (kind[rid] == "walk" and rid > base):
-                    if accepted:
-                        acc += int(n)
-                    else:
-                        rej += int(n)
-        return acc, rej
+                if in_audit(rid, floor):
+                    counts[bool(accepted)] += int(n)
+        return counts[1], counts[0]
 
     def summary(self, site: str) -> dict:
         """Per-site SLAM figures (what ``hybridloc status`` shows): walks by state, pending walks, loops

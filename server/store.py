@@ -450,14 +450,12 @@ class Store:
     def save_map(self, site: str, data: bytes, n_scans: int = 0, source: str = "import", provenance: dict | None = None) -> int:
         """Store ``data`` as the site's next radio map version; ``source`` "import" / "survey" / "slam", and
         what built it (``provenance``: walk ids, survey walks, marks). Safe beside another writer of map
-        versions (:func:`~.db.retry_unique`)."""
+        versions (:func:`~.db.lock_site`)."""
         return m.retry_unique(lambda: self._save_map(site, data, n_scans, source, provenance))
 
     def _save_map(self, site: str, data: bytes, n_scans: int, source: str, provenance: dict | None) -> int:
         with Session(self.engine) as s, s.begin():
-            if s.get(m.Site, site) is None:
-                s.add(m.Site(id=site, name=site))
-                s.flush()
+            m.lock_site(s, site)  # the next version is read after any other writer's commit
             last = s.execute(
                 select(m.RadioMapVersion.version).where(m.RadioMapVersion.site_id == site).order_by(m.RadioMapVersion.version.desc())
             ).first()
