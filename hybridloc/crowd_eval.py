@@ -548,12 +548,18 @@ def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: 
     )
 
 
+def usable_track(track, state) -> bool:
+    """Whether a walk's stored track is a position to score: its walk corrected (not quarantined or
+    failed) and the track absolute (a relative track is a shape in its own frame)."""
+    return track is not None and state is not None and state.status == "corrected" and track.anchored != "relative"
+
+
 def _corrected_errors(c: ClientScore, tracks: dict, states: dict) -> tuple[np.ndarray, str]:
     """(errors of the client's corrected track(s) at its waypoints, its walk's SLAM status). Only the
     absolute tracks of corrected walks are positions: a relative track is a shape in its own frame, a
     quarantined one is kept out of the map; their waypoints are NaN."""
     st = sorted({states[w].status for w in c.walk_ids if w in states})
-    usable = [tracks[w] for w in c.walk_ids if w in tracks and w in states and states[w].status == "corrected" and tracks[w].anchored != "relative"]
+    usable = [tracks[w] for w in c.walk_ids if usable_track(tracks.get(w), states.get(w))]
     return (track_errors(usable, c.wp_t, c.wp_xy) if usable else np.full(c.waypoints, np.nan)), ",".join(st)
 
 

@@ -61,8 +61,7 @@ class CrowdOutcome:
     tracks: dict  # phone device -> its walk's current corrected track (absolute ones only; none when relative or quarantined)
     states: dict  # phone device -> its walk's SLAM state ("corrected", "relative", "quarantined", "failed", "" none)
     summary: dict  # the site's SLAM summary (:meth:`~hybridloc.server.slam_store.SlamStore.summary`)
-    batch: str  # the outcome of the final batch re-solve, in words
-    batch_ok: bool
+    batch: str  # the outcome of the final batch re-solve, in words ("complete" when it completed)
     maps: list  # [(version, source, RadioMap)] of every map version the site got, oldest first
     crowd_walks: frozenset = frozenset()  # the phone clients' walk ids, as the labels' ``source`` names them
 
@@ -193,12 +192,12 @@ def _crowd_outcome(server, crowd_slam, site: str, devices: list[str], timeout: f
     walks' corrected tracks and every map version of the site."""
     import io
 
-    from .crowd_eval import _wait_until
+    from .crowd_eval import _wait_until, usable_track
     from .radio.radiomap import RadioMap
 
     _wait_until(lambda: (crowd_slam.summary() or {}).get("walks_pending", 0) == 0, timeout, poll=0.2)
     say("[pipeline] every walk added to the crowd graph; batch re-solve of every floor ...", flush=True)
-    ok, what = crowd_slam.batch(timeout)
+    _, what = crowd_slam.batch(timeout)
     walk_of = {w.walk_id: w.device for d in devices for w in server.store.walks(site, device=d)}
     tracks, states = crowd_slam.tracks(list(walk_of))
     by_dev: dict = {}
@@ -206,12 +205,11 @@ def _crowd_outcome(server, crowd_slam, site: str, devices: list[str], timeout: f
     for wid, dev in sorted(walk_of.items()):  # a device's newest walk last
         st = states.get(wid)
         state_of[dev] = st.status if st is not None else ""
-        tr = tracks.get(wid)
-        if st is not None and st.status == "corrected" and tr is not None and tr.anchored != "relative":
-            by_dev[dev] = tr
+        if usable_track(tracks.get(wid), st):
+            by_dev[dev] = tracks[wid]
     rows = server.store.map_versions(site)
     maps = [(int(v), str(src), RadioMap.load(io.BytesIO(data))) for v, src, data in rows]
-    return CrowdOutcome(by_dev, state_of, crowd_slam.summary() or {}, what, ok, maps, frozenset(str(w) for w in walk_of))
+    return CrowdOutcome(by_dev, state_of, crowd_slam.summary() or {}, what, maps, frozenset(str(w) for w in walk_of))
 
 
 def bundled_split(sample: Path = ILC_SITE1_F1):
@@ -279,9 +277,12 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
         f"overall at {sf.n} waypoints: PDR alone mean {sp.mean:.2f} m (p75 {sp.p75:.2f}; started at the true pose), fused mean "
         f"{sf.mean:.2f} m (p75 {sf.p75:.2f}; started by the fixes), fused from PDR alone's start pose mean {sk.mean:.2f} m (p75 {sk.p75:.2f})"
     )
+    cover = None
     if crowd is not None:
-        _crowd_lines(plan, results, crowd, live_same, corr_same)
-    _write_outputs(out, plan, results, crowd)
+        # walkable area within reach of the survey map's labels and of the newest map's
+        cover = (map_coverage(plan, crowd.maps[0][2]), map_coverage(plan, crowd.maps[-1][2])) if crowd.maps else None
+        _crowd_lines(results, crowd, live_same, corr_same, cover)
+    _write_outputs(out, plan, results, crowd, cover)
     print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
     return 0
 
@@ -319,7 +320,7 @@ def map_coverage(plan, rmap, radius_m: float = COVERAGE_RADIUS_M) -> float:
     return num / den if den else float("nan")
 
 
-def _crowd_lines(plan, results, crowd: CrowdOutcome, live_same: list, corr_same: list) -> None:
+def _crowd_lines(results, crowd: CrowdOutcome, live_same: list, corr_same: list, cover: tuple | None) -> None:
     """The demo's crowd-SLAM report: live versus corrected, what the crowd added to the map."""
     sm = crowd.summary
     n_corr = sum(r.device in crowd.tracks for _, r in results)
@@ -333,10 +334,10 @@ def _crowd_lines(plan, results, crowd: CrowdOutcome, live_same: list, corr_same:
         f"(p75 {co.p75:.2f}), {abs(gain):.0f} % {'below' if gain >= 0 else 'ABOVE'} live; the clients heard {heard} provisional "
         f"corrections while walking and re-anchored their filters with {applied}"
     )
-    if crowd.maps:
+    if cover is not None:
         v0, src0, m0 = crowd.maps[0]
         v1, src1, m1 = crowd.maps[-1]
-        c0, c1 = map_coverage(plan, m0), map_coverage(plan, m1)
+        c0, c1 = cover
         cov = sm.get("coverage")
         print(
             f"coverage the crowd added: walkable area within {COVERAGE_RADIUS_M:g} m of a radio-map label {100 * c0:.1f} % "
@@ -606,7 +607,7 @@ def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:
     return {str(p) for p, g in zip(traces, groups) if g in walked and str(p) not in surveyed}
 
 
-def _write_outputs(out: Path, plan, results, crowd: CrowdOutcome | None = None) -> None:
+def _write_outputs(out: Path, plan, results, crowd: CrowdOutcome | None = None, cover: tuple | None = None) -> None:
     """``demo.png`` (:func:`plot_demo`, and with the crowd SLAM :func:`plot_coverage` beside it) and
     ``demo.geojson`` (:func:`demo_features`)."""
     import matplotlib
@@ -616,13 +617,13 @@ def _write_outputs(out: Path, plan, results, crowd: CrowdOutcome | None = None) 
 
     from .io.writers import write_geojson
 
-    if crowd is None:
+    if crowd is None or cover is None:
         fig, ax = plt.subplots(figsize=(11, 8))
-        plot_demo(ax, plan, results)
+        plot_demo(ax, plan, results, crowd)
     else:
         fig, (ax, ax2) = plt.subplots(1, 2, figsize=(20, 8))
         plot_demo(ax, plan, results, crowd)
-        plot_coverage(ax2, plan, crowd)
+        plot_coverage(ax2, plan, crowd, cover)
     fig.tight_layout()
     fig.savefig(out / "demo.png", dpi=90)
     plt.close(fig)
@@ -671,10 +672,12 @@ def plot_demo(ax, plan, results, crowd: CrowdOutcome | None = None) -> None:
     ax.legend(fontsize=7, loc="upper right")
 
 
-def plot_coverage(ax, plan, crowd: CrowdOutcome, radius_m: float = COVERAGE_RADIUS_M) -> None:
+def plot_coverage(ax, plan, crowd: CrowdOutcome, cover: tuple[float, float], radius_m: float = COVERAGE_RADIUS_M) -> None:
     """The coverage panel: the first floor's walkable area within ``radius_m`` of the survey map's labels
-    (grey) and of the labels the crowd added in the newest map (green), the labels as dots."""
-    import shapely
+    (grey) and of the labels the crowd added in the newest map (green), the labels as dots; ``cover``:
+    the site's coverage by the survey map and by the newest one (:func:`map_coverage` at ``radius_m``),
+    in the title."""
+    from .metrics import walkable_reach
 
     fl = plan.floors[0]
     _draw_floor(ax, fl)
@@ -685,28 +688,23 @@ def plot_coverage(ax, plan, crowd: CrowdOutcome, radius_m: float = COVERAGE_RADI
     # walks are labelled there too, from their corrected tracks: the grey area is the survey map's own)
     p1 = np.array([ls.pos_enu for ls in m1.references if ls.floor == fl.name and ls.source in crowd.crowd_walks], float).reshape(-1, 2)
 
-    def reach(p):
-        if not len(p) or fl.walkable is None or fl.walkable.is_empty:
-            return None
-        return fl.walkable.intersection(shapely.union_all(shapely.buffer(shapely.points(p), radius_m, quad_segs=16)))
-
     def fill(geom, color, label):
-        if geom is None or geom.is_empty:
+        if geom.is_empty:
             return
         polys = getattr(geom, "geoms", [geom])
         for k, g in enumerate(polys):
             if g.geom_type == "Polygon":
                 ax.fill(*g.exterior.xy, color=color, alpha=0.45, lw=0, label=label if k == 0 else None)
 
-    r0 = reach(p0)
-    r1 = reach(np.vstack([p0, p1]))
-    fill(r1.difference(r0) if r1 is not None and r0 is not None else r1, "tab:green", f"added by the crowd (map v{v1}, {src1})")
+    r0 = walkable_reach(fl.walkable, p0, radius_m)
+    r1 = walkable_reach(fl.walkable, np.vstack([p0, p1]), radius_m)
+    fill(r1.difference(r0), "tab:green", f"added by the crowd (map v{v1}, {src1})")
     fill(r0, "0.55", f"survey map v{v0}")
     if len(p0):
         ax.plot(p0[:, 0], p0[:, 1], ".", color="0.25", ms=2)
     if len(p1):
         ax.plot(p1[:, 0], p1[:, 1], ".", color="darkgreen", ms=2)
-    c0, c1 = map_coverage(plan, m0, radius_m), map_coverage(plan, m1, radius_m)
+    c0, c1 = cover
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_title(f"walkable area within {radius_m:g} m of a radio-map label: survey {100 * c0:.0f} %, with the crowd {100 * c1:.0f} %", fontsize=9)

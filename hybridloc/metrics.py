@@ -247,20 +247,26 @@ def causal_errors(poses, wp_t, wp_xy) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ radio-map coverage
-def walkable_coverage(walkable, xy, radius_m: float) -> float:
-    """Share of a floor's walkable area within ``radius_m`` of any of the points ``xy`` (m, 2) (a radio
-    map's labelled scans, say): area(walkable ∩ ∪ disc(p, r)) / area(walkable), in [0, 1]; NaN when the
-    walkable area is empty. The discs are buffered polygons (64 segments per circle: the area of each
-    within 0.2 % of pi r^2)."""
+def walkable_reach(walkable, xy, radius_m: float):
+    """The part of a floor's walkable area within ``radius_m`` of any of the points ``xy`` (m, 2) (a
+    radio map's labelled scans, say): walkable ∩ ∪ disc(p, r), a shapely geometry (empty without a
+    finite point). The discs are buffered polygons (64 segments per circle: the area of each within
+    0.2 % of pi r^2)."""
     import shapely
 
     if not (math.isfinite(radius_m) and radius_m > 0):
         raise ValueError(f"walkable_coverage: radius must be positive, got {radius_m}")
-    if walkable is None or walkable.is_empty or not walkable.area > 0:
-        return float("nan")
     p = np.asarray(xy, float).reshape(-1, 2)
     p = p[np.isfinite(p).all(axis=1)]
-    if not len(p):
-        return 0.0
-    discs = shapely.union_all(shapely.buffer(shapely.points(p), radius_m, quad_segs=16))
-    return float(min(1.0, walkable.intersection(discs).area / walkable.area))
+    if walkable is None or walkable.is_empty or not len(p):
+        return shapely.MultiPolygon()
+    return walkable.intersection(shapely.union_all(shapely.buffer(shapely.points(p), radius_m, quad_segs=16)))
+
+
+def walkable_coverage(walkable, xy, radius_m: float) -> float:
+    """Share of a floor's walkable area within ``radius_m`` of any of the points ``xy`` (m, 2):
+    area(:func:`walkable_reach`) / area(walkable), in [0, 1]; NaN when the walkable area is empty."""
+    reach = walkable_reach(walkable, xy, radius_m)  # checks the radius first
+    if walkable is None or walkable.is_empty or not walkable.area > 0:
+        return float("nan")
+    return float(min(1.0, reach.area / walkable.area))
