@@ -259,7 +259,8 @@ def test_a_walk_with_impossible_steps_is_quarantined_and_the_map_stays(tmp_path,
         _wait(lambda: gid in st.slam.walk_states(SITE), 240, "the giant walk's SLAM state")
         state = st.slam.walk_states(SITE)[gid]
         assert state.status == QUARANTINED and state.reason
-        assert srv.slam_workers[SITE].counts["walks_quarantined"] == 1
+        # the child writes the walk's state, then the worker counts its answer: the count follows shortly
+        _wait(lambda: srv.slam_workers[SITE].counts.get("walks_quarantined", 0) == 1, 30, "the worker's quarantine count")
         from hybridloc.clients.status import query_status
 
         status = query_status(ep, timeout=10)
@@ -327,6 +328,8 @@ def test_a_slow_failing_or_crashing_solve_never_delays_ingest(tmp_path, caplog):
         states = srv.store.slam.walk_states(SITE)
         assert states[ids["badphone"]].status == FAILED and states[ids["crashphone"]].status == FAILED
         w = srv.slam_workers[SITE]
+        # the worker marks a walk failed, then counts it: the count follows shortly
+        _wait(lambda: w.counts["walks_failed"] == 2, 30, "the worker's failure count")
         assert w.counts["walks_failed"] == 2 and w.counts["walk_errors"] == 4 and w.counts["child_crashes"] == 2
         assert srv.worker_error is None and srv.counts["batches-persisted"] == srv.store.status()["batches"]
         logged = [r.getMessage() for r in caplog.records]
