@@ -255,7 +255,7 @@ def walkable_reach(walkable, xy, radius_m: float):
     import shapely
 
     if not (math.isfinite(radius_m) and radius_m > 0):
-        raise ValueError(f"walkable_coverage: radius must be positive, got {radius_m}")
+        raise ValueError(f"walkable_reach: radius must be positive, got {radius_m}")
     p = np.asarray(xy, float).reshape(-1, 2)
     p = p[np.isfinite(p).all(axis=1)]
     if walkable is None or walkable.is_empty or not len(p):
