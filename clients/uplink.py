@@ -81,9 +81,9 @@ class Uplink:
         return seq
 
     def _put(self, payload: bytes) -> None:
-        # session.put rather than a declared publisher: under the server's access control a device
-        # does not see the server's (wildcard) subscriber declaration, and a publisher that sees no
-        # subscriber would not send at all.
+        # session.put (a declared publisher works too since the device ACL lets the device see the
+        # server's batch subscription: docs/protocol.md, "Sending batches"); put has no matching state
+        # to wait for, so a fresh session's first batch goes out at once.
         self.session.put(self._key, payload, encoding=C.BATCH.encoding, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:

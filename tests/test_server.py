@@ -246,6 +246,49 @@ def test_wrong_password_refused_and_devices_confined(tmp_path):
         srv.stop()
 
 
+def _two_batches_through_a_fresh_publisher(ep: str, d: str) -> tuple[bool, list[int]]:
+    """A fresh session of device ``d`` declares a publisher and puts batch 1 at once, then batch 2 once
+    the publisher sees the server's subscription; returns (it saw it, the acks heard)."""
+    with zenoh.open(client_config(ep, Security(user=d, password=f"pw-{d}"))) as s:
+        acks = s.declare_subscriber(P.key_ack(SITE, d))  # declared before the put, on the same link
+        pub = s.declare_publisher(P.key_batch(SITE, d), congestion_control=zenoh.CongestionControl.BLOCK)
+        pub.put(_batch(SITE, d, 1, _steps(2)))
+        matched = _wait(lambda: pub.matching_status.matching, timeout=5.0)
+        pub.put(_batch(SITE, d, 2, _steps(2, t0=1.0)))
+        seen: list[int] = []
+
+        def both_acked():
+            while (smp := acks.try_recv()) is not None:
+                seen.append(C.ACK.decode(smp.payload.to_bytes()).acked_seq)
+            return 2 in seen
+
+        _wait(both_acked, timeout=10.0)
+        pub.undeclare()
+        acks.undeclare()
+    return matched, seen
+
+
+def test_acl_every_first_batch_of_20_fresh_sessions_acknowledged(tmp_path):
+    """Under the device ACL a declared publisher works like a plain put: 20 fresh sessions each declare
+    a publisher and put batch 1 at once (the race with the router's answer to the publisher's
+    interest), then batch 2 once the publisher sees the server's subscription (it never did when the
+    router hid the declaration: the put was then dropped at the device). Every batch is acknowledged,
+    with no resend, and stored once (a cumulative ack of 2 covers 1)."""
+    devices = [f"dev{i:02d}" for i in range(20)]
+    users = tmp_path / "users.txt"
+    users.write_text("server:srvpw\n" + "".join(f"{d}:pw-{d}\n" for d in devices))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    srv = Server(ep, str(tmp_path / "s.db"), Security(users_file=str(users), acl_devices=devices)).start()
+    try:
+        for d in devices:
+            matched, seen = _two_batches_through_a_fresh_publisher(ep, d)
+            assert matched, f"{d}: the publisher never saw the server's subscription"
+            assert max(seen, default=0) == 2, f"{d}: acks {seen}"
+    finally:
+        srv.stop()
+    assert _count(tmp_path / "s.db", m.Batch) == 2 * len(devices)
+
+
 def test_tls_with_the_test_ca_script(tmp_path):
     import shutil
     from pathlib import Path

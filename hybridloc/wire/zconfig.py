@@ -121,6 +121,20 @@ def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
                 "permission": "allow",
                 "key_exprs": [f"{P.PREFIX}/*/{d}/batch", f"{P.PREFIX}/*/{d}/pose", f"{P.PREFIX}/*/{d}/alive"],
             },
+            # the server's batch subscription may be declared to the device. Without it the router hides
+            # it; a declared publisher then learns "no subscriber" once the router answers its interest
+            # and drops every later put at the device (write-side filtering): a fresh session lost 1-2
+            # of 20 first batches, and all batches after the answer. Plain put never filters. The rule
+            # names the server's wildcard itself (the router checks the declared key expression: the
+            # device's own batch key does not cover it). The device learns only that the key is
+            # subscribed, never another device's data.
+            {
+                "id": f"{rid}_route",
+                "messages": ["declare_subscriber"],
+                "flows": ["egress"],
+                "permission": "allow",
+                "key_exprs": [P.SUB_BATCHES],
+            },
             {
                 "id": f"{rid}_sub",
                 "messages": ["declare_subscriber", "put"],
@@ -153,5 +167,5 @@ def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
             },
         ]
         subjects.append({"id": sid, "usernames": [d]})
-        policies.append({"rules": [f"{rid}_pub", f"{rid}_sub", f"{rid}_listen", f"{rid}_hear", f"{rid}_query"], "subjects": [sid]})
+        policies.append({"rules": [f"{rid}_pub", f"{rid}_route", f"{rid}_sub", f"{rid}_listen", f"{rid}_hear", f"{rid}_query"], "subjects": [sid]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
