@@ -198,6 +198,8 @@ class Store:
                 self._join_walk(s, row, b, dev, open_walks, getattr(b, "end_of_walk", False) or (b.device, b.seq) in ends)
                 acked[b.device] = b.seq
                 written += 1
+                for reason, n in b.refused:  # counted once, with the batch that carried them (a resend is a duplicate)
+                    rejected[(b.device, reason)] += n
                 if written_ids is not None:
                     written_ids.append((b.device, b.seq))
             self._add_rejections(s, rejected)

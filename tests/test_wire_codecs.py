@@ -28,6 +28,7 @@ from hybridloc.types import (
     Technology,
 )
 from hybridloc.wire import codecs as C
+from hybridloc.wire import limits as L
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
 
@@ -46,6 +47,7 @@ REASONS = {
     "bad-scan",
     "rssi-out-of-range",
     "key-mismatch",
+    *L.REASONS,  # a locate's scan beyond a physical limit
 }
 
 # ---------------------------------------------------------------------------------------------- strategies
@@ -80,15 +82,16 @@ def steps(draw):
 
 
 @st.composite
-def scans(draw, device_model=None, min_readings=1):
+def scans(draw, device_model=None, min_readings=1, wild=False):
+    """A scan; ``wild``: times, frequencies and ages beyond the physical limits too."""
     keys = draw(st.lists(tx, min_size=min_readings, max_size=6, unique=True))
     some = st.lists(st.sampled_from(keys), unique=True) if keys else st.just([])
     return RfScan(
-        draw(finite),
+        draw(finite if wild else st.floats(-1e10, 1e10)),
         draw(st.sampled_from(list(Technology))),
         {k: draw(rssi) for k in keys},
-        {k: draw(st.floats(1e8, 1e10)) for k in draw(some)},
-        {k: draw(finite) for k in draw(some)},
+        {k: draw(st.floats(1.0, 1e12) if wild else st.floats(1e8, 1e10)) for k in draw(some)},
+        {k: draw(finite if wild else st.floats(0.0, L.MAX_READING_AGE_S)) for k in draw(some)},
         draw(st.text(max_size=64)) if device_model is None else device_model,
     )
 
@@ -97,7 +100,8 @@ marks = st.builds(SurveyMark, finite, finite, finite, floor_names)
 
 
 @st.composite
-def batches(draw):
+def wild_batches(draw):
+    """Any batch the records allow, physical limits or not (:mod:`hybridloc.wire.limits`)."""
     model = draw(st.text(max_size=64))
     return Batch(
         draw(ids),
@@ -105,10 +109,47 @@ def batches(draw):
         draw(st.integers(1, 2**62)),
         model,
         draw(st.lists(steps(), max_size=4)),
-        draw(st.lists(scans(model), max_size=4)),
+        draw(st.lists(scans(model, wild=True), max_size=4)),
         draw(st.lists(marks, max_size=3)),
         draw(finite),
     )
+
+
+@st.composite
+def batches(draw):
+    """A batch within the physical limits (what a client sends): times in order inside a few minutes,
+    walker-sized steps, ages and frequencies in range; it round-trips whole."""
+    model = draw(st.text(max_size=64))
+    t0 = draw(st.floats(-1e10, 1e10))
+    dts = draw(st.lists(st.floats(1.01 * L.MIN_STEP_INTERVAL_S, 2.0), max_size=4))  # above the limit after rounding
+    st_list = []
+    t = t0
+    for dt in dts:
+        t += dt
+        hc = draw(st.none() | st.floats(-6.0, 6.0))
+        height = draw(st.floats(-L.MAX_HEIGHT_CHANGE_M, L.MAX_HEIGHT_CHANGE_M))
+        length = draw(st.floats(0.0, min(L.MAX_STEP_LENGTH_M, 0.99 * L.MAX_STEP_SPEED_M_S * dt)))
+        angle = st.floats(0.0, 6.0)
+        st_list.append(
+            StepEvent(
+                t, length, draw(st.floats(-6.0, 6.0)), draw(st.floats(0.0, 1e3)), draw(angle), hc, None if hc is None else draw(st.none() | angle),
+                height, draw(nonneg) if height else 0.0, draw(st.integers(-5, 5)), draw(st.text(max_size=32)),
+            )
+        )  # fmt: skip
+    times = sorted(draw(st.lists(st.floats(t0, t0 + 60.0), max_size=7)))
+    sc_list = []
+    for ts in times[:4]:
+        keys = draw(st.lists(tx, min_size=1, max_size=6, unique=True))
+        some = st.lists(st.sampled_from(keys), unique=True)
+        sc_list.append(
+            RfScan(
+                ts, draw(st.sampled_from(list(Technology))), {k: draw(rssi) for k in keys},
+                {k: draw(st.floats(1e8, 1e10)) for k in draw(some)}, {k: draw(st.floats(0.0, L.MAX_READING_AGE_S)) for k in draw(some)}, model,
+            )
+        )  # fmt: skip
+    xy = st.floats(-L.MAX_ABS_COORD_M, L.MAX_ABS_COORD_M)
+    mk_list = [SurveyMark(ts, draw(xy), draw(xy), draw(floor_names)) for ts in times[4:]]
+    return Batch(draw(ids), draw(ids), draw(st.integers(1, 2**62)), model, st_list, sc_list, mk_list, draw(finite))
 
 
 @st.composite
@@ -582,6 +623,15 @@ def test_fix_pose_locate_ack_status_map_rejections():
     assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan",), None))) == "malformed-json"
     assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan", "tech"), "lora"))) == "bad-scan"
     assert C.LOCATE.decode(_dumps(_with(_msg("locate"), ("scan", "rssi"), {}))).scan.rssi_dbm == {}  # answered with "no fix"
+    # a locate's scan within the physical limits (hybridloc.wire.limits): beyond them refused whole,
+    # stale readings dropped (none left: answered with "no fix")
+    big = {f"ap{i}": -70.0 for i in range(L.MAX_SCAN_READINGS + 1)}
+    assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan", "rssi"), big))) == "scan-too-large"
+    assert _reason(C.LOCATE, _dumps(_with(_msg("locate"), ("scan", "t"), 1.7e12))) == "wrong-units"  # milliseconds
+    loc = _msg("locate")
+    (tx0, *_) = loc["scan"]["rssi"]
+    loc["scan"]["age"] = {k: (1e4 if k == tx0 else 1.0) for k in loc["scan"]["rssi"]}
+    assert tx0 not in C.LOCATE.decode(_dumps(loc)).scan.rssi_dbm
     for seq in (-1, 1.5, None):
         assert _reason(C.ACK, _dumps({**_msg("ack"), "acked_seq": seq})) == "bad-seq"
     assert _reason(C.ACK, _dumps({**_msg("ack"), "device": "a/b"})) == "bad-id"

@@ -53,6 +53,7 @@ from ..types import (
     Technology,
     rssi_in_range,
 )
+from . import limits
 from .messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
 from .protocol import (
     ACK_SCHEMA,
@@ -305,7 +306,11 @@ class BatchCodec(Codec[Batch]):
         end = msg.get("end_of_walk", False)
         if not isinstance(end, bool):
             raise Rejected("bad-value", f"end_of_walk must be true or false, got {end!r}")
-        return Batch(b_site, b_device, seq, model, steps, scans, marks, _finite(msg.get("sent_at") or 0.0, "sent_at"), end)
+        sent_at = _finite(msg.get("sent_at") or 0.0, "sent_at")
+        # items beyond a physical limit are left out one by one and counted; the batch is kept
+        sent = [(float(s["heading"]), None if s.get("heading_change") is None else float(s["heading_change"])) for s in steps_in]
+        steps, scans, marks, refused = limits.screen(steps, scans, marks, sent)
+        return Batch(b_site, b_device, seq, model, steps, scans, marks, sent_at, end, tuple(sorted(refused.items())))
 
 
 class AckCodec(Codec[Ack]):
@@ -437,7 +442,13 @@ class LocateCodec(Codec[LocateRequest]):
     def decode(self, payload: bytes) -> LocateRequest:
         """A scan without readings is taken (its answer is "no fix")."""
         msg = _load(payload, LOCATE_SCHEMA, MAX_MESSAGE_BYTES)
-        return LocateRequest(_structure(_scan_from, _object(msg.get("scan"), "scan"), _text(msg.get("device_model", ""), 64), True))
+        scan = _structure(_scan_from, _object(msg.get("scan"), "scan"), _text(msg.get("device_model", ""), 64), True)
+        kept, refused = limits.screen_scan(scan)
+        if kept is None and set(refused) != {"reading-too-old"}:  # the scan itself is beyond a limit
+            (reason,) = refused
+            raise Rejected(reason, f"the scan: {reason}")
+        # stale readings are dropped; a scan left with none is answered "no fix"
+        return LocateRequest(kept if kept is not None else RfScan(scan.t, scan.technology, {}, {}, {}, scan.device_model))
 
 
 class StatusCodec(Codec[Status]):

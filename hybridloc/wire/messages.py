@@ -36,6 +36,9 @@ class Batch:
     end_of_walk : bool
         The device's walk ends with this batch (its replay or live input ended): the server closes the
         walk at once instead of after the idle gap. On the wire only when true (older clients omit it).
+    refused : tuple of (reason, count)
+        Items the decoder left out for breaking a physical limit (:mod:`.limits`), counted by reason,
+        sorted; never on the wire (a decoded batch says what its sender's bytes carried beyond it).
     """
 
     site: str
@@ -47,9 +50,10 @@ class Batch:
     marks: tuple[SurveyMark, ...] = ()
     sent_at: float = 0.0
     end_of_walk: bool = False
+    refused: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
-        for name in ("steps", "scans", "marks"):
+        for name in ("steps", "scans", "marks", "refused"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
 
     def to_json(self) -> bytes:
