@@ -158,19 +158,12 @@ def locate_run(seconds: float, rate: float = 200.0) -> np.ndarray:
 
 
 def start_postgres(tmp: Path) -> tuple[str, callable]:
-    pg_bin = next((Path(p) for p in sorted(Path("/usr/lib/postgresql").glob("*/bin"))), None) if Path("/usr/lib/postgresql").exists() else None
-    if pg_bin is None:
-        raise RuntimeError("PostgreSQL server binaries not found (apt-get install postgresql)")
-    port = free_port()
-    data = tmp / "pg"
-    data.mkdir(parents=True)
-    shutil.chown(tmp, "postgres")
-    shutil.chown(data, "postgres")
-    run = lambda cmd: subprocess.run(["su", "postgres", "-c", cmd], check=True, capture_output=True)  # noqa: E731
-    run(f"{pg_bin}/initdb -D {data} -A trust -U postgres --no-sync")
-    run(f"{pg_bin}/pg_ctl -D {data} -o '-p {port} -k {tmp} -c listen_addresses=127.0.0.1 -c fsync=off' -l {tmp}/log -w start")
-    run(f"{pg_bin}/createdb -h 127.0.0.1 -p {port} -U postgres bench")
-    return f"postgresql+psycopg://postgres@127.0.0.1:{port}/bench", lambda: run(f"{pg_bin}/pg_ctl -D {data} -m fast stop")
+    """A throwaway PostgreSQL server (hybridloc.server.pgtemp, the one the test suite uses) and a
+    fresh database on it: (URL, stop). ``tmp`` is unused: the server keeps its own folder."""
+    from hybridloc.server.pgtemp import TempPostgres
+
+    pg = TempPostgres().start()
+    return pg.database("bench"), pg.stop
 
 
 def main(argv: list[str] | None = None) -> None:

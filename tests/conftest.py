@@ -1,6 +1,9 @@
 """Shared fixtures and safety nets.
 
 * ``shared_data``: the path of ``../shared/data``; tests that need it skip with a reason when absent.
+* ``db_url``: the store's URL on both engines (parametrised ``sqlite`` / ``postgresql``): a SQLite file
+  in the test's folder, or a fresh database on one PostgreSQL server the session starts
+  (:class:`hybridloc.server.pgtemp.TempPostgres`; skipped with the reason when PostgreSQL is missing).
 * Zenoh safety net: every session opened through ``zenoh.open`` during the run is recorded and any
   still open at the end is closed, because a live session with a callback subscriber keeps the
   interpreter from exiting (see ../shared/notes/zenoh.md, section 6). Tests still close their own.
@@ -81,3 +84,29 @@ def pyshoe_dir(shared_data) -> Path:
     if not p.is_dir():
         pytest.skip(f"{p} is absent")
     return p
+
+
+@pytest.fixture(scope="session")
+def postgres_server():
+    """One throwaway PostgreSQL server for the whole run (started on first use)."""
+    from hybridloc.server.pgtemp import TempPostgres, find_binaries
+
+    if find_binaries() is None:
+        pytest.skip("PostgreSQL server binaries not found (make test installs Debian's postgresql where it can)")
+    try:
+        import psycopg  # noqa: F401
+    except ImportError:
+        pytest.skip("psycopg is not installed (make install)")
+    pg = TempPostgres().start()
+    try:
+        yield pg
+    finally:
+        pg.stop()
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request, tmp_path) -> str:
+    """The store on each engine: a SQLite file path, or a fresh PostgreSQL database's URL."""
+    if request.param == "sqlite":
+        return str(tmp_path / "store.db")
+    return request.getfixturevalue("postgres_server").database()

@@ -73,7 +73,7 @@ def test_bad_documents_are_refused(text):
         floorplan_from_geojson(text)
 
 
-def test_store_keeps_plans_by_site(tmp_path):
+def test_store_keeps_plans_by_site(db_url):
     from sqlalchemy import select
     from sqlalchemy.orm import Session
 
@@ -81,7 +81,7 @@ def test_store_keeps_plans_by_site(tmp_path):
     from hybridloc.server.store import Store
 
     plan = read_ilc_site(ILC_SITE1_F1)
-    st = Store(f"sqlite:///{tmp_path / 'h.db'}")
+    st = Store(db_url)  # on SQLite and on PostgreSQL
     try:
         assert st.load_floor_plan("s") is None
         first = st.save_floor_plan("s", plan)

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 import zenoh
-from sqlalchemy import create_engine, func, select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from hybridloc.clients.uplink import Uplink
@@ -39,7 +39,7 @@ def _batch(site, device, seq, steps=(), scans=(), marks=()):
 
 
 def _count(db, model):
-    eng = create_engine(f"sqlite:///{db}")
+    eng = m.make_engine(str(db))  # a SQLite path or any URL
     with Session(eng) as s:
         n = s.execute(select(func.count()).select_from(model)).scalar_one()
     eng.dispose()
@@ -62,11 +62,12 @@ def test_models_and_migrations_agree(tmp_path):
 
 
 @pytest.fixture
-def server(tmp_path):
+def server(tmp_path, db_url):
+    """A server on each engine (SQLite file, PostgreSQL database): (server, endpoint, folder, db URL)."""
     ep = f"unixsock-stream/{tmp_path}/srv.sock"
-    srv = Server(ep, str(tmp_path / "srv.db")).start()
+    srv = Server(ep, db_url).start()
     try:
-        yield srv, ep, tmp_path
+        yield srv, ep, tmp_path, db_url
     finally:
         srv.stop()
 
@@ -81,7 +82,7 @@ def _wait(cond, timeout=10.0):
 
 
 def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
-    srv, ep, tmp = server
+    srv, ep, tmp, db = server
     with zenoh.open(client_config(ep)) as s:
         up = Uplink(s, SITE, "dev01", tmp / "spool")
         try:
@@ -112,7 +113,6 @@ def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
             assert st.db["rejections"]["duplicate"] == 1
         finally:
             up.close()
-    db = tmp / "srv.db"
     assert _count(db, m.Batch) == 6 and _count(db, m.Step) == 53
 
 
@@ -121,7 +121,7 @@ def test_locate_queryable_and_pushed_fix(server):
     from hybridloc.radio.survey import LabelledScan
     from hybridloc.types import RfScan
 
-    srv, ep, tmp = server
+    srv, ep, tmp, _ = server
     rng = np.random.default_rng(0)
     aps = {"a1": (0, 0), "a2": (20, 0), "a3": (0, 20), "a4": (20, 20)}
 
@@ -176,9 +176,9 @@ def _start_server(ep, db, *extra):
     return proc
 
 
-def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_path):
+def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_path, db_url):
     ep = f"tcp/127.0.0.1:{free_port()}"
-    db = tmp_path / "k.db"
+    db = db_url  # SQLite file or PostgreSQL database
     proc = _start_server(ep, db)
     n_batches = 300
     conf = client_config(ep)
@@ -200,7 +200,7 @@ def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_
             up.close()
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=20)
-    eng = create_engine(f"sqlite:///{db}")
+    eng = m.make_engine(db)
     with Session(eng) as ses:
         seqs = [r[0] for r in ses.execute(select(m.Batch.seq).where(m.Batch.device_id == "devk").order_by(m.Batch.seq))]
         n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()

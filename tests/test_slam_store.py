@@ -45,8 +45,8 @@ def _loop(a: int, b: int, accepted: bool) -> LoopRecord:
 
 
 @pytest.fixture
-def st(tmp_path):
-    s = Store(str(tmp_path / "slam.db"))
+def st(db_url):
+    s = Store(db_url)  # on SQLite and on PostgreSQL
     yield s
     s.close()
 
@@ -143,7 +143,7 @@ def test_slam_show_from_the_database(st, tmp_path, capsys):
     w = _fill(st)
     st.slam.save_walk("s1", WalkResult(w[0], CORRECTED, _track(w[0], T0, anchored="marks")), [])
     st.slam.save_walk("s1", WalkResult(w[1], CORRECTED, _track(w[1], T0 + 1000)), [_loop(w[1], w[0], True)])
-    db = str(st.engine.url.database)
+    db = st.engine.url.render_as_string(hide_password=False)  # a sqlite:/// or postgresql:// URL
     assert main(["floorplan", "import", str(ILC_SITE1_F1), "--site", "s1", "--db", db]) == 0
     png = tmp_path / "show.png"
     assert main(["slam", "show", "--db", db, "--site", "s1", "--floor", "F1", "--out", str(png)]) == 0
@@ -154,12 +154,13 @@ def test_slam_show_from_the_database(st, tmp_path, capsys):
     assert main(["slam", "show", "--db", db, "--floor", "F1", "--out", str(png)]) == 2
 
 
-def test_map_versions_from_concurrent_writers_never_collide(tmp_path):
+def test_map_versions_from_concurrent_writers_never_collide(db_url):
     """A batch run of the SLAM worker and a ``map rebuild`` both take "newest version + 1": on one
-    SQLite file from two connections at once, every map is stored, under distinct versions 1..n."""
+    database (SQLite's write lock, PostgreSQL's row lock of db.lock_site) from two connections at once,
+    every map is stored, under distinct versions 1..n."""
     import threading
 
-    stores = [Store(str(tmp_path / "race.db")) for _ in range(2)]
+    stores = [Store(db_url) for _ in range(2)]
     errors: list[BaseException] = []
     got: list[int] = []
     lock = threading.Lock()

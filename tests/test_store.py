@@ -74,8 +74,8 @@ def _steps(t0, n, dt_s=0.5):
 
 
 @pytest.fixture
-def store(tmp_path):
-    st = Store(str(tmp_path / "s.db"))
+def store(db_url):
+    st = Store(db_url)  # on SQLite and on PostgreSQL
     yield st
     st.close()
 
@@ -203,11 +203,11 @@ def test_read_walk_selects_records_through_indexes(store):
         assert f"USING INDEX {index}" in plan and "TEMP B-TREE" not in plan, plan
 
 
-def test_walk_read_after_a_real_zenoh_ingest(tmp_path):
+def test_walk_read_after_a_real_zenoh_ingest(tmp_path, db_url):
     ep = f"unixsock-stream/{tmp_path}/srv.sock"
     steps = _steps(1.7e9, 30)
     scans = [_scan(1.7e9 + 2.0 * k, k) for k in range(6)]
-    srv = Server(ep, str(tmp_path / "srv.db")).start()
+    srv = Server(ep, db_url).start()
     try:
         with zenoh.open(client_config(ep)) as s:
             pub = s.declare_publisher(P.key_batch(SITE, "devz"), congestion_control=zenoh.CongestionControl.BLOCK)
