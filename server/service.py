@@ -24,6 +24,7 @@ import time
 from collections import Counter
 
 import zenoh
+from sqlalchemy import exc as sa_exc
 
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
@@ -37,6 +38,10 @@ from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
 log = logging.getLogger("hybridloc.server")
+
+
+class _Stopping(Exception):
+    """The server stopped while ingest waited for the database."""
 
 
 class Server:
@@ -195,10 +200,41 @@ class Server:
                         time.sleep(0.001)
                         continue
                     group.append(nxt)
-                self._ingest(group)
+                try:
+                    self._ingest(group)
+                except _Stopping:
+                    return  # stopped while the database was away: nothing of the group was acknowledged
+                except Exception:  # noqa: BLE001 - a bad group must not end ingest: its batches are not
+                    # acknowledged, so their devices resend them; the next group goes on
+                    self.counts["ingest-errors"] += 1
+                    log.exception("ingest of a group of %d messages failed; their batches stay unacknowledged", len(group))
         except BaseException as exc:  # noqa: BLE001 - recorded, never silently lost
             self.worker_error = exc
             log.exception("ingest worker stopped")
+
+    def _with_database(self, fn, *args, **kwargs):
+        """``fn(*args, **kwargs)``, retried while the database is unreachable (PostgreSQL stopped or
+        restarting, a network cut, SQLite locked past its busy timeout): each failed transaction rolled
+        back whole, so a retry never doubles (a commit whose answer was lost finds its batches stored
+        and counts them as duplicates, go-back-N). Backs off 0.1 s doubling to 2 s; nothing is
+        acknowledged meanwhile, so the devices keep their spools. Raises _Stopping when the server stops."""
+        delay, down_since = 0.1, None
+        while True:
+            try:
+                out = fn(*args, **kwargs)
+            except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
+                self.counts["db-retries"] += 1
+                if down_since is None:
+                    down_since = time.monotonic()
+                    self.counts["db-outages"] += 1
+                    log.warning("database unreachable, ingest waits and retries: %s", str(exc).splitlines()[0][:200])
+                if self._stopping.wait(delay):
+                    raise _Stopping from None
+                delay = min(2.0, 2 * delay)
+                continue
+            if down_since is not None:
+                log.warning("database back after %.1f s; ingest resumes", time.monotonic() - down_since)
+            return out
 
     def _ingest(self, samples) -> None:
         batches, bad = [], Counter()
@@ -215,7 +251,12 @@ class Server:
             except P.Rejected as rej:
                 bad[(device, rej.reason)] += 1
         new_ids: list[tuple[str, int]] = []
-        acked, rejected, written = self.store.persist(batches, bad, written_ids=new_ids)
+
+        def persist():
+            new_ids.clear()  # a failed attempt may have listed batches its rollback took back
+            return self.store.persist(batches, bad, written_ids=new_ids)
+
+        acked, rejected, written = self._with_database(persist)
         for (_, reason), n in rejected.items():
             self.counts[f"rejected:{reason}"] += n
         self.counts["batches-persisted"] += written
@@ -244,7 +285,7 @@ class Server:
             a = self.answer(b.site, scans[-1])
             self.counts["fixes-pushed" if a.fix is not None else "no-fix-pushed"] += 1
             answers.append((b, a))
-        self.store.add_fixes([(b.device, a.fix) for b, a in answers if a.fix is not None])
+        self._with_database(self.store.add_fixes, [(b.device, a.fix) for b, a in answers if a.fix is not None])
         for b, a in answers:
             self.session.put(P.key_fix(b.site, b.device), C.FIX.encode(a), encoding=C.FIX.encoding)
 
