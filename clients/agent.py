@@ -128,6 +128,7 @@ class AgentResult:
     walk_id: int | None = None  # the server's id of this walk (from the first track taken)
     map_version: int | None = None  # the newest map version announced (or held at the start)
     maps_fetched: int = 0  # new map versions fetched and handed to the map-refresh hook
+    spool_dropped: dict = field(default_factory=dict)  # what a full spool dropped (Uplink.dropped): batches, steps, scans, marks, unspooled
 
     @property
     def raw_fixes(self) -> list[tuple]:
@@ -171,10 +172,11 @@ class Agent:
         map_refresh: Callable[[bytes, MapInfo | None], None] | None = None,
         map_version: int | None = None,
         map_timeout: float = 10.0,
+        max_spool_bytes: int | None = None,
     ):
         self.session = session
         self.site, self.device = site, device
-        self.uplink = Uplink(session, site, device, spool, device_model)
+        self.uplink = Uplink(session, site, device, spool, device_model, max_spool_bytes=max_spool_bytes)
         # any filter with the predict/correct step API (hybridloc.fusion); by default LocalFusion, our Kalman filter
         self.fusion = fusion if fusion is not None else LocalFusion(init=init, floor=floor)
         self.pose = pose
@@ -485,6 +487,7 @@ class Agent:
             self.walk_id,
             self.map_version,
             self.maps_fetched,
+            dict(self.uplink.dropped),
         )
 
 

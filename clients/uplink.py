@@ -7,14 +7,24 @@ from the oldest, when the acknowledgement does not advance for ``resend_after`` 
 message, a server restart, a reconnect). The server keeps only the next batch in sequence, so a resend
 can neither duplicate nor reorder data. The spool survives the client process, so a restarted client
 continues its sequence where it stopped.
+
+A full spool (the disk out of space, or ``max_spool_bytes`` reached) keeps the newest data: the
+oldest unacknowledged batches are hollowed out, each replaced by an empty batch under the same
+sequence number (so the server's go-back-N stream stays whole and nothing newer waits for a batch
+that will never come), and their steps, scans and marks are counted in :attr:`Uplink.dropped` and
+logged. A batch that cannot be written even then is kept in memory and sent (``dropped["unspooled"]``):
+it survives a lost message, not a restart of the client.
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import os
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import zenoh
@@ -23,10 +33,21 @@ from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch
 
+log = logging.getLogger("hybridloc.clients.uplink")
+#: the errors of a full disk or quota
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+
 
 class Uplink:
     def __init__(
-        self, session: zenoh.Session, site: str, device: str, spool_dir: str | os.PathLike, device_model: str = "", resend_after: float = 2.0
+        self,
+        session: zenoh.Session,
+        site: str,
+        device: str,
+        spool_dir: str | os.PathLike,
+        device_model: str = "",
+        resend_after: float = 2.0,
+        max_spool_bytes: int | None = None,
     ):
         self.session = session
         self.site, self.device = P.check_id(site, "site"), P.check_id(device, "device")
@@ -34,6 +55,12 @@ class Uplink:
         self.spool = Path(spool_dir)
         self.spool.mkdir(parents=True, exist_ok=True)
         self.resend_after = resend_after
+        if max_spool_bytes is not None and max_spool_bytes < 4096:
+            raise ValueError(f"max_spool_bytes {max_spool_bytes} is below one batch's worth (4096)")
+        self.max_spool_bytes = max_spool_bytes
+        #: what a full spool dropped: "batches" hollowed out, their "steps", "scans", "marks"; "unspooled"
+        self.dropped: Counter = Counter()
+        self._memory: dict[int, bytes] = {}  # batches no disk would take, until acknowledged
         self._lock = threading.Lock()
         self.acked = self._read_state().get("acked", 0)
         existing = sorted(int(p.stem) for p in self.spool.glob("*.json") if p.stem.isdigit())
@@ -73,12 +100,73 @@ class Uplink:
             payload = C.BATCH.encode(Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time(), end_of_walk))
             if len(payload) > P.MAX_BATCH_BYTES:
                 raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
-            path = self.spool / f"{seq:012d}.json"
-            tmp = path.with_suffix(".tmp")
-            tmp.write_bytes(payload)
-            os.replace(tmp, path)
+            self._spool(seq, payload)
         self._put(payload)
         return seq
+
+    # ------------------------------------------------------------ the spool
+    def _pending_files(self) -> list[Path]:
+        return sorted(p for p in self.spool.glob("*.json") if p.stem.isdigit() and int(p.stem) > self.acked)
+
+    def _write(self, path: Path, payload: bytes) -> None:
+        tmp = path.with_suffix(".tmp")
+        try:
+            tmp.write_bytes(payload)
+            os.replace(tmp, path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
+
+    def _spool(self, seq: int, payload: bytes) -> None:
+        """Write batch ``seq`` before it is sent; on a full spool hollow out the oldest (lock held)."""
+        path = self.spool / f"{seq:012d}.json"
+        if self.max_spool_bytes is not None:
+            used = sum(p.stat().st_size for p in self._pending_files())
+            if used + len(payload) > self.max_spool_bytes:
+                self._hollow(used + len(payload) - self.max_spool_bytes)
+        try:
+            self._write(path, payload)
+            return
+        except OSError as exc:
+            if exc.errno not in _FULL:
+                raise
+        self._hollow(len(payload))  # the disk is full: free what the new batch needs, oldest first
+        try:
+            self._write(path, payload)
+        except OSError as exc:
+            if exc.errno not in _FULL:
+                raise
+            self._memory[seq] = payload
+            self.dropped["unspooled"] += 1
+            log.warning("%s: spool full, batch %d kept in memory only", self.device, seq)
+
+    def _hollow(self, need: int) -> None:
+        """Replace the oldest unacknowledged batches by empty ones under the same numbers until ``need``
+        bytes are free; count what they carried."""
+        freed = 0
+        for p in self._pending_files():
+            if freed >= need:
+                break
+            old = p.read_bytes()
+            try:
+                b = C.BATCH.decode(old)
+            except P.Rejected:
+                continue
+            if not (b.steps or b.scans or b.marks):
+                continue  # already hollow
+            empty = C.BATCH.encode(Batch(b.site, b.device, b.seq, b.device_model, (), (), (), b.sent_at, b.end_of_walk))
+            p.unlink()  # first: on a full disk the empty one needs the space this frees
+            self._write(p, empty)
+            freed += len(old) - len(empty)
+            self.dropped.update(batches=1, steps=len(b.steps), scans=len(b.scans), marks=len(b.marks))
+            log.warning(
+                "%s: spool full, the data of batch %d dropped (%d steps, %d scans, %d marks) to keep the newest",
+                self.device,
+                b.seq,
+                len(b.steps),
+                len(b.scans),
+                len(b.marks),
+            )
 
     def _put(self, payload: bytes) -> None:
         # session.put (a declared publisher works too since the device ACL lets the device see the
@@ -94,6 +182,7 @@ class Uplink:
         with self._lock:
             if seq > self.acked:
                 for s in range(self.acked + 1, seq + 1):
+                    self._memory.pop(s, None)
                     try:
                         (self.spool / f"{s:012d}.json").unlink()
                     except FileNotFoundError:
@@ -108,14 +197,18 @@ class Uplink:
         with self._lock:
             if self.pending == 0 or time.monotonic() - self._last_progress < self.resend_after:
                 return 0
-            files = sorted(p for p in self.spool.glob("*.json") if p.stem.isdigit() and int(p.stem) > self.acked)
+            files = {int(p.stem): p for p in self._pending_files()}
+            memory = {k: v for k, v in self._memory.items() if k > self.acked}
             self._last_progress = time.monotonic()
         n = 0
-        for p in files:
-            try:
-                payload = p.read_bytes()
-            except FileNotFoundError:  # acknowledged (and deleted) since the listing: nothing to resend
-                continue
+        for seq in sorted(set(files) | set(memory)):
+            if seq in memory:
+                payload = memory[seq]
+            else:
+                try:
+                    payload = files[seq].read_bytes()
+                except FileNotFoundError:  # acknowledged (and deleted) since the listing: nothing to resend
+                    continue
             self._put(payload)
             n += 1
         self.n_resent += n

@@ -11,7 +11,7 @@ from hybridloc.clients.uplink import Uplink
 from hybridloc.server import db as m
 from hybridloc.server.service import Server
 from hybridloc.types import RfScan, StepEvent
-from hybridloc.wire.zconfig import client_config
+from hybridloc.wire.zconfig import client_config, free_port
 
 SITE = "site1"
 OUTAGE_S = 5.0
@@ -111,3 +111,62 @@ def test_a_failing_group_is_not_acknowledged_and_ingest_goes_on(tmp_path):
         seqs = [r[0] for r in ses.execute(select(m.Batch.seq).order_by(m.Batch.seq))]
     eng.dispose()
     assert seqs == [1, 2, 3, 4, 5]
+
+
+def _fake_disk(up, capacity):
+    """The uplink's spool on a disk of ``capacity`` bytes: a write beyond it raises ENOSPC."""
+    import errno
+
+    real = up._write
+
+    def write(path, payload):
+        used = sum(p.stat().st_size for p in up.spool.glob("*.json") if p != path)
+        if used + len(payload) > capacity:
+            raise OSError(errno.ENOSPC, "No space left on device (test)")
+        real(path, payload)
+
+    up._write = write
+
+
+@pytest.mark.parametrize("how", ["cap", "full-disk"])
+def test_a_full_spool_keeps_the_newest_data_and_counts_what_it_dropped(tmp_path, how):
+    """No server yet (the device's session keeps trying to connect) while the device sends 40 batches
+    of ~1 KB into a spool of 12 KB (``max_spool_bytes``, or a disk that raises ENOSPC): the oldest
+    batches are hollowed out (empty, same numbers) and counted, the newest kept whole. Once the
+    server is up, the resends give it every batch in order; the steps it stores are exactly what was
+    sent minus what the uplink says it dropped."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    cap = 12_000
+    conf = client_config(ep)
+    conf.insert_json5("mode", '"peer"')  # a peer opens without a router and keeps trying to connect
+    with zenoh.open(conf) as s:
+        if how == "cap":
+            up = Uplink(s, SITE, "devf", tmp_path / "spool", resend_after=0.5, max_spool_bytes=cap)
+        else:
+            up = Uplink(s, SITE, "devf", tmp_path / "spool", resend_after=0.5)
+            _fake_disk(up, cap)
+        srv = None
+        try:
+            n, sent_steps = 40, 0
+            for k in range(n):
+                up.send(steps=_steps(10, 10.0 * k))
+                sent_steps += 10
+            spooled = sum(p.stat().st_size for p in (tmp_path / "spool").glob("0*.json"))
+            dropped = dict(up.dropped)
+            srv = Server(ep, str(tmp_path / "srv.db")).start()
+            assert up.wait_acked(timeout=60), f"acked {up.acked} of {n}"
+        finally:
+            up.close()
+            if srv is not None:
+                srv.stop()
+    assert spooled <= cap and dropped.get("unspooled", 0) == 0
+    assert 0 < dropped["batches"] < n and dropped["steps"] == 10 * dropped["batches"]
+    eng = m.make_engine(str(tmp_path / "srv.db"))
+    with Session(eng) as ses:
+        rows = ses.execute(select(m.Batch.seq, m.Batch.n_steps).order_by(m.Batch.seq)).all()
+        n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
+    eng.dispose()
+    assert [r[0] for r in rows] == list(range(1, n + 1))  # the stream is whole
+    k = dropped["batches"]
+    assert [r[1] for r in rows] == [0] * k + [10] * (n - k)  # the oldest hollowed, the newest whole
+    assert n_steps == sent_steps - dropped["steps"]

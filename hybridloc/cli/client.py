@@ -27,6 +27,9 @@ def _cmd_client(args: argparse.Namespace) -> int:
         raise BadInput("--live needs the IMU sample rate: --rate HZ")
     device = args.device or f"{args.kind}-{stem_safe(args.replay) if args.replay else 'live'}"
     spool = args.spool or f".hybridloc-spool/{device}"
+    spool_cap = None if args.spool_max_mb is None else int(args.spool_max_mb * 1e6)
+    if spool_cap is not None and spool_cap < 4096:
+        raise BadInput(f"--spool-max-mb {args.spool_max_mb} is below one batch (0.004 MB)")
     pose = PoseWriter(args.pose_out, args.pose_format)
     init = parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
     # a phone's or survey's step-length calibration (foot clients have no such options)
@@ -88,7 +91,7 @@ def _cmd_client(args: argparse.Namespace) -> int:
         if args.live:
             from ..clients.agent import live_phone
 
-            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map)
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map, max_spool_bytes=spool_cap)
             src = sys.stdin if args.live == "-" else open(args.live, encoding="utf-8")
             try:
                 ls = live_phone(agent, src, args.rate, lockstep=args.lockstep, length_model=length_model, pdr_config=pdr_config)
@@ -101,10 +104,12 @@ def _cmd_client(args: argparse.Namespace) -> int:
                 + (f" (first: {ls.first_bad})" if ls.first_bad else "")
             )
         elif args.kind == "foot":
-            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map)
+            agent = Agent(s, args.site, device, spool, pose, init=init, fusion=fusion, floor=args.floor, **live_map, max_spool_bytes=spool_cap)
             replay_foot(agent, imu, args.speed)
         else:
-            agent = Agent(s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor, **live_map)
+            agent = Agent(
+                s, args.site, device, spool, pose, tr.device_model, init=init, fusion=fusion, floor=args.floor, **live_map, max_spool_bytes=spool_cap
+            )
             pdr = replay_phone(
                 agent,
                 tr,
@@ -123,6 +128,13 @@ def _cmd_client(args: argparse.Namespace) -> int:
         f"{r.fixes_received} fixes received, {r.fixes_accepted} accepted"
         + (f", {r.tracks_applied} of {r.tracks_received} corrected tracks applied" if r.tracks_received else "")
         + (f", {r.maps_fetched} new map versions" if r.maps_fetched else "")
+        + (
+            f"; spool full: the data of {r.spool_dropped.get('batches', 0)} oldest batches dropped "
+            f"({r.spool_dropped.get('steps', 0)} steps, {r.spool_dropped.get('scans', 0)} scans, {r.spool_dropped.get('marks', 0)} marks)"
+            + (f", {r.spool_dropped['unspooled']} batches held in memory only" if r.spool_dropped.get("unspooled") else "")
+            if r.spool_dropped
+            else ""
+        )
         + (f" -> {args.pose_out}" if args.pose_out else "")
     )
     return 0
@@ -204,6 +216,12 @@ def register(sub) -> None:
         c.add_argument("--pose-out", metavar="FILE", help="live pose output: .csv (t,x,y,floor,sigma_x,sigma_y), .jsonl or .nmea")
         c.add_argument("--pose-format", choices=("csv", "jsonl", "nmea"))
         c.add_argument("--spool", help="folder for unacknowledged batches (default .hybridloc-spool/<device>)")
+        c.add_argument(
+            "--spool-max-mb",
+            type=float,
+            default=None,
+            help="cap on the spool; when full the oldest unacknowledged batches lose their data first (default: the disk)",
+        )
         c.add_argument("--ack-timeout", type=float, default=10.0, help="seconds to wait for acknowledgements at the end")
         c.add_argument("--user")
         c.add_argument("--password")
