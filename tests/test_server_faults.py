@@ -170,3 +170,36 @@ def test_a_full_spool_keeps_the_newest_data_and_counts_what_it_dropped(tmp_path,
     k = dropped["batches"]
     assert [r[1] for r in rows] == [0] * k + [10] * (n - k)  # the oldest hollowed, the newest whole
     assert n_steps == sent_steps - dropped["steps"]
+
+
+def test_a_client_that_drops_and_reconnects_resumes_its_stream(tmp_path, db_url):
+    """A device closes its session mid-stream without waiting for acknowledgements (the app killed, the
+    network gone) three times, each time a new session and a new uplink on the same spool continue
+    the sequence and resend what was not acknowledged: every batch stored once, in order, on both engines."""
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    srv = Server(ep, db_url).start()
+    n = 0
+    try:
+        for _ in range(3):
+            with zenoh.open(client_config(ep)) as s:
+                up = Uplink(s, SITE, "devr", tmp_path / "spool", resend_after=0.5)
+                assert up.next_seq == n + 1  # the spool's state carries the sequence over
+                for _ in range(15):
+                    n += 1
+                    up.send(steps=_steps(4, 10.0 * n))
+                up.close()  # no wait: what was in flight may be lost with the session
+        with zenoh.open(client_config(ep)) as s:
+            up = Uplink(s, SITE, "devr", tmp_path / "spool", resend_after=0.5)
+            try:
+                assert up.wait_acked(timeout=30), f"acked {up.acked} of {n}"
+            finally:
+                up.close()
+    finally:
+        srv.stop()
+    assert srv.worker_error is None
+    eng = m.make_engine(db_url)
+    with Session(eng) as ses:
+        seqs = [r[0] for r in ses.execute(select(m.Batch.seq).order_by(m.Batch.seq))]
+        n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
+    eng.dispose()
+    assert seqs == list(range(1, n + 1)) and n_steps == 4 * n
