@@ -55,7 +55,13 @@ class Server:
         method: str = "knn",
         slam_sites: list[str] | None = None,
         slam_options: SlamOptions | None = None,
+        sites: list[str] | None = None,
+        connect: list[str] | None = None,
     ):
+        #: the sites this process serves (ingest, locate, maps): None or empty = every site. Processes
+        #: serving different sites share one router mesh (``connect``: other routers) and one database.
+        self.sites = [P.check_id(x, "site") for x in dict.fromkeys(sites or ())]
+        self.connect = list(connect or ())
         self.endpoint = endpoint
         self.db_url = db_url
         self.store = Store(db_url)
@@ -80,13 +86,17 @@ class Server:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> Server:
-        self.session = zenoh.open(server_config(self.endpoint, self.security))
+        self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
         s = self.session
-        self._sub = s.declare_subscriber(P.SUB_BATCHES, zenoh.handlers.FifoChannel(20000))
+        # every site's keys, or only the served sites' (a key expression per site: hl/v1/<site>/...)
+        batch_keys = [P.SUB_BATCHES] if not self.sites else [P.sub_batches(x) for x in self.sites]
+        locate_keys = [P.SUB_LOCATE] if not self.sites else [P.sub_locate(x) for x in self.sites]
+        map_keys = [P.SUB_MAPS] if not self.sites else [P.key_map(x) for x in self.sites]
+        self._subs = [s.declare_subscriber(k, zenoh.handlers.FifoChannel(20000)) for k in batch_keys]
         self._entities += [
-            self._sub,
-            s.declare_queryable(P.SUB_LOCATE, self._on_locate),
-            s.declare_queryable(P.SUB_MAPS, self._on_map),
+            *self._subs,
+            *(s.declare_queryable(k, self._on_locate) for k in locate_keys),
+            *(s.declare_queryable(k, self._on_map) for k in map_keys),
             s.declare_queryable(P.KEY_STATUS, self._on_status),
             s.liveliness().declare_subscriber(P.SUB_ALIVE, self._on_alive, history=True),
         ]
@@ -182,7 +192,7 @@ class Server:
                 # poll (a blocking recv() is not woken when the subscriber is undeclared, which made
                 # every stop wait for the join timeout); messages already queued are still ingested
                 try:
-                    first = self._sub.try_recv()
+                    first = self._try_recv()
                 except zenoh.ZError:
                     return  # undeclared or closed: shutting down
                 if first is None:
@@ -193,7 +203,7 @@ class Server:
                 group = [first]
                 deadline = time.monotonic() + self.max_wait
                 while len(group) < self.max_group:
-                    nxt = self._sub.try_recv()
+                    nxt = self._try_recv()
                     if nxt is None:
                         if time.monotonic() >= deadline:
                             break
@@ -211,6 +221,14 @@ class Server:
         except BaseException as exc:  # noqa: BLE001 - recorded, never silently lost
             self.worker_error = exc
             log.exception("ingest worker stopped")
+
+    def _try_recv(self):
+        """The next batch sample of any served site's subscription (None: none waiting)."""
+        for sub in self._subs:
+            smp = sub.try_recv()
+            if smp is not None:
+                return smp
+        return None
 
     def _with_database(self, fn, *args, **kwargs):
         """``fn(*args, **kwargs)``, retried while the database is unreachable (PostgreSQL stopped or
@@ -316,7 +334,9 @@ class Server:
     def _on_status(self, q: zenoh.Query) -> None:
         try:
             slam = {site: dict(self.store.slam.summary(site), worker=w.status()) for site, w in list(self.slam_workers.items())}
-            st = Status(sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam)
+            st = Status(
+                sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam, self.sites
+            )
             q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
             q.reply_err(str(exc).encode())

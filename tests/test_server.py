@@ -171,8 +171,10 @@ def _start_server(ep, db, *extra):
         stderr=subprocess.STDOUT,
         text=True,
     )
-    line = proc.stdout.readline()
-    assert "listening" in line, line
+    lines = [proc.stdout.readline()]
+    while "listening" not in lines[-1] and lines[-1].startswith(("warning", "crowd SLAM")):  # notes before it
+        lines.append(proc.stdout.readline())
+    assert "listening" in lines[-1], lines
     return proc
 
 
@@ -349,3 +351,48 @@ def test_map_rebuild_from_stored_surveys_is_incremental(tmp_path):
     from hybridloc.radio.radiomap import RadioMap
 
     assert RadioMap.load(tmp_path / "m.npz").site == "mall"
+
+
+def test_two_server_processes_split_the_sites_on_one_mesh(tmp_path, db_url):
+    """Two ``hybridloc serve`` processes, one database: A serves site sA, B serves sB and joins A's router
+    (``--connect``). Each device connects to the *other* site's process; its batches cross the mesh to
+    its own site's process, which alone stores and acknowledges them. Each process's status names its
+    sites and counts only its site's batches; a site nobody serves gets no acknowledgement."""
+    ep_a, ep_b = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    procs = [_start_server(ep_a, db_url, "--site", "sA", "--no-slam")]
+    procs.append(_start_server(ep_b, db_url, "--site", "sB", "--no-slam", "--connect", ep_a))
+    try:
+        for site, dev, ep in (("sA", "devA", ep_b), ("sB", "devB", ep_a)):
+            with zenoh.open(client_config(ep)) as s:
+                up = Uplink(s, site, dev, tmp_path / dev, resend_after=0.5)
+                try:
+                    assert up.wait_connected(20)
+                    for k in range(10):
+                        up.send(steps=_steps(3, 10.0 * k))
+                    assert up.wait_acked(timeout=20), f"{dev}: acked {up.acked}"
+                finally:
+                    up.close()
+        with zenoh.open(client_config(ep_a)) as s:
+            up = Uplink(s, "sC", "devC", tmp_path / "devC", resend_after=0.5)
+            try:
+                up.send(steps=_steps(3))
+                assert not up.wait_acked(timeout=2)  # no process serves sC
+            finally:
+                up.close()
+            replies = [
+                C.STATUS.decode(r.ok.payload.to_bytes())
+                for r in s.get(P.KEY_STATUS, timeout=5.0, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE)
+                if r.ok
+            ]
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGTERM)
+            p.wait(timeout=20)
+    by_sites = {st.sites: st for st in replies}
+    assert set(by_sites) == {("sA",), ("sB",)}
+    assert by_sites[("sA",)].counts["batches-persisted"] == 10 and by_sites[("sB",)].counts["batches-persisted"] == 10
+    eng = m.make_engine(db_url)
+    with Session(eng) as ses:
+        rows = ses.execute(select(m.Batch.device_id, m.Batch.seq).order_by(m.Batch.device_id, m.Batch.seq)).all()
+    eng.dispose()
+    assert rows == [("devA", k) for k in range(1, 11)] + [("devB", k) for k in range(1, 11)]

@@ -197,6 +197,7 @@ statuses = st.builds(
     st.dictionaries(st.text(max_size=16), db_values, max_size=6),
     st.dictionaries(ids, st.integers(1, 10**6), max_size=4),
     st.dictionaries(ids, st.dictionaries(st.text(max_size=20), slam_values, max_size=5), max_size=3),
+    st.lists(ids, max_size=3, unique=True).map(tuple),
 )
 map_infos = st.builds(MapInfo, ids, st.integers(1, 10**9))
 

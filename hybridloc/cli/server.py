@@ -26,7 +26,16 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             raise BadInput(f"--slam-batch-every must be >= 0, got {args.slam_batch_every}")
         slam_sites = list(args.site)
         slam_options = SlamOptions(idle_timeout_s=args.slam_idle, batch_every_walks=args.slam_batch_every, batch_interval_s=args.slam_interval)
-    server = Server(args.endpoint, args.db, security(args), method=args.method, slam_sites=slam_sites, slam_options=slam_options)
+    server = Server(
+        args.endpoint,
+        args.db,
+        security(args),
+        method=args.method,
+        slam_sites=slam_sites,
+        slam_options=slam_options,
+        sites=args.site,
+        connect=args.connect,
+    )
     for spec in args.map or []:
         site, _, path = spec.partition("=")
         if not path:
@@ -59,12 +68,22 @@ def _cmd_db_upgrade(args: argparse.Namespace) -> int:
 
 
 def _cmd_status(args: argparse.Namespace) -> int:
-    from ..clients.status import query_status
+    from ..clients.status import query_statuses
 
-    st = query_status(args.endpoint, security(args), args.timeout)
-    if st is None:
+    every = query_statuses(args.endpoint, security(args), args.timeout)
+    if not every:
         print(f"no server answered on {args.endpoint}", file=sys.stderr)
         return 1
+    for i, st in enumerate(sorted(every, key=lambda d: d.get("sites") or [])):
+        if i:
+            print()
+        _print_status(st)
+    return 0
+
+
+def _print_status(st: dict) -> None:
+    if st.get("sites"):
+        print(f"server process of sites: {', '.join(st['sites'])}")
     print(f"devices online ({len(st['online'])}): {', '.join(st['online']) or '-'}")
     print("database: " + ", ".join(f"{k} {v}" for k, v in st["db"].items() if k not in ("rejections", "maps")))
     print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
@@ -88,7 +107,6 @@ def _cmd_status(args: argparse.Namespace) -> int:
             + (f", busy: {w['busy']}" if w.get("busy") else "")
             + (f"; last error{' (walk ' + str(err['walk']) + ')' if err.get('walk') is not None else ''}: {err['error']}" if err else "")
         )
-    return 0
 
 
 def _cmd_map_import(args: argparse.Namespace) -> int:
@@ -146,9 +164,21 @@ def register(sub) -> None:
     sv.add_argument("--endpoint", help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
     sv.add_argument("--db", help="SQLite file or database URL (postgresql+psycopg://...)")
     sv.add_argument("--map", action="append", metavar="SITE=FILE", help="load a radio map file for a site (stored as a new version)")
-    sv.add_argument("--site", action="append", help="serve the newest stored radio map of this site")
+    sv.add_argument(
+        "--site",
+        action="append",
+        help="serve this site only (repeatable): its ingest, locate, newest stored radio map and crowd SLAM (default: every site's ingest and locate)",
+    )
+    sv.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help="join another server's router (repeatable): processes serving different sites on one mesh",
+    )
     sv.add_argument("--method", choices=("knn", "prob"), help="positioning method of the locate service (default knn)")
     sv.add_argument("--users", help="user:password dictionary file (enables authentication)")
+    sv.add_argument("--user", help="with --connect under authentication: the server user this process presents to the other routers")
+    sv.add_argument("--password", help="... and its password")
     sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
     sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
     sv.add_argument("--tls-key", help="server private key (PEM)")

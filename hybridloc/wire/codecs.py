@@ -458,6 +458,8 @@ class StatusCodec(Codec[Status]):
         d = {"schema": STATUS_SCHEMA, "online": list(s.online), "counts": dict(s.counts), "db": dict(s.db), "maps_loaded": dict(s.maps_loaded)}
         if s.slam:  # optional: servers without the crowd SLAM send the bytes they always sent
             d["slam"] = {site: dict(v) for site, v in s.slam.items()}
+        if s.sites:  # optional: a process serving every site sends the bytes it always sent
+            d["sites"] = list(s.sites)
         return _dumps(d)
 
     def decode(self, payload: bytes) -> Status:
@@ -472,7 +474,10 @@ class StatusCodec(Codec[Status]):
         slam = _object(msg.get("slam") or {}, "slam")
         if not all(isinstance(v, dict) for v in slam.values()):
             raise Rejected("malformed-json", "slam must map each site to an object")
-        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps, slam)
+        sites = msg.get("sites") or []
+        if not isinstance(sites, list):
+            raise Rejected("malformed-json", "sites must be a list of site ids")
+        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps, slam, tuple(_id(x, "site") for x in sites))
 
 
 class MapInfoCodec(Codec[MapInfo]):

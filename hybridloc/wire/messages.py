@@ -97,6 +97,9 @@ class Status:
         Site -> the crowd SLAM's figures (walks_corrected, walks_quarantined, walks_pending,
         loops_accepted, loops_rejected, coverage, map_version, ...: the server fills it). On the wire
         only when not empty: older servers send none, and their payloads decode with ``{}``.
+    sites : tuple of str
+        The sites this server process serves (``serve --site``); empty: every site. On the wire only
+        when not empty. Several processes on one mesh each answer ``hl/v1/status``.
     """
 
     online: tuple[str, ...] = ()
@@ -104,9 +107,11 @@ class Status:
     db: Mapping[str, Any] = field(default_factory=dict)
     maps_loaded: Mapping[str, int] = field(default_factory=dict)
     slam: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    sites: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "online", tuple(self.online))
+        object.__setattr__(self, "sites", tuple(self.sites))
 
     def as_dict(self) -> dict:
         """The message as a plain dict (what ``hybridloc status`` reads), without the schema."""
@@ -116,6 +121,7 @@ class Status:
             "db": dict(self.db),
             "maps_loaded": dict(self.maps_loaded),
             "slam": {site: dict(v) for site, v in self.slam.items()},
+            "sites": list(self.sites),
         }
 
 

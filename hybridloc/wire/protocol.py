@@ -125,6 +125,18 @@ def key_progress(site: str) -> str:
 
 
 KEY_STATUS = f"{PREFIX}/status"
+
+
+def sub_batches(site: str) -> str:
+    """Every device's batches of one site (a server process serving only some sites)."""
+    return f"{PREFIX}/{check_id(site, 'site')}/*/batch"
+
+
+def sub_locate(site: str) -> str:
+    """Every device's locate queries of one site."""
+    return f"{PREFIX}/{check_id(site, 'site')}/*/locate"
+
+
 SUB_BATCHES = f"{PREFIX}/*/*/batch"
 SUB_LOCATE = f"{PREFIX}/*/*/locate"
 SUB_MAPS = f"{PREFIX}/*/map"  # the map queryable: one chunk short of every map/version key

@@ -58,11 +58,17 @@ def _base(mode: str) -> zenoh.Config:
     return c
 
 
-def server_config(endpoint: str, security: Security | None = None) -> zenoh.Config:
+def server_config(endpoint: str, security: Security | None = None, connect: list[str] | None = None) -> zenoh.Config:
+    """The server's session: a router listening on ``endpoint``; ``connect``: other servers' routers
+    (one mesh: processes serving different sites reach every device). Under user/password
+    authentication a connecting router presents ``security.user``/``password`` (the server user)."""
     c = _base("router")
     c.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    c.insert_json5("connect/endpoints", "[]")
+    c.insert_json5("connect/endpoints", json.dumps(list(connect or [])))
     s = security or Security()
+    if connect and s.user:
+        c.insert_json5("transport/auth/usrpwd/user", json.dumps(s.user))
+        c.insert_json5("transport/auth/usrpwd/password", json.dumps(s.password or ""))
     if s.users_file:
         c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(Path(s.users_file).resolve())))
     if s.tls_cert and s.tls_key:
