@@ -1,0 +1,341 @@
+"""Live load: many phone clients at their real step and scan rates through real Zenoh on loopback.
+
+    python -m benchmarks.bench_load [--clients 1000] [--minutes 10] [--db sqlite|postgres|URL] [--sessions N] [--window S]
+
+The server is ``hybridloc serve`` in its own process, serving a real radio map of site1 F1 built from
+the bundled sample's surveys (``hybridloc/data/ilc_site1_F1``), so every scan costs a real locate.
+The load generator speaks only the protocol (docs/protocol.md): each simulated phone sends one
+batch per simulated second (2 steps, and a real site1 F1 WiFi scan every 2 s), numbered from 1, and
+resends what is unacknowledged when its ack stalls for 2 s (go-back-N, as the client agent does).
+Devices are spread over ``--sessions`` Zenoh client sessions (default one per 20 devices; a session
+per device is what a phone has, but a thousand sessions in one process measure the generator).
+
+Time is compressed as far as the machine allows: the simulated clock advances one second when no
+device is more than ``--window`` simulated seconds behind on acknowledgements, so ``realtime_factor``
+(simulated seconds per wall second) >= 1 means the server held real time. Compressed, the latencies
+include the backlog the window allows (up to ``--window`` simulated seconds of batches in flight);
+``--speed 1`` paces the clock at real time, where they are what a phone would see. Printed: steps/s and scans/s
+stored, acknowledgement latency p50/p99 (first send of a batch to the ack that covers it), fixes
+answered and their latency (batch sent to fix received), the server's peak memory, and lost /
+doubled counted in the database against what the clients sent. The last line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from hybridloc.wire.zconfig import free_port
+
+SITE = "site1"
+STEP_T = (0.25, 0.75)  # two steps per simulated second, ~0.7 m: a walker at 1.4 m/s
+SCAN_EVERY_S = 2
+RESEND_AFTER_S = 2.0
+
+
+def _map_and_scans(tmp: Path) -> tuple[Path, list]:
+    """A real site1 F1 radio map from the bundled surveys, and the real WiFi scans to replay."""
+    from hybridloc.radio.radiomap import build_radio_map
+    from hybridloc.radio.sources import labelled_from_inputs
+    from hybridloc.samples import ILC_SITE1_F1
+
+    walks = sorted(str(p) for p in (ILC_SITE1_F1 / "F1" / "path_data_files").glob("*"))
+    labelled, plan, _ = labelled_from_inputs("msft", walks, None)
+    rmap = build_radio_map(labelled, site=SITE, plan=plan)
+    path = tmp / "site1_F1.npz"
+    rmap.save(path)
+    return path, [ls.scan for ls in labelled]
+
+
+def _serve(ep: str, db: str, map_file: Path) -> subprocess.Popen:
+    p = subprocess.Popen(
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db, "--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    while True:
+        line = p.stdout.readline()
+        if not line or "listening" in line:
+            break
+    if "listening" not in line:
+        raise RuntimeError(f"the server did not start: {line!r}")
+    threading.Thread(target=lambda: [None for _ in p.stdout], daemon=True).start()  # keep its pipe drained
+    return p
+
+
+def _peak_rss_mb(pid: int) -> float:
+    try:
+        for ln in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if ln.startswith("VmHWM:"):
+                return int(ln.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+class _Load:
+    """The simulated phones' state: what each sent, when, and what came back."""
+
+    def __init__(self, devices: list[str]):
+        self.lock = threading.Lock()
+        self.devices = devices
+        self.acked = dict.fromkeys(devices, 0)
+        self.sent_wall: dict[str, dict[int, float]] = defaultdict(dict)  # first send of each seq
+        self.payloads: dict[str, dict[int, bytes]] = defaultdict(dict)  # unacknowledged
+        self.last_progress = dict.fromkeys(devices, time.monotonic())
+        self.ack_lat: list[float] = []
+        self.scan_sent: dict[tuple[str, float], float] = {}
+        self.fix_lat: list[float] = []
+        self.fixes = self.no_fix = self.resends = 0
+
+    def on_ack(self, sample) -> None:
+        from hybridloc.wire import codecs as C
+
+        now = time.monotonic()
+        a = C.ACK.decode(sample.payload.to_bytes())
+        with self.lock:
+            old = self.acked.get(a.device)
+            if old is None or a.acked_seq <= old:
+                return
+            sent = self.sent_wall[a.device]
+            for s in range(old + 1, a.acked_seq + 1):
+                t = sent.pop(s, None)
+                if t is not None:
+                    self.ack_lat.append(now - t)
+                self.payloads[a.device].pop(s, None)
+            self.acked[a.device] = a.acked_seq
+            self.last_progress[a.device] = now
+
+    def on_fix(self, sample) -> None:
+        from hybridloc.wire import codecs as C
+
+        now = time.monotonic()
+        device = str(sample.key_expr).split("/")[3]
+        f = C.FIX.decode(sample.payload.to_bytes())
+        t = f.fix.t if f.fix is not None else f.t
+        with self.lock:
+            if f.fix is not None:
+                self.fixes += 1
+            else:
+                self.no_fix += 1
+            t0 = self.scan_sent.pop((device, t), None)
+            if t0 is not None:
+                self.fix_lat.append(now - t0)
+
+
+def run(clients: int, minutes: float, db: str, sessions: int | None = None, window: float = 10.0, speed: float = 0.0) -> dict:
+    import zenoh
+
+    from hybridloc.types import RfScan, StepEvent, Technology
+    from hybridloc.wire import codecs as C
+    from hybridloc.wire import protocol as P
+    from hybridloc.wire.messages import Batch
+    from hybridloc.wire.zconfig import client_config
+
+    tmp = Path(tempfile.mkdtemp(prefix="hybridloc-load-"))
+    pg = None
+    if db == "sqlite":
+        url, label = str(tmp / "load.db"), "sqlite"
+    elif db == "postgres":
+        from hybridloc.server.pgtemp import TempPostgres
+
+        pg = TempPostgres().start()
+        url, label = pg.database("load"), "postgres"
+    else:
+        url, label = db, db.split(":", 1)[0]
+    map_file, scans = _map_and_scans(tmp)
+    rng = np.random.default_rng(0)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    proc = _serve(ep, url, map_file)
+    devices = [f"load{i:05d}" for i in range(clients)]
+    n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
+    load = _Load(devices)
+    sim_seconds = int(round(minutes * 60))
+    sent_steps = sent_scans = 0
+    t0_epoch = 1.7e9
+    opened = []
+    try:
+        for i in range(n_sess):
+            s = zenoh.open(client_config(ep))
+            opened.append(s)
+            # each session hears only its own devices (a wildcard here made the router send every
+            # ack and fix to every session: 50 sessions, 50 copies)
+            for d in devices[i::n_sess]:
+                s.declare_subscriber(P.key_ack(SITE, d), load.on_ack)
+                s.declare_subscriber(P.key_fix(SITE, d), load.on_fix)
+        # wait until the server answers (its status queryable)
+        deadline = time.monotonic() + 30
+        while not any(r.ok for r in opened[0].get(P.KEY_STATUS, timeout=1.0)):
+            if time.monotonic() > deadline:
+                raise RuntimeError("the server does not answer")
+        session_of = {d: opened[i % n_sess] for i, d in enumerate(devices)}
+        keys = {d: P.key_batch(SITE, d) for d in devices}
+        scan_idx = {d: int(rng.integers(len(scans))) for d in devices}
+        block = zenoh.CongestionControl.BLOCK
+        wall0 = time.monotonic()
+        for sec in range(sim_seconds):
+            t = t0_epoch + sec
+            if speed > 0:  # paced: simulated second `sec` starts at wall0 + sec / speed
+                lag = wall0 + sec / speed - time.monotonic()
+                if lag > 0:
+                    time.sleep(lag)
+            # the window: no device more than `window` simulated seconds behind on its acks
+            waited = time.monotonic()
+            while True:
+                with load.lock:
+                    behind = max(sec - load.acked[d] for d in devices)  # batch k (1-based) is second k - 1
+                if behind <= window:
+                    break
+                if time.monotonic() - waited > 120:
+                    raise RuntimeError(f"no acknowledgement progress for 120 s at simulated second {sec}")
+                _resend_stalled(load, session_of, keys, block)
+                time.sleep(0.005)
+            for d in devices:
+                seq = sec + 1
+                steps = [StepEvent(t + dt, 0.7, 0.3, 0.05, 0.1, 0.0, 0.02) for dt in STEP_T]
+                sc = ()
+                if sec % SCAN_EVERY_S == 0:
+                    base = scans[scan_idx[d] % len(scans)]
+                    scan_idx[d] += 1
+                    sc = (RfScan(t + 0.5, Technology.WIFI, dict(base.rssi_dbm), device_model=""),)
+                payload = C.BATCH.encode(Batch(SITE, d, seq, "", steps, sc, ()))
+                now = time.monotonic()
+                with load.lock:
+                    load.sent_wall[d][seq] = now
+                    load.payloads[d][seq] = payload
+                    if sc:
+                        load.scan_sent[(d, t + 0.5)] = now
+                session_of[d].put(keys[d], payload, encoding=C.BATCH.encoding, congestion_control=block)
+                sent_steps += len(steps)
+                sent_scans += len(sc)
+            _resend_stalled(load, session_of, keys, block)
+        # drain: every batch acknowledged (resending on stalls)
+        deadline = time.monotonic() + 120
+        while True:
+            with load.lock:
+                done = all(load.acked[d] >= sim_seconds for d in devices)
+            if done or time.monotonic() > deadline:
+                break
+            _resend_stalled(load, session_of, keys, block)
+            time.sleep(0.01)
+        wall = time.monotonic() - wall0
+        # the answers to the last scans follow their acks: wait for them (a few seconds at most)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            with load.lock:
+                if load.fixes + load.no_fix >= sent_scans:
+                    break
+            time.sleep(0.01)
+        rss = _peak_rss_mb(proc.pid)
+    finally:
+        for s in opened:
+            try:
+                s.close()
+            except Exception:  # noqa: BLE001 - best effort at the end of a run
+                pass
+        proc.terminate()
+        proc.wait(timeout=60)
+    stored = _stored(url, devices)
+    if pg is not None:
+        pg.stop()
+    expected = dict.fromkeys(devices, sim_seconds)
+    lost = sum(max(0, expected[d] - stored["batches"].get(d, 0)) for d in devices)
+    doubled = sum(max(0, stored["batches"].get(d, 0) - expected[d]) for d in devices) + max(0, stored["steps"] - sent_steps)
+    ack = np.array(load.ack_lat) * 1e3
+    fix = np.array(load.fix_lat) * 1e3
+    return {
+        "clients": clients,
+        "db": label,
+        "minutes": minutes,
+        "sessions": n_sess,
+        "speed": speed,
+        "lost": int(lost),
+        "doubled": int(doubled),
+        "steps_sent": sent_steps,
+        "scans_sent": sent_scans,
+        "steps_per_s": round(stored["steps"] / wall, 1),
+        "scans_per_s": round(stored["scans"] / wall, 1),
+        "ack_p50_ms": round(float(np.percentile(ack, 50)), 1) if ack.size else None,
+        "ack_p99_ms": round(float(np.percentile(ack, 99)), 1) if ack.size else None,
+        "fixes": load.fixes,
+        "no_fix": load.no_fix,
+        "fix_p50_ms": round(float(np.percentile(fix, 50)), 1) if fix.size else None,
+        "fix_p99_ms": round(float(np.percentile(fix, 99)), 1) if fix.size else None,
+        "resends": load.resends,
+        "server_peak_rss_mb": round(rss, 1),
+        "wall_s": round(wall, 1),
+        "realtime_factor": round(sim_seconds / wall, 3),
+    }
+
+
+def _resend_stalled(load: _Load, session_of, keys, block) -> None:
+    """Go-back-N as the client agent does it: a device whose ack has not moved for RESEND_AFTER_S
+    sends every unacknowledged batch again, oldest first."""
+    from hybridloc.wire import codecs as C
+
+    now = time.monotonic()
+    todo = []
+    with load.lock:
+        for d, t in load.last_progress.items():
+            if load.payloads[d] and now - t > RESEND_AFTER_S:
+                todo.append((d, [load.payloads[d][s] for s in sorted(load.payloads[d])]))
+                load.last_progress[d] = now
+    for d, payloads in todo:
+        for p in payloads:
+            session_of[d].put(keys[d], p, encoding=C.BATCH.encoding, congestion_control=block)
+            load.resends += 1
+
+
+def _stored(url: str, devices: list[str]) -> dict:
+    from sqlalchemy import func, select
+    from sqlalchemy.orm import Session
+
+    from hybridloc.server import db as m
+
+    eng = m.make_engine(url)
+    with Session(eng) as s:
+        batches = dict(s.execute(select(m.Batch.device_id, func.count()).group_by(m.Batch.device_id)).all())
+        steps = s.execute(select(func.count()).select_from(m.Step)).scalar_one()
+        scans = s.execute(select(func.count()).select_from(m.Scan)).scalar_one()
+    eng.dispose()
+    return {"batches": batches, "steps": int(steps), "scans": int(scans)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clients", type=int, default=1000)
+    ap.add_argument("--minutes", type=float, default=10.0, help="simulated minutes of walking")
+    ap.add_argument("--db", default="sqlite", help="sqlite, postgres (a throwaway server) or a database URL")
+    ap.add_argument("--sessions", type=int, help="Zenoh client sessions carrying the devices (default one per 20)")
+    ap.add_argument("--window", type=float, default=10.0, help="simulated seconds a device may be behind on acks before the clock waits")
+    ap.add_argument(
+        "--speed", type=float, default=0.0, help="pace the simulated clock at this many times real time (default 0: as fast as the window allows)"
+    )
+    args = ap.parse_args(argv)
+    if args.clients < 1 or args.minutes <= 0:
+        ap.error("--clients must be >= 1 and --minutes > 0")
+    r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed)
+    held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
+    print(
+        f"load: {r['clients']} clients x {r['minutes']:g} simulated min on {r['db']} ({r['sessions']} sessions): "
+        f"realtime factor {r['realtime_factor']:.2f} ({'held real time' if held else 'did NOT hold real time'}), "
+        f"stored {r['steps_per_s']:.0f} steps/s + {r['scans_per_s']:.0f} scans/s, ack p50 {r['ack_p50_ms']} ms p99 {r['ack_p99_ms']} ms, "
+        f"fixes {r['fixes']} (+{r['no_fix']} no-fix) p50 {r['fix_p50_ms']} ms p99 {r['fix_p99_ms']} ms, resends {r['resends']}, "
+        f"server peak {r['server_peak_rss_mb']} MB, lost {r['lost']}, doubled {r['doubled']}"
+    )
+    print(json.dumps(r))
+    return r
+
+
+if __name__ == "__main__":
+    main()
