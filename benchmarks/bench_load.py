@@ -97,11 +97,15 @@ class _Load:
         self.scan_sent: dict[tuple[str, float], float] = {}
         self.fix_lat: list[float] = []
         self.fixes = self.no_fix = self.resends = 0
+        self.misrouted = 0  # samples a subscriber callback got for a key it did not declare
 
     def on_ack(self, sample) -> None:
         from hybridloc.wire import codecs as C
 
         now = time.monotonic()
+        if not str(sample.key_expr).endswith("/ack"):
+            self.misrouted += 1  # seen: a few samples of another key handed to this callback
+            return
         a = C.ACK.decode(sample.payload.to_bytes())
         with self.lock:
             old = self.acked.get(a.device)
@@ -120,6 +124,9 @@ class _Load:
         from hybridloc.wire import codecs as C
 
         now = time.monotonic()
+        if not str(sample.key_expr).endswith("/fix"):
+            self.misrouted += 1
+            return
         device = str(sample.key_expr).split("/")[3]
         f = C.FIX.decode(sample.payload.to_bytes())
         t = f.fix.t if f.fix is not None else f.t
@@ -272,6 +279,7 @@ def run(clients: int, minutes: float, db: str, sessions: int | None = None, wind
         "fix_p50_ms": round(float(np.percentile(fix, 50)), 1) if fix.size else None,
         "fix_p99_ms": round(float(np.percentile(fix, 99)), 1) if fix.size else None,
         "resends": load.resends,
+        "misrouted": load.misrouted,
         "server_peak_rss_mb": round(rss, 1),
         "wall_s": round(wall, 1),
         "realtime_factor": round(sim_seconds / wall, 3),

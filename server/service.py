@@ -296,6 +296,8 @@ class Server:
         for b in batches:
             if (b.device, b.seq) not in stored:
                 continue
+            # a resend in the same group as its original is a duplicate of it: answered once
+            stored.discard((b.device, b.seq))
             scans = [sc for sc in b.scans if sc.technology is Technology.WIFI]
             if not scans:
                 continue

@@ -159,6 +159,16 @@ def test_locate_queryable_and_pushed_fix(server):
                 time.sleep(0.02)
             time.sleep(0.5)  # a second answer would be put right after the duplicate was counted
             assert srv.counts["rejected:duplicate"] == 1 and len(fixes) == 1
+            # a batch and its resend back to back (one ingest group, as a resend storm makes them):
+            # stored once and answered once (a duplicate inside the group was answered again)
+            twice = _batch(SITE, "dev05", 2, scans=[RfScan(3.0, "wifi", reading((11.0, 12.0)))])
+            s.put(P.key_batch(SITE, "dev05"), twice)
+            s.put(P.key_batch(SITE, "dev05"), twice)
+            deadline = time.monotonic() + 10.0
+            while srv.counts["rejected:duplicate"] < 2 and time.monotonic() < deadline:
+                time.sleep(0.02)
+            time.sleep(0.5)
+            assert srv.counts["rejected:duplicate"] == 2 and len(fixes) == 2
         finally:
             up.close()
             sub.undeclare()
