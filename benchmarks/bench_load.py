@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -34,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.bench_server import _serve
 from hybridloc.wire.zconfig import free_port
 
 SITE = "site1"
@@ -54,23 +53,6 @@ def _map_and_scans(tmp: Path) -> tuple[Path, list]:
     path = tmp / "site1_F1.npz"
     rmap.save(path)
     return path, [ls.scan for ls in labelled]
-
-
-def _serve(ep: str, db: str, map_file: Path) -> subprocess.Popen:
-    p = subprocess.Popen(
-        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db, "--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-    while True:
-        line = p.stdout.readline()
-        if not line or "listening" in line:
-            break
-    if "listening" not in line:
-        raise RuntimeError(f"the server did not start: {line!r}")
-    threading.Thread(target=lambda: [None for _ in p.stdout], daemon=True).start()  # keep its pipe drained
-    return p
 
 
 def _peak_rss_mb(pid: int) -> float:
@@ -163,7 +145,7 @@ def run(clients: int, minutes: float, db: str, sessions: int | None = None, wind
     map_file, scans = _map_and_scans(tmp)
     rng = np.random.default_rng(0)
     ep = f"tcp/127.0.0.1:{free_port()}"
-    proc = _serve(ep, url, map_file)
+    proc = _serve(ep, url, "--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam")
     devices = [f"load{i:05d}" for i in range(clients)]
     n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
     load = _Load(devices)

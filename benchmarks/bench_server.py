@@ -23,6 +23,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -54,13 +55,20 @@ def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
         up.close()
 
 
-def _serve(ep: str, db: str) -> subprocess.Popen:
+def _serve(ep: str, db: str, *extra: str) -> subprocess.Popen:
+    """``hybridloc serve`` in its own process (``extra``: more serve options), once it listens."""
     p = subprocess.Popen(
-        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db, *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     line = p.stdout.readline()
+    while line.startswith(("warning", "crowd SLAM")):  # its notes before the listening line
+        line = p.stdout.readline()
     if "listening" not in line:
-        raise RuntimeError(f"server did not start: {line}")
+        raise RuntimeError(f"server did not start: {line!r}")
+    threading.Thread(target=lambda: [None for _ in p.stdout], daemon=True).start()  # keep its pipe drained on long runs
     return p
 
 

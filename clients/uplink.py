@@ -36,6 +36,8 @@ from hybridloc.wire.messages import Batch
 log = logging.getLogger("hybridloc.clients.uplink")
 #: the errors of a full disk or quota
 _FULL = (errno.ENOSPC, errno.EDQUOT)
+#: the smallest spool cap: one batch's worth
+MIN_SPOOL_BYTES = 4096
 
 
 class Uplink:
@@ -55,8 +57,8 @@ class Uplink:
         self.spool = Path(spool_dir)
         self.spool.mkdir(parents=True, exist_ok=True)
         self.resend_after = resend_after
-        if max_spool_bytes is not None and max_spool_bytes < 4096:
-            raise ValueError(f"max_spool_bytes {max_spool_bytes} is below one batch's worth (4096)")
+        if max_spool_bytes is not None and max_spool_bytes < MIN_SPOOL_BYTES:
+            raise ValueError(f"max_spool_bytes {max_spool_bytes} is below one batch's worth ({MIN_SPOOL_BYTES})")
         self.max_spool_bytes = max_spool_bytes
         #: what a full spool dropped: "batches" hollowed out, their "steps", "scans", "marks"; "unspooled"
         self.dropped: Counter = Counter()

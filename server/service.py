@@ -93,6 +93,7 @@ class Server:
         locate_keys = [P.SUB_LOCATE] if not self.sites else [P.sub_locate(x) for x in self.sites]
         map_keys = [P.SUB_MAPS] if not self.sites else [P.key_map(x) for x in self.sites]
         self._subs = [s.declare_subscriber(k, zenoh.handlers.FifoChannel(20000)) for k in batch_keys]
+        self._next_sub = 0
         self._entities += [
             *self._subs,
             *(s.declare_queryable(k, self._on_locate) for k in locate_keys),
@@ -213,20 +214,24 @@ class Server:
                 try:
                     self._ingest(group)
                 except _Stopping:
-                    return  # stopped while the database was away: nothing of the group was acknowledged
-                except Exception:  # noqa: BLE001 - a bad group must not end ingest: its batches are not
-                    # acknowledged, so their devices resend them; the next group goes on
+                    return  # stopped while the database was away (a group not yet stored is not acknowledged)
+                except Exception:  # noqa: BLE001 - a bad group must not end ingest: the batches it did not
+                    # store are not acknowledged, so their devices resend them; the next group goes on
                     self.counts["ingest-errors"] += 1
-                    log.exception("ingest of a group of %d messages failed; their batches stay unacknowledged", len(group))
+                    log.exception("ingest of a group of %d messages failed; what it did not store stays unacknowledged", len(group))
         except BaseException as exc:  # noqa: BLE001 - recorded, never silently lost
             self.worker_error = exc
             log.exception("ingest worker stopped")
 
     def _try_recv(self):
-        """The next batch sample of any served site's subscription (None: none waiting)."""
-        for sub in self._subs:
-            smp = sub.try_recv()
+        """The next batch sample of the served sites' subscriptions, taken in turn so that a busy site
+        does not starve the others (None: none waiting)."""
+        n = len(self._subs)
+        for k in range(n):
+            i = (self._next_sub + k) % n
+            smp = self._subs[i].try_recv()
             if smp is not None:
+                self._next_sub = (i + 1) % n
                 return smp
         return None
 

@@ -8,6 +8,8 @@ import zenoh
 from hybridloc.fusion import LocalFusion
 from hybridloc.types import AbsoluteFix, StepEvent
 
+from .helpers import wait_until as _wait_for
+
 
 def _walk(n, heading, length=0.7, t0=0.0):
     return [StepEvent(t0 + 0.5 * i, length, heading, 0.05, math.radians(2), 0.0, math.radians(1)) for i in range(n)]
@@ -434,17 +436,6 @@ def test_end_of_walk_marker_closes_the_walk_on_the_server(tmp_path):
     finally:
         store.close()
     assert ends == {"marked": WalkEnd.MARKER, "older": WalkEnd.OPEN}
-
-
-def _wait_for(cond, timeout=10.0):
-    import time
-
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def _corrected(walk_id, t, pos_last, anchored="map", bias=0.0, scale=1.0):

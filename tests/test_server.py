@@ -23,6 +23,9 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch, LocateRequest
 from hybridloc.wire.zconfig import Security, client_config, free_port
 
+from .helpers import stored_stream
+from .helpers import wait_until as _wait
+
 SITE = "site1"
 
 
@@ -70,15 +73,6 @@ def server(tmp_path, db_url):
         yield srv, ep, tmp_path, db_url
     finally:
         srv.stop()
-
-
-def _wait(cond, timeout=10.0):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def test_ingest_ack_duplicates_gaps_and_bad_messages(server):
@@ -212,11 +206,7 @@ def test_sigkill_mid_ingest_loses_nothing_acknowledged_and_resend_completes(tmp_
             up.close()
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=20)
-    eng = m.make_engine(db)
-    with Session(eng) as ses:
-        seqs = [r[0] for r in ses.execute(select(m.Batch.seq).where(m.Batch.device_id == "devk").order_by(m.Batch.seq))]
-        n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
-    eng.dispose()
+    seqs, n_steps = stored_stream(db, "devk")
     assert seqs == list(range(1, n_batches + 1))  # nothing missing, nothing doubled
     assert n_steps == 20 * n_batches
 

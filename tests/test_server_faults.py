@@ -13,6 +13,8 @@ from hybridloc.server.service import Server
 from hybridloc.types import RfScan, StepEvent
 from hybridloc.wire.zconfig import client_config, free_port
 
+from .helpers import stored_stream
+
 SITE = "site1"
 OUTAGE_S = 5.0
 
@@ -69,11 +71,7 @@ def test_postgresql_stopped_mid_ingest_loses_nothing_and_ingest_comes_back(tmp_p
         # the ack could not move while the database was away (at most a group in flight at the stop)
         assert acked_during - acked_before <= 2, (acked_before, acked_during)
         assert back_s < 2.0 + 1.0 + 5.0, back_s
-        eng = m.make_engine(url)
-        with Session(eng) as ses:
-            seqs = [r[0] for r in ses.execute(select(m.Batch.seq).where(m.Batch.device_id == "devpg").order_by(m.Batch.seq))]
-            n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
-        eng.dispose()
+        seqs, n_steps = stored_stream(url, "devpg")
     assert seqs == list(range(1, n + 1))  # nothing missing, nothing doubled
     assert n_steps == 5 * n
 
@@ -106,10 +104,7 @@ def test_a_failing_group_is_not_acknowledged_and_ingest_goes_on(tmp_path):
     finally:
         srv.stop()
     assert srv.worker_error is None and srv.counts["ingest-errors"] == 1
-    eng = m.make_engine(str(tmp_path / "srv.db"))
-    with Session(eng) as ses:
-        seqs = [r[0] for r in ses.execute(select(m.Batch.seq).order_by(m.Batch.seq))]
-    eng.dispose()
+    seqs, _ = stored_stream(tmp_path / "srv.db")
     assert seqs == [1, 2, 3, 4, 5]
 
 
@@ -197,9 +192,5 @@ def test_a_client_that_drops_and_reconnects_resumes_its_stream(tmp_path, db_url)
     finally:
         srv.stop()
     assert srv.worker_error is None
-    eng = m.make_engine(db_url)
-    with Session(eng) as ses:
-        seqs = [r[0] for r in ses.execute(select(m.Batch.seq).order_by(m.Batch.seq))]
-        n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
-    eng.dispose()
+    seqs, n_steps = stored_stream(db_url)
     assert seqs == list(range(1, n + 1)) and n_steps == 4 * n

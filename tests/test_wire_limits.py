@@ -5,7 +5,6 @@ the batch and counts the refusals once; hybridloc's own clients never hit a limi
 import glob
 import json
 import math
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch
 from hybridloc.wire.zconfig import client_config
 
+from .helpers import wait_until as _wait
 from .test_wire_codecs import wild_batches
 
 SITE, DEV = "site1", "dev01"
@@ -171,15 +171,6 @@ def test_server_stores_the_rest_acks_and_counts_each_refusal_once(tmp_path):
     rej = st["rejections"]
     assert (rej.get("time-out-of-order"), rej.get("step-too-long"), rej.get("scan-too-large"), rej.get("duplicate")) == (1, 1, 1, 1)
     assert srv.counts["rejected:step-too-long"] == 1 and srv.counts["rejected:scan-too-large"] == 1
-
-
-def _wait(cond, timeout=10.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def _phone_steps(path):

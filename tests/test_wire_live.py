@@ -2,7 +2,6 @@
 and the access-control list on a real router with user/password authentication on loopback."""
 
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -13,6 +12,8 @@ from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import MapVersion, Progress, Track
 from hybridloc.wire.zconfig import Security, client_config, free_port, server_config
+
+from .helpers import wait_until as _wait
 
 SITE = "site1"
 
@@ -41,15 +42,6 @@ def test_new_keys_match_only_their_own_subscriptions():
 def _track(device: str, walk_id: int) -> bytes:
     tr = CorrectedTrack(walk_id, [1.0, 1.5], [[0.0, 0.0], [0.7, 0.0]], np.stack([np.eye(2) * 0.04] * 2), ("F1", "F1"), ("step", "step"), "map")
     return C.TRACK.encode(Track(SITE, device, walk_id, 1, 1, tr))
-
-
-def _wait(cond, timeout=10.0) -> bool:
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def test_acl_each_device_hears_its_own_track_and_every_announcement_but_no_other_track(tmp_path):

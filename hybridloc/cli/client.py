@@ -28,8 +28,10 @@ def _cmd_client(args: argparse.Namespace) -> int:
     device = args.device or f"{args.kind}-{stem_safe(args.replay) if args.replay else 'live'}"
     spool = args.spool or f".hybridloc-spool/{device}"
     spool_cap = None if args.spool_max_mb is None else int(args.spool_max_mb * 1e6)
-    if spool_cap is not None and spool_cap < 4096:
-        raise BadInput(f"--spool-max-mb {args.spool_max_mb} is below one batch (0.004 MB)")
+    from ..clients.uplink import MIN_SPOOL_BYTES  # here: the uplink imports zenoh, slow for every other command
+
+    if spool_cap is not None and spool_cap < MIN_SPOOL_BYTES:
+        raise BadInput(f"--spool-max-mb {args.spool_max_mb} is below one batch ({MIN_SPOOL_BYTES / 1e6:g} MB)")
     pose = PoseWriter(args.pose_out, args.pose_format)
     init = parse_floats(args.start, 3, "--start x,y,sigma") if args.start else None
     # a phone's or survey's step-length calibration (foot clients have no such options)
