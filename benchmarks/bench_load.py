@@ -79,16 +79,21 @@ class _Load:
         self.scan_sent: dict[tuple[str, float], float] = {}
         self.fix_lat: list[float] = []
         self.fixes = self.no_fix = self.resends = 0
-        self.misrouted = 0  # samples a subscriber callback got for a key it did not declare
+        self.misrouted = 0  # samples a callback got for a key it did not declare, or with another key's payload
 
     def on_ack(self, sample) -> None:
         from hybridloc.wire import codecs as C
+        from hybridloc.wire import protocol as P
 
         now = time.monotonic()
         if not str(sample.key_expr).endswith("/ack"):
             self.misrouted += 1  # seen: a few samples of another key handed to this callback
             return
-        a = C.ACK.decode(sample.payload.to_bytes())
+        try:
+            a = C.ACK.decode(sample.payload.to_bytes())
+        except P.Rejected:  # seen under load: another key's payload (a fix) on this key
+            self.misrouted += 1
+            return
         with self.lock:
             old = self.acked.get(a.device)
             if old is None or a.acked_seq <= old:
@@ -104,13 +109,18 @@ class _Load:
 
     def on_fix(self, sample) -> None:
         from hybridloc.wire import codecs as C
+        from hybridloc.wire import protocol as P
 
         now = time.monotonic()
         if not str(sample.key_expr).endswith("/fix"):
             self.misrouted += 1
             return
         device = str(sample.key_expr).split("/")[3]
-        f = C.FIX.decode(sample.payload.to_bytes())
+        try:
+            f = C.FIX.decode(sample.payload.to_bytes())
+        except P.Rejected:  # seen under load: an ack's payload on a fix key
+            self.misrouted += 1
+            return
         t = f.fix.t if f.fix is not None else f.t
         with self.lock:
             if f.fix is not None:

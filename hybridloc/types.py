@@ -300,12 +300,17 @@ class RfScan:
         if not math.isfinite(self.t):
             raise ValueError(f"RfScan.t must be finite, got {self.t!r}")
         object.__setattr__(self, "technology", Technology(self.technology))
-        rssi = {}
-        for k, v in dict(self.rssi_dbm).items():
-            v = float(v)
-            if not rssi_in_range(v):
-                raise ValueError(f"RfScan: RSSI {v!r} dBm of {k!r} outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}]")
-            rssi[str(k)] = v
+        raw = dict(self.rssi_dbm)
+        # one array check for the whole scan (a real WiFi scan has hundreds of readings; NaN and the
+        # infinities fail rssi_in_range), the first offender named; readings that are already str ->
+        # float are copied as they are (a dict copy costs a fraction of rebuilding one)
+        plain = set(map(type, raw.values())) <= {float} and set(map(type, raw)) <= {str}
+        vals = np.fromiter(raw.values(), dtype=float, count=len(raw)) if plain else np.array([float(v) for v in raw.values()], dtype=float)
+        ok = rssi_in_range(vals)
+        if not ok.all():
+            i = int(np.argmin(ok))
+            raise ValueError(f"RfScan: RSSI {vals[i]!r} dBm of {list(raw)[i]!r} outside [{RSSI_MIN_DBM}, {RSSI_MAX_DBM}]")
+        rssi = raw if plain else dict(zip(map(str, raw), vals.tolist()))
         object.__setattr__(self, "rssi_dbm", MappingProxyType(rssi))
         object.__setattr__(self, "frequency_hz", MappingProxyType({str(k): float(v) for k, v in dict(self.frequency_hz).items()}))
         object.__setattr__(self, "age_s", MappingProxyType({str(k): float(v) for k, v in dict(self.age_s).items()}))

@@ -20,6 +20,9 @@ MS_TO_S = 1e-3
 
 def wrap_angle(a):
     """Wrap angle(s) in radians to the half-open interval (-pi, pi]."""
+    if type(a) is float or type(a) is int:  # one angle: Python's float % is numpy's np.mod (fmod, then the divisor's sign), bit for bit
+        s = (float(a) + math.pi) % (2.0 * math.pi) - math.pi
+        return math.pi if s == -math.pi else s
     w = np.mod(np.asarray(a, dtype=float) + math.pi, 2.0 * math.pi) - math.pi
     w = np.where(w == -math.pi, math.pi, w)
     return float(w) if np.ndim(w) == 0 else w

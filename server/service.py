@@ -186,6 +186,16 @@ class Server:
             return Fix(None, reason=res.reason, t=scan.t)
         return Fix(res.fix, res.region, res.floor_probs)
 
+    def answer_many(self, site: str, scans: list[RfScan]) -> list[Fix]:
+        """:meth:`answer` for each of ``scans`` (one locator call for all of them)."""
+        loc = self.locators.get(site)
+        if loc is None:
+            return [Fix(None, reason=f"no radio map for site {site!r}", t=sc.t) for sc in scans]
+        results = loc[1].locate_many(scans) if isinstance(loc[1], _KnnOne) else [loc[1].locate(sc) for sc in scans]
+        return [
+            Fix(None, reason=res.reason, t=sc.t) if res.fix is None else Fix(res.fix, res.region, res.floor_probs) for sc, res in zip(scans, results)
+        ]
+
     # ------------------------------------------------------------ ingest
     def _run(self) -> None:
         try:
@@ -297,19 +307,24 @@ class Server:
         # and answering it again made the client fuse the same fix twice and count one answer too
         # many. The fixes are stored in one transaction before any is pushed.
         stored = set(new_ids)
-        answers = []
+        asked: list[tuple] = []  # (batch, its newest WiFi scan)
         for b in batches:
             if (b.device, b.seq) not in stored:
                 continue
             # a resend in the same group as its original is a duplicate of it: answered once
             stored.discard((b.device, b.seq))
             scans = [sc for sc in b.scans if sc.technology is Technology.WIFI]
-            if not scans:
-                continue
-            # the decoded scan carries the batch's device model (the locators' per-device RSSI offset)
-            a = self.answer(b.site, scans[-1])
-            self.counts["fixes-pushed" if a.fix is not None else "no-fix-pushed"] += 1
-            answers.append((b, a))
+            if scans:
+                # the decoded scan carries the batch's device model (the locators' per-device RSSI offset)
+                asked.append((b, scans[-1]))
+        answers = []
+        for site in dict.fromkeys(b.site for b, _ in asked):
+            mine = [(b, sc) for b, sc in asked if b.site == site]
+            # the group's scans of a site located in one call: one fingerprint matrix, one
+            # neighbour search (the same answers as one call per scan)
+            for (b, _), a in zip(mine, self.answer_many(site, [sc for _, sc in mine])):
+                self.counts["fixes-pushed" if a.fix is not None else "no-fix-pushed"] += 1
+                answers.append((b, a))
         self._with_database(self.store.add_fixes, [(b.device, a.fix) for b, a in answers if a.fix is not None])
         for b, a in answers:
             self.session.put(P.key_fix(b.site, b.device), C.FIX.encode(a), encoding=C.FIX.encoding)
@@ -367,6 +382,9 @@ class _KnnOne:
 
     def locate(self, scan):
         return self.knn.locate_many([scan])[0]
+
+    def locate_many(self, scans):
+        return self.knn.locate_many(scans) if scans else []
 
 
 def serve_forever(server: Server) -> None:

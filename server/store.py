@@ -111,6 +111,12 @@ class Store:
         transaction (and included in the returned rejections). ``end_of_walk`` names the batches, as
         (device, seq), that carry the end-of-walk marker; a batch whose ``end_of_walk`` attribute is
         true counts too.
+
+        A group costs a fixed number of statements, not a number per batch: the devices, their open
+        walks and their rejection rows are read in one query each, the batch rows are inserted in one
+        multi-row INSERT ... RETURNING id, and the steps, scans and marks of the whole group in one
+        executemany each (a thousand devices sending a batch a second arrive as groups of hundreds
+        of one-batch devices; per-batch statements made the database most of the ingest time).
         """
         acked: dict[str, int] = {}
         rejected: Counter = Counter(invalid or {})
@@ -119,22 +125,27 @@ class Store:
             return acked, rejected, written
         ends = set(end_of_walk)
         with Session(self.engine) as s, s.begin():
-            devices: dict[str, m.Device] = {}
-            sites: set[str] = set()
-            open_walks: dict[str, m.Walk | None] = {}
+            ids = list(dict.fromkeys(b.device for b in batches))
+            devices = {d.id: d for d in _chunked_in(s, select(m.Device), m.Device.id, ids)}
+            new_devs = [b for b in {b.device: b for b in reversed(batches)}.values() if b.device not in devices]
+            if new_devs:
+                have = {x.id for x in _chunked_in(s, select(m.Site), m.Site.id, list({b.site for b in new_devs}))}
+                s.add_all([m.Site(id=x, name=x) for x in dict.fromkeys(b.site for b in new_devs) if x not in have])
+                s.flush()
+                for b in sorted(new_devs, key=lambda b: ids.index(b.device)):
+                    devices[b.device] = m.Device(id=b.device, site_id=b.site, model=b.device_model, last_seq=0)
+                    s.add(devices[b.device])
+                s.flush()
+            # the newest open walk of each device (what _join_walk continues)
+            open_walks: dict[str, m.Walk | None] = dict.fromkeys(ids)
+            for w in _chunked_in(s, select(m.Walk).where(m.Walk.end_reason == WalkEnd.OPEN.value).order_by(m.Walk.id), m.Walk.device_id, ids):
+                open_walks[w.device_id] = w
+            rows: list[dict] = []
+            kept: list[tuple[Batch, m.Walk | None]] = []
+            floors_named: list[tuple[m.Walk, str, float]] = []
+            now = m.utcnow()
             for b in batches:
-                dev = devices.get(b.device)
-                if dev is None:
-                    dev = s.get(m.Device, b.device)
-                    if dev is None:
-                        if b.site not in sites and s.get(m.Site, b.site) is None:
-                            s.add(m.Site(id=b.site, name=b.site))
-                            s.flush()
-                        sites.add(b.site)
-                        dev = m.Device(id=b.device, site_id=b.site, model=b.device_model, last_seq=0)
-                        s.add(dev)
-                        s.flush()
-                    devices[b.device] = dev
+                dev = devices[b.device]
                 if b.seq <= dev.last_seq:
                     rejected[(b.device, "duplicate")] += 1
                     acked[b.device] = dev.last_seq
@@ -143,75 +154,88 @@ class Store:
                     rejected[(b.device, "out-of-order")] += 1
                     acked[b.device] = dev.last_seq
                     continue
-                row = m.Batch(device_id=b.device, seq=b.seq, n_steps=len(b.steps), n_scans=len(b.scans), n_marks=len(b.marks))
-                s.add(row)
-                s.flush()
-                if b.steps:
-                    s.execute(
-                        insert(m.Step),
-                        [
-                            {
-                                "batch_id": row.id,
-                                "device_id": b.device,
-                                "t": st.t,
-                                "length": st.length,
-                                "heading": st.heading,
-                                "sigma_length": st.sigma_length,
-                                "sigma_heading": st.sigma_heading,
-                                "heading_change": st.heading_change,
-                                "sigma_heading_change": st.sigma_heading_change,
-                                "height_change": st.height_change,
-                                "sigma_height_change": st.sigma_height_change,
-                                "floor_change": st.floor_change,
-                                "degraded": st.degraded,
-                            }
-                            for st in b.steps
-                        ],
-                    )
-                if b.scans:
-                    s.execute(
-                        insert(m.Scan),
-                        [
-                            {
-                                "batch_id": row.id,
-                                "device_id": b.device,
-                                "t": sc.t,
-                                "technology": sc.technology.value,
-                                "readings": {
-                                    "rssi": dict(sc.rssi_dbm),
-                                    **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
-                                    **({"age": dict(sc.age_s)} if sc.age_s else {}),
-                                },
-                            }
-                            for sc in b.scans
-                        ],
-                    )
-                if b.marks:
-                    s.execute(
-                        insert(m.SurveyMark),
-                        [{"batch_id": row.id, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for mk in b.marks],
-                    )
+                w = self._join_walk(s, b, dev, open_walks, getattr(b, "end_of_walk", False) or (b.device, b.seq) in ends, floors_named)
+                rows.append(
+                    {
+                        "device_id": b.device,
+                        "seq": b.seq,
+                        "received_at": now,
+                        "n_steps": len(b.steps),
+                        "n_scans": len(b.scans),
+                        "n_marks": len(b.marks),
+                    }
+                )
+                kept.append((b, w))
                 dev.last_seq = b.seq
-                dev.last_seen = m.utcnow()
+                dev.last_seen = now
                 if b.device_model and not dev.model:
                     dev.model = b.device_model
-                self._join_walk(s, row, b, dev, open_walks, getattr(b, "end_of_walk", False) or (b.device, b.seq) in ends)
                 acked[b.device] = b.seq
                 written += 1
                 for reason, n in b.refused:  # counted once, with the batch that carried them (a resend is a duplicate)
                     rejected[(b.device, reason)] += n
                 if written_ids is not None:
                     written_ids.append((b.device, b.seq))
+            if kept:
+                s.flush()  # new walks get their ids; the walks' and devices' changes are written
+                for w, floor, t in floors_named:
+                    _name_floor(s, w.id, floor, t)
+                for r, (_, w) in zip(rows, kept):
+                    r["walk_id"] = None if w is None else w.id
+                batch_ids = s.execute(insert(m.Batch).returning(m.Batch.id, sort_by_parameter_order=True), rows).scalars().all()
+                self._insert_records(s, [(bid, b) for bid, (b, _) in zip(batch_ids, kept)])
             self._add_rejections(s, rejected)
         return acked, rejected, written
 
     @staticmethod
-    def _join_walk(s: Session, row: m.Batch, b: Batch, dev: m.Device, open_walks: dict[str, m.Walk | None], ends_walk: bool) -> None:
-        """Put the batch ``row`` in its device's open walk, or in a new one after an idle gap (module docstring)."""
-        if b.device not in open_walks:
-            open_walks[b.device] = s.execute(
-                select(m.Walk).where(m.Walk.device_id == b.device, m.Walk.end_reason == WalkEnd.OPEN.value).order_by(m.Walk.id.desc()).limit(1)
-            ).scalar_one_or_none()
+    def _insert_records(s: Session, stored: list[tuple[int, Batch]]) -> None:
+        """The steps, scans and marks of the batches ``stored`` as (batch row id, batch): an executemany each."""
+        steps = [
+            {
+                "batch_id": bid,
+                "device_id": b.device,
+                "t": st.t,
+                "length": st.length,
+                "heading": st.heading,
+                "sigma_length": st.sigma_length,
+                "sigma_heading": st.sigma_heading,
+                "heading_change": st.heading_change,
+                "sigma_heading_change": st.sigma_heading_change,
+                "height_change": st.height_change,
+                "sigma_height_change": st.sigma_height_change,
+                "floor_change": st.floor_change,
+                "degraded": st.degraded,
+            }
+            for bid, b in stored
+            for st in b.steps
+        ]
+        scans = [
+            {
+                "batch_id": bid,
+                "device_id": b.device,
+                "t": sc.t,
+                "technology": sc.technology.value,
+                "readings": {
+                    "rssi": dict(sc.rssi_dbm),
+                    **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
+                    **({"age": dict(sc.age_s)} if sc.age_s else {}),
+                },
+            }
+            for bid, b in stored
+            for sc in b.scans
+        ]
+        marks = [{"batch_id": bid, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for bid, b in stored for mk in b.marks]
+        for table, params in ((m.Step, steps), (m.Scan, scans), (m.SurveyMark, marks)):
+            if params:
+                s.execute(insert(table), params)
+
+    @staticmethod
+    def _join_walk(
+        s: Session, b: Batch, dev: m.Device, open_walks: dict[str, m.Walk | None], ends_walk: bool, floors_named: list[tuple[m.Walk, str, float]]
+    ) -> m.Walk | None:
+        """The walk the batch ``b`` joins: its device's open walk, or a new one after an idle gap (module
+        docstring); None for a batch of nothing with no open walk. New walks are added to ``s`` (their
+        ids come with the next flush); the floors their marks name are listed in ``floors_named``."""
         w = open_walks[b.device]
         times = [r.t for r in b.steps] + [r.t for r in b.scans] + [r.t for r in b.marks]
         if times:
@@ -232,14 +256,11 @@ class Store:
                     n_marks=0,
                 )
                 s.add(w)
-                s.flush()
             w.t_start, w.t_end = min(w.t_start, lo), max(w.t_end, hi)
-            for mk in b.marks:
-                if mk.floor:
-                    _name_floor(s, w.id, mk.floor, mk.t)
+            floors_named += [(w, mk.floor, mk.t) for mk in b.marks if mk.floor]
         if w is None:
-            return  # no records and no open walk: a batch of nothing belongs to no walk
-        row.walk_id = w.id
+            return None  # no records and no open walk: a batch of nothing belongs to no walk
+        joined = w
         w.n_batches += 1
         w.n_steps += len(b.steps)
         w.n_scans += len(b.scans)
@@ -251,13 +272,18 @@ class Store:
             w.end_reason = WalkEnd.MARKER.value
             w = None
         open_walks[b.device] = w
+        return joined
 
     @staticmethod
     def _add_rejections(s: Session, counts: Counter) -> None:
+        if not counts:
+            return
+        have = {(r.device_id, r.reason): r for r in _chunked_in(s, select(m.Rejection), m.Rejection.device_id, list({d for d, _ in counts}))}
         for (device, reason), n in counts.items():
-            row = s.execute(select(m.Rejection).where(m.Rejection.device_id == device, m.Rejection.reason == reason)).scalar_one_or_none()
+            row = have.get((device, reason))
             if row is None:
-                s.add(m.Rejection(device_id=device, reason=reason, count=n))
+                have[(device, reason)] = row = m.Rejection(device_id=device, reason=reason, count=n)
+                s.add(row)
             else:
                 row.count += n
 
@@ -271,22 +297,43 @@ class Store:
 
     def add_fixes(self, fixes: list) -> None:
         """Store (device, AbsoluteFix) pairs in one transaction; a fix's floor joins the floors of the
-        device's latest walk whose span holds the fix's time."""
+        device's latest walk whose span holds the fix's time. The fixes go in one executemany and the
+        candidate walks are read in one query (a group's fixes are one per device)."""
         if not fixes:
             return
         with Session(self.engine) as s, s.begin():
-            s.add_all(
+            s.execute(
+                insert(m.Fix),
                 [
-                    m.Fix(device_id=d, t=f.t, x=float(f.pos_enu[0]), y=float(f.pos_enu[1]), floor=f.floor, cov=f.cov.tolist(), source=f.source.value)
+                    {
+                        "device_id": d,
+                        "t": f.t,
+                        "x": float(f.pos_enu[0]),
+                        "y": float(f.pos_enu[1]),
+                        "floor": f.floor,
+                        "cov": f.cov.tolist(),
+                        "source": f.source.value,
+                    }
                     for d, f in fixes
-                ]
+                ],
             )
-            for d, f in fixes:
-                if not f.floor:
-                    continue
-                wid = s.execute(
-                    select(m.Walk.id).where(m.Walk.device_id == d, m.Walk.t_start <= f.t, m.Walk.t_end >= f.t).order_by(m.Walk.id.desc()).limit(1)
-                ).scalar_one_or_none()
+            named = [(d, f) for d, f in fixes if f.floor]
+            if not named:
+                return
+            lo, hi = min(f.t for _, f in named), max(f.t for _, f in named)
+            spans: dict[str, list[tuple[int, float, float]]] = {}
+            for wid, dev, t0, t1 in _chunked_in(
+                s,
+                select(m.Walk.id, m.Walk.device_id, m.Walk.t_start, m.Walk.t_end)
+                .where(m.Walk.t_start <= hi, m.Walk.t_end >= lo)
+                .order_by(m.Walk.id.desc()),
+                m.Walk.device_id,
+                list({d for d, _ in named}),
+                scalars=False,
+            ):
+                spans.setdefault(dev, []).append((wid, t0, t1))
+            for d, f in named:
+                wid = next((w for w, t0, t1 in spans.get(d, ()) if t0 <= f.t <= t1), None)
                 if wid is not None:
                     _name_floor(s, wid, f.floor, f.t)
 
@@ -498,6 +545,20 @@ class Store:
                     ).all()
                 },
             }
+
+
+#: Largest IN list in one statement (SQLite allows 32,766 bound parameters since 3.32, PostgreSQL 65,535).
+_IN_CHUNK = 900
+
+
+def _chunked_in(s: Session, stmt, column, values: list, scalars: bool = True) -> list:
+    """The rows of ``stmt`` with ``column IN values``, in chunks of :data:`_IN_CHUNK` values; ORM objects
+    (``scalars``) or tuples. Rows of different chunks are concatenated (each chunk in ``stmt``'s order)."""
+    out: list = []
+    for i in range(0, len(values), _IN_CHUNK):
+        res = s.execute(stmt.where(column.in_(values[i : i + _IN_CHUNK])))
+        out += res.scalars().all() if scalars else res.all()
+    return out
 
 
 def _name_floor(s: Session, walk_id: int, floor: str, t: float) -> None:

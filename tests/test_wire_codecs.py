@@ -789,3 +789,48 @@ def test_map_version_progress_and_status_slam_rejections():
     assert st_new.as_dict()["slam"] == {"site1": {"walks_pending": 2, "coverage": None}}
     assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": {"site1": 3}})) == "malformed-json"
     assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": [1]})) == "malformed-json"
+
+
+# ---------------------------------------------------------------------------------------------- fast JSON path
+_json_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**80), max_value=2**80)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(alphabet="0123456789abc:\u00e9\u2603\ud7ff", max_size=30),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+    max_leaves=20,
+)
+
+
+def _slow_or_reason(payload: bytes):
+    try:
+        return C._load_slow(payload)
+    except P.Rejected as rej:
+        return ("rejected", rej.reason)
+
+
+def _fast_or_reason(payload: bytes):
+    try:
+        return C._load(payload, None)
+    except P.Rejected as rej:
+        return ("rejected", rej.reason)
+
+
+# JSON text put in as one more member: what json and orjson read differently, or refuse
+_TAILS = ["", "NaN", "Infinity", "-Infinity", "1e999", r'"\ud800"', "123456789012345678901234567890", "[" * 3000]
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.dictionaries(st.text(max_size=8), _json_values, max_size=6), st.sampled_from(_TAILS))
+def test_fast_json_reads_what_the_standard_parser_reads(obj, tail):
+    """The decoders' orjson path accepts exactly what json accepts, with the same values (big integers
+    exact), and every refusal keeps json's reason (NaN, overflowing literals, lone surrogates, nesting)."""
+    text = json.dumps(obj)
+    if tail:
+        text = text[:-1] + (", " if obj else "") + f'"z": {tail}' + "}"
+    payload = text.encode()
+    fast, slow = _fast_or_reason(payload), _slow_or_reason(payload)
+    assert fast == slow
+    if isinstance(slow, dict):
+        assert json.dumps(fast, sort_keys=True) == json.dumps(slow, sort_keys=True)  # ints stay ints, floats floats
