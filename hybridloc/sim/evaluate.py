@@ -1,5 +1,7 @@
-"""``hybridloc eval sim-realism``: simulated statistics beside real ones, and the phone PDR on simulated
-walks with true steps (step-count error, false steps while standing or handling the phone)."""
+"""``hybridloc eval sim-realism``: simulated statistics beside real ones, the phone PDR on simulated
+walks with true steps (step-count error, false steps while standing or handling the phone), and the
+step-length models on simulated and real waypoint segments (:func:`length_model_errors`): with one
+uncalibrated constant the simulator should be as hard on a Weinberg-type model as real walks are."""
 
 from __future__ import annotations
 
@@ -14,30 +16,124 @@ from ..pdr.phone import PhonePdrConfig, run_phone_pdr
 from ..radio.survey import LabelledScan
 from ..units import wrap_angle
 from .building import generate_world
-from .imu import disturbance_field, phone_imu
+from .imu import PhoneSensors, disturbance_field, phone_sensors
+from .output import waypoints
 from .radio import make_radio_model, simulate_radio
 from .realism import rssi_slopes, similarity_by_distance, spectrum_peaks
-from .walker import simulate_walk
+from .walker import Walk, simulate_walk
 
 
-def simulated_sample(walkers: int, minutes: float, seed: int = 1):
+@dataclass
+class SimSample:
+    world: object  # building.World
+    labelled: list[LabelledScan]
+    walks: list[Walk]
+    sensors: list[PhoneSensors]
+    ap_pos: dict[str, np.ndarray]
+
+
+def simulate_sample(walkers: int, minutes: float, seed: int = 1) -> SimSample:
+    """``walkers`` walks of ``minutes`` in a generated 3-floor building: their phones (IMU and rotation
+    vector) and their WiFi scans labelled with the true positions."""
     world = generate_world(np.random.default_rng(seed), 3, seed)
     model = make_radio_model(world, np.random.default_rng([seed, 7]))
     field = disturbance_field(np.random.default_rng([seed, 11]))
     root = np.random.default_rng([seed, 13])
-    labelled, walks, imus = [], [], []
+    labelled, walks, sensors = [], [], []
     for i in range(walkers):
         rng = np.random.default_rng(root.integers(2**63))
         walk = simulate_walk(world, rng, minutes, walker=i)
-        imu = phone_imu(walk, rng, mag_field=field)
+        phone = phone_sensors(walk, rng, mag_field=field)
         radio = simulate_radio(model, walk, rng)
         for s in radio.wifi:
             pos, fl = walk.position_at(np.array([s.t]))
             labelled.append(LabelledScan(s, pos[0], 0.0, world.floor_name(int(fl[0]))))
         walks.append(walk)
-        imus.append(imu)
+        sensors.append(phone)
     ap_pos = {k: p[:2] for k, p in zip(world.ap_ids, world.aps)}
-    return world, labelled, walks, imus, ap_pos
+    return SimSample(world, labelled, walks, sensors, ap_pos)
+
+
+def simulated_sample(walkers: int, minutes: float, seed: int = 1):
+    """:func:`simulate_sample` as (world, labelled scans, walks, IMU blocks, AP positions)."""
+    sm = simulate_sample(walkers, minutes, seed)
+    return sm.world, sm.labelled, sm.walks, [p.imu for p in sm.sensors], sm.ap_pos
+
+
+def sim_trace_runs(
+    walks: list[Walk],
+    sensors: list[PhoneSensors],
+    config: PhonePdrConfig | None = None,
+    mark_sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> list:
+    """The simulated walks as :class:`~hybridloc.pdr.evaluate.TraceRun` s for the waypoint-segment
+    scores of ``eval pdr-phone``: each walk through the phone PDR once, with the marks its trace file
+    carries (:func:`.output.waypoints`). Only level segments are kept, as on the real walks (one floor
+    each, no stairs): a walk is cut into stretches of consecutive marks on one floor with no stair step
+    or lift ride between them. ``mark_sigma`` (m, per axis) moves every mark by Gaussian noise, as a
+    walker's marks are off where and when they are made (the simulated marks are exact)."""
+    import dataclasses
+
+    from ..pdr.evaluate import trace_run
+
+    config = config or PhonePdrConfig()
+    out = []
+    for walk, phone in zip(walks, sensors):
+        marks = waypoints(walk)
+        if len(marks) < 2:
+            continue
+        xy = np.array([m[1:3] for m in marks])
+        if mark_sigma > 0:
+            xy = xy + mark_sigma * (rng or np.random.default_rng(0)).standard_normal(xy.shape)
+        run = trace_run(f"w{walk.walker:04d}", phone.imu, np.array([m[0] for m in marks]), xy, config, phone.rotation_vector)
+        climb_t = np.array([s.t for s in walk.steps if s.dz != 0.0] + [a for a, _ in walk.lift_rides])
+        level = []
+        for (ta, _, _, fa), (tb, _, _, fb) in zip(marks[:-1], marks[1:]):
+            level.append(fa == fb and not ((climb_t > ta - 1e-6) & (climb_t <= tb + 1e-6)).any())
+        k = 0
+        while k < len(level):  # maximal runs of level segments
+            if not level[k]:
+                k += 1
+                continue
+            j = k
+            while j < len(level) and level[j]:
+                j += 1
+            out.append(dataclasses.replace(run, name=f"{run.name}:{k}", wp_t=run.wp_t[k : j + 1], wp_xy=run.wp_xy[k : j + 1]))
+            k = j
+    return out
+
+
+#: the step-length models compared on simulated and real segments
+LENGTH_MODELS_COMPARED = ("weinberg", "height", "kim", "constant")
+
+
+def length_model_errors(runs: list) -> dict[str, dict[str, float]]:
+    """Per step-length model, on waypoint segments of at least 3 m (``eval pdr-phone``'s scoring):
+    ``default_pct``, the median relative segment-length error with the model's one uncalibrated
+    constant (the library default a new device starts with: Weinberg K = 0.37); ``fit_pct``, the same
+    with one constant fitted on all the scored walks themselves (no constant per walker: what is left
+    is how loosely the model follows each walker and step); ``scale_pct``, the part of the segment
+    error proportional to length (sigma, robust fit of :func:`~hybridloc.pdr.evaluate.decompose_segment_errors`),
+    the step model's own share; ``segments``."""
+    from ..pdr.evaluate import decompose_segment_errors, fit_model, score
+    from ..pdr.steplength import make_model
+
+    out = {}
+    for name in LENGTH_MODELS_COMPARED:
+        row = {}
+        for key, model in (("default", make_model(name)), ("fit", fit_model(runs, name))):
+            seg: list = []
+            err, _, _ = score(runs, model, seg)
+            row[f"{key}_pct"] = 100 * float(np.median(err)) if err else float("nan")
+            if key == "default":
+                sg = np.array(seg).reshape(-1, 2)
+                row["scale_pct"] = 100 * decompose_segment_errors(sg[:, 0], sg[:, 1])[1]
+                row["segments"] = len(err)
+            else:
+                row["constant"] = float(model.coef[0])
+        out[name] = row
+    return out
 
 
 def walking_mask(walk, t: np.ndarray) -> np.ndarray:
