@@ -104,6 +104,9 @@ def sim_trace_runs(
     return out
 
 
+#: m per axis: a waypoint mark's error where no real site gives it (ILC site1: 0.65 m / sqrt 2)
+MARK_SIGMA_M = 0.45
+
 #: the step-length models compared on simulated and real segments
 LENGTH_MODELS_COMPARED = ("weinberg", "height", "kim", "constant")
 
@@ -115,7 +118,7 @@ def length_model_errors(runs: list) -> dict[str, dict[str, float]]:
     with one constant fitted on all the scored walks themselves (no constant per walker: what is left
     is how loosely the model follows each walker and step); ``scale_pct``, the part of the segment
     error proportional to length (sigma, robust fit of :func:`~hybridloc.pdr.evaluate.decompose_segment_errors`),
-    the step model's own share; ``segments``."""
+    the step model's own share, and ``end_m`` its fixed part (m: the marks); ``segments``."""
     from ..pdr.evaluate import decompose_segment_errors, fit_model, score
     from ..pdr.steplength import make_model
 
@@ -128,7 +131,8 @@ def length_model_errors(runs: list) -> dict[str, dict[str, float]]:
             row[f"{key}_pct"] = 100 * float(np.median(err)) if err else float("nan")
             if key == "default":
                 sg = np.array(seg).reshape(-1, 2)
-                row["scale_pct"] = 100 * decompose_segment_errors(sg[:, 0], sg[:, 1])[1]
+                end, rel = decompose_segment_errors(sg[:, 0], sg[:, 1])
+                row["scale_pct"], row["end_m"] = 100 * rel, end
                 row["segments"] = len(err)
             else:
                 row["constant"] = float(model.coef[0])
@@ -225,6 +229,10 @@ class SimRealism:
     real_similarity: list[float] | None
     pdr: dict  # pdr_on_sim of our PDR
     plain: dict  # pdr_on_sim through plain gyro integration
+    lengths_sim: dict | None = None  # length_model_errors on the simulated walks, their marks exact
+    lengths_sim_marked: dict | None = None  # ... with marks as vague as the real ones (mark_sigma)
+    lengths_real: dict | None = None  # ... on the real walks
+    mark_sigma: float = 0.0  # m per axis, the real marks' error (from the real segments' fixed part)
 
     @property
     def have_real(self) -> bool:
@@ -252,7 +260,9 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
         if not find_ilc_traces(ilc):
             raise MissingData(f"{ilc}: no Indoor Location Competition traces (pass --ilc '' to skip)")
     rng = np.random.default_rng(0)
-    world, sim_lab, walks, imus, ap_pos = simulated_sample(walkers, minutes, seed)
+    sample = simulate_sample(walkers, minutes, seed)
+    sim_lab, walks, ap_pos = sample.labelled, sample.walks, sample.ap_pos
+    imus = [p.imu for p in sample.sensors]
     sim_slopes_crowd = rssi_slopes(sim_lab)
     sim_slopes_true = rssi_slopes(sim_lab, ap_pos)
     sim_sim = similarity_by_distance(sim_lab, rng)
@@ -261,27 +271,42 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
     have_real = bool(ilc) and Path(ilc).is_dir()
     n_real = real_sim = None
     real_slopes = real_freq = real_peaks = None
+    lengths_real = None
     if have_real:
         from ..io.msft import find_ilc_traces, read_ilc_trace
+        from ..pdr.evaluate import trace_run
         from ..radio.evaluate import load_site_surveys
 
         traces = load_site_surveys(ilc, every)
         real_lab = [ls for t in traces for ls in t.labelled]
         real_slopes = rssi_slopes(real_lab)
         real_sim = similarity_by_distance(real_lab, rng)
-        freqs, peaks = [], []
+        freqs, peaks, real_runs = [], [], []
+        config = PhonePdrConfig()
         for p in find_ilc_traces(ilc)[::every]:
             tr = read_ilc_trace(p)
             if tr.imu is None:
                 continue
-            steps, _ = run_phone_pdr(tr.imu)
-            dt = np.diff([s.t for s in steps])
+            run = trace_run(Path(p).name, tr.imu, tr.waypoints.t, tr.waypoints.pos_enu, config, tr.rotation_vector)
+            if len(tr.waypoints) >= 2:
+                real_runs.append(run)
+            dt = np.diff([s.t for s in run.steps])
             dt = dt[dt < 1.2]
             if dt.size > 5:
                 freqs.append(1.0 / np.median(dt))
             peaks += spectrum_peaks(tr.imu)
         real_freq, real_peaks = np.array(freqs), np.array(peaks)
         n_real = len(traces)
+        lengths_real = length_model_errors(real_runs) if real_runs else None
+    # The step-length models on the simulated walks' level segments: with their exact marks, and with
+    # every mark moved as far as the real walkers' marks are off (the fixed part sigma_end of the real
+    # segments' error is two marks' along-segment error: sqrt(2) x mark_sigma; 0.45 m without a real site)
+    sim_runs = sim_trace_runs(walks, sample.sensors)
+    lengths_sim = length_model_errors(sim_runs)
+    mark_sigma = MARK_SIGMA_M
+    if lengths_real is not None and math.isfinite(lengths_real["weinberg"]["end_m"]):
+        mark_sigma = lengths_real["weinberg"]["end_m"] / math.sqrt(2.0)
+    lengths_sim_marked = length_model_errors(sim_trace_runs(walks, sample.sensors, mark_sigma=mark_sigma, rng=np.random.default_rng([seed, 17])))
     stats = [
         RealismStat("RSSI slope vs log10 distance (crowd AP est.)", float(np.median(sim_slopes_crowd)), real_slopes, " dB/dec"),
         RealismStat("RSSI slope vs log10 distance (true AP pos.)", float(np.median(sim_slopes_true)), None, " dB/dec"),
@@ -291,4 +316,19 @@ def run_sim_realism(ilc: str, walkers: int, minutes: float, every: int, seed: in
     r = pdr_on_sim(walks, imus)
     # The same walks through a plain heading: gyro integration with no bias estimate and no compass.
     plain = pdr_on_sim(walks, imus, AttitudeConfig(k_mag=0.0, ki_acc=0.0, zaru=False))
-    return SimRealism(walkers, minutes, seed, ilc, n_real, stats, list(sim_sim), None if real_sim is None else list(real_sim), r, plain)
+    return SimRealism(
+        walkers,
+        minutes,
+        seed,
+        ilc,
+        n_real,
+        stats,
+        list(sim_sim),
+        None if real_sim is None else list(real_sim),
+        r,
+        plain,
+        lengths_sim,
+        lengths_sim_marked,
+        lengths_real,
+        mark_sigma,
+    )
