@@ -337,6 +337,36 @@ def print_sim_realism(res) -> None:
         f"and indoor magnetic disturbances): median {np.median(h):.1f} deg, p90 {np.percentile(h, 90):.1f}; plain gyro integration "
         f"{np.median(hp):.1f} / {np.percentile(hp, 90):.1f} deg (ratio of medians ours/plain {np.median(h) / np.median(hp):.2f})"
     )
+    _print_lengths(res)
+
+
+def _print_lengths(res) -> None:
+    """The step-length models on simulated and real waypoint segments (``SimRealism.lengths_*``)."""
+    sim, marked, real = res.lengths_sim, res.lengths_sim_marked, res.lengths_real
+    if sim is None:
+        return
+    print(
+        "step-length models on waypoint segments >= 3 m (median relative length error; 'one K': the library's uncalibrated constant, "
+        "'fit': one constant fitted on all the scored walks; sim level segments only)"
+    )
+    print(
+        f"  {'model':<10} {'sim one K':>10} {'sim fit':>8} {'sim, vague marks':>17} {'fit':>6}" + (f" {'real one K':>11} {'fit':>6}" if real else "")
+    )
+    for name, row in sim.items():
+        line = f"  {name:<10} {row['default_pct']:9.1f}% {row['fit_pct']:7.1f}% {marked[name]['default_pct']:16.1f}% {marked[name]['fit_pct']:5.1f}%"
+        if real:
+            line += f" {real[name]['default_pct']:10.1f}% {real[name]['fit_pct']:5.1f}%"
+        print(line)
+    from ..pdr.steplength import WeinbergLength
+
+    w = sim["weinberg"]
+    print(
+        f"  Weinberg, one uncalibrated K = {WeinbergLength().coef[0]:.2f}: simulated {marked['weinberg']['default_pct']:.1f}% with marks as vague as the real "
+        f"ones (+-{res.mark_sigma:.2f} m per axis; {w['default_pct']:.1f}% with the exact marks)"
+        + (f", real {real['weinberg']['default_pct']:.1f}% ({real['weinberg']['segments']} segments)" if real else "")
+        + f"; the proportional part (the step model's scale) {w['scale_pct']:.1f}%"
+        + (f" vs real {real['weinberg']['scale_pct']:.1f}%" if real else "")
+    )
 
 
 def _similarity_rms(res) -> float:
@@ -359,6 +389,16 @@ def sim_realism_headline(res) -> dict:
     }
     if res.have_real:
         out["similarity_rms_diff"] = _similarity_rms(res)
+    if res.lengths_sim is not None:
+        out["weinberg_segment_error_sim_pct"] = res.lengths_sim_marked["weinberg"]["default_pct"]
+        out["weinberg_segment_error_sim_exact_marks_pct"] = res.lengths_sim["weinberg"]["default_pct"]
+        out["weinberg_segment_error_sim_fit_pct"] = res.lengths_sim_marked["weinberg"]["fit_pct"]
+        out["weinberg_scale_sim_pct"] = res.lengths_sim["weinberg"]["scale_pct"]
+        out["mark_sigma_m"] = res.mark_sigma
+    if res.lengths_real is not None:
+        out["weinberg_segment_error_real_pct"] = res.lengths_real["weinberg"]["default_pct"]
+        out["weinberg_segment_error_real_fit_pct"] = res.lengths_real["weinberg"]["fit_pct"]
+        out["weinberg_scale_real_pct"] = res.lengths_real["weinberg"]["scale_pct"]
     return out
 
 

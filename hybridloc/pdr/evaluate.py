@@ -135,13 +135,26 @@ def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceR
         if tr.imu is None or len(tr.waypoints) < 2:
             skipped.append(f"{Path(p).name}: no IMU or fewer than 2 waypoints")
             continue
-        pdr = PhonePdr(tr.imu.rate_hz, make_model("height"), config, heading0=0.0)
-        pdr.process(tr.imu)
-        steps = list(pdr.steps)
-        rv = tr.rotation_vector
-        android = android_step_headings(steps, rv[0], rv[1]) if rv is not None and len(rv[0]) and steps else None
-        runs.append(TraceRun(Path(p).name, steps, list(pdr.features), tr.waypoints.t, tr.waypoints.pos_enu, android))
+        runs.append(trace_run(Path(p).name, tr.imu, tr.waypoints.t, tr.waypoints.pos_enu, config, tr.rotation_vector))
     return runs, skipped
+
+
+def trace_run(
+    name: str,
+    imu: ImuBlock,
+    wp_t: np.ndarray,
+    wp_xy: np.ndarray,
+    config: PhonePdrConfig,
+    rotation_vector: tuple[np.ndarray, np.ndarray] | None = None,
+) -> TraceRun:
+    """One walk through the PDR (steps and their features), with its marks and, when it has one,
+    Android's heading per step from the rotation vector."""
+    pdr = PhonePdr(imu.rate_hz, make_model("height"), config, heading0=0.0)
+    pdr.process(imu)
+    steps = list(pdr.steps)
+    rv = rotation_vector
+    android = android_step_headings(steps, rv[0], rv[1]) if rv is not None and len(rv[0]) and steps else None
+    return TraceRun(name, steps, list(pdr.features), np.asarray(wp_t, float), np.asarray(wp_xy, float).reshape(-1, 2), android)
 
 
 def _segments(run: TraceRun):

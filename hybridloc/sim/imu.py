@@ -2,16 +2,32 @@
 with sensor error models by grade.
 
 Phone (held flat, screen up, top edge forward): specific force R^T (0, 0, g + a_v), with the vertical
-bounce a_v peaking at each heel strike, a_v = (A/2) cos(2 pi (t - t_k) / T_k) around step k, and the
-peak-to-peak bounce A chosen so that the bounce-height model with the walker's own K gives the true
-step length: mean |a_v| = A / pi = (L / K)^3 / T^2, kept within a factor 2 of the walker's natural
-bounce (short turning steps still bounce). The attitude is R = Rz(psi - pi/2) (body +y along the
+bounce a_v peaking at each heel strike (the centre of mass lowest, double support),
+a_v = (A_k/2) cos(2 pi (t - t_k) / T_k) around step k, plus the hand's own jitter. The bounce is the
+body's: the step's vertical CoM excursion h_k (:func:`.walker.com_excursion`, the inverted pendulum
+of the stance leg) moved once per step period T_k swings the acceleration by h_k (2 pi / T_k)^2 peak
+to peak, which the phone in the hand sees times a gain G per walk (:data:`PHONE_BOUNCE_GAIN`: the
+heel strike's transient and the arm), A_k = G h_k (2 pi / T_k)^2, kept within 0.5-3x the walker's
+natural bounce (a short stopping step still bounces). The hand adds smooth vertical jitter while
+walking (:data:`HAND_JITTER`). So the step length follows the bounce the way the inverted pendulum
+makes it (a Weinberg-type model with one constant is off by each walker's leg, correction factor,
+walk ratio and grip, and per step by the jitter). The attitude is R = Rz(psi - pi/2) (body +y along the
 heading psi), so the gyro reads (0, 0, dpsi/dt) when walking. Handling (while standing) is a real
 motion: the phone is picked up, turned about (a smooth random rotation theta(t), about 0.5 rad per axis,
 that starts and ends at zero: put back in the same grip) and shaken with smooth accelerations, so the
 attitude is R = Rz(psi - pi/2) Exp(theta), the gyro reads that attitude's body rate and the
 accelerometer and magnetometer see the turned phone: the three sensors agree, as on a real phone.
 The magnetometer reads the Earth field (48 uT, dip 63 deg) plus a smooth indoor disturbance field.
+
+Rotation vector (:func:`phone_sensors`): Android's TYPE_ROTATION_VECTOR, the phone's own fused
+attitude (gyro, accelerometer, magnetometer; body to ENU with y to magnetic North, as the real
+traces log it). Its heading follows the magnetometer's through a first-order fusion of time constant
+:data:`RV_MAG_TAU_S`, de/dt = b(t) - (e - e_m(t)) / tau, so its heading error e is the magnetometer's
+heading error e_m low-passed, plus a residual gyro bias b (turn-on :data:`RV_GYRO_BIAS` and a random
+walk) that the pull holds at b tau. e_m comes from the same field the magnetometer reads: a
+horizontal field h (nav frame) at angle atan2(h_y, h_x) makes North look rotated by that minus pi/2,
+and every heading read against it is off by e_m = pi/2 - atan2(h_y, h_x). The estimated attitude is
+Rz(e) R (tilt is taken as exact: the accelerometer levels it within a degree).
 
 Foot (body x forward, y left, z up): per stride (two steps) the foot stands still for 60 % of the
 stride and swings 40 %. The swing's nav-frame acceleration is chosen sample by sample,
@@ -34,7 +50,7 @@ import numpy as np
 
 from ..ins.strapdown import quat_from_rotvec, quat_mult, quat_to_dcm
 from ..types import ImuBlock
-from ..units import DEG, G0, UT_TO_T
+from ..units import DEG, G0, UT_TO_T, wrap_angle
 from .walker import Walk
 
 
@@ -109,8 +125,9 @@ def _handle(
     gyr: np.ndarray,
     mag: np.ndarray,
     rng: np.random.Generator,
-) -> None:
-    """One handling interval (samples ``idx``), written into acc, gyr and mag in place (module docstring).
+):
+    """One handling interval (samples ``idx``), written into acc, gyr and mag in place (module docstring);
+    returns the phone's attitudes there (scipy Rotation, body to nav).
 
     theta(t) = w(t) n(t): n smooth unit noise per axis, w = HANDLING_ANGLE sin^2 of the interval's phase,
     so the phone leaves and returns to its grip smoothly. Attitude R_k = Rz(psi_k - pi/2) Exp(theta_k);
@@ -129,6 +146,7 @@ def _handle(
     mag[idx] = R.inv().apply(m_nav[idx])
     rate = (R[:-1].inv() * R[1:]).as_rotvec() / np.diff(t[idx])[:, None]
     gyr[idx] = np.vstack([rate, rate[-1:]])
+    return R
 
 
 def disturbance_field(rng: np.random.Generator, n_terms: int = 24, length: float = 4.0, amplitude: float = 8e-6):
@@ -143,8 +161,60 @@ def disturbance_field(rng: np.random.Generator, n_terms: int = 24, length: float
     return field
 
 
+#: The phone's peak-to-peak vertical acceleration (max - min over a step) over the CoM's
+#: h (2 pi / T)^2: median and log sd between walks (how the phone is held, the heel strike's impact
+#: transient riding on the sinusoid). The median is set on ILC site1: our PDR's max - min of the
+#: vertical acceleration per step has a median of 11.1 m/s^2 there (285 walks), and a pendulum bounce
+#: of 3.8 cm at 1.9 Hz (l 0.90 m, c 1.25, 0.65 m steps) swings 5.5 m/s^2; the jitter adds ~1 m/s^2.
+PHONE_BOUNCE_GAIN = (1.6, 0.10)
+#: The hand's vertical jitter while walking: sd, m/s^2, and correlation time, s. Set on ILC site1's
+#: per-step max - min, whose spread within a walk (robust CV) is 0.30 and whose ratio to the mean
+#: |a_v| over the step is 3.6 (a pure sinusoid: pi); a steady bounce alone gives 0.05 and 3.1.
+HAND_JITTER = (1.4, 0.02)
+#: s: the time constant of the rotation vector's pull to the magnetometer's heading
+RV_MAG_TAU_S = 4.0
+#: rad/s: residual gyro bias of the rotation vector's fusion (Android calibrates the gyro online),
+#: turn-on 1 sigma, and its random walk, rad/s/sqrt(s)
+RV_GYRO_BIAS = (0.05 * DEG, 0.002 * DEG)
+
+
+@dataclass(frozen=True)
+class PhoneSensors:
+    """What a simulated phone logs: the IMU and Android's rotation vector."""
+
+    imu: ImuBlock
+    rotation_vector: tuple[np.ndarray, np.ndarray]  # (t (N,), body-to-ENU unit quaternions (N, 4) w x y z, w >= 0)
+    bounce_gain: float  # G of this walk: the phone's peak-to-peak bounce over the CoM's h (2 pi / T)^2
+
+
+def _field_along(mag_field, pos: np.ndarray, every: int = 5) -> np.ndarray:
+    """The disturbance field at the (N, 2) positions, evaluated at every ``every``-th one and linear
+    between: at walking speed 0.1 s apart is 0.13 m against the field's 4 m length, an interpolation
+    error of ~(0.13 / 4)^2 / 8 of its amplitude (1e-4: 1 nT against the magnetometer's 400 nT noise)."""
+    n = len(pos)
+    if n <= 2 * every:
+        return mag_field(pos)
+    k = np.unique(np.concatenate([np.arange(0, n, every), [n - 1]]))
+    coarse = mag_field(pos[k])
+    i = np.arange(n)
+    return np.column_stack([np.interp(i, k, coarse[:, j]) for j in range(coarse.shape[1])])
+
+
 def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: str | None = "consumer", mag_field=None) -> ImuBlock:
     """The phone's IMU over the walk (see module docstring); ``grade=None`` gives noiseless data."""
+    return _phone(walk, rng, rate, grade, mag_field, rotation_vector=False)[0]
+
+
+def phone_sensors(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: str | None = "consumer", mag_field=None) -> PhoneSensors:
+    """The phone's IMU and rotation vector (module docstring). The IMU is the one :func:`phone_imu`
+    gives for the same ``rng`` (the rotation vector's errors are drawn from a child of it)."""
+    imu, rv, gain = _phone(walk, rng, rate, grade, mag_field, rotation_vector=True)
+    assert rv is not None
+    return PhoneSensors(imu, rv, gain)
+
+
+def _phone(walk: Walk, rng: np.random.Generator, rate: float, grade: str | None, mag_field, rotation_vector: bool):
+    rv_rng = rng.spawn(1)[0] if rotation_vector else None  # spawning draws nothing from rng
     t = np.arange(walk.t0, walk.t1, 1.0 / rate)
     n = len(t)
     ts = np.array([s.t for s in walk.steps])
@@ -161,6 +231,7 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
     psi = np.interp(t, kt, kh) if len(ts) else np.zeros(n)
     dpsi = np.gradient(psi, t) if n > 1 else np.zeros(n)
     av = np.zeros(n)
+    gain = PHONE_BOUNCE_GAIN[0] * math.exp(PHONE_BOUNCE_GAIN[1] * float(rng.standard_normal()))
     if len(ts):
         k = np.clip(np.searchsorted(ts, t), 0, len(ts) - 1)
         k0 = np.clip(k - 1, 0, len(ts) - 1)
@@ -168,37 +239,70 @@ def phone_imu(walk: Walk, rng: np.random.Generator, rate: float = 50.0, grade: s
         near = np.where(np.abs(t - ts[k0]) < np.abs(t - ts[k]), k0, k)
         # a step's period is the time since the previous step, but a first step after standing takes
         # no longer than a slow step (the bounce is the step's, not a slow swell through the pause)
-        T = np.minimum(np.diff(np.concatenate([[ts[0] - 0.55], ts])), 1.5 * T_nat)[near]
-        # On stairs the horizontal step is short but the body still bounces like a full step:
-        # use the walker's natural step length there.
-        # The bounce-height relation (mean |a_v| = A / pi = (L / K)^3 / T^2) holds for steady walking; a
-        # short step (turning, stopping) still bounces at least half as hard as a full one, and a stair
-        # step like a full one.
-        L = np.array([s.length if s.dz == 0 else walk.step_length for s in walk.steps])[near]
-        A_nat = math.pi * (walk.step_length / walk.length_k) ** 3 / T_nat**2
-        A = A_nat * np.clip((L / walk.step_length) ** 3 * (T_nat / T) ** 2, 0.5, 2.0)
-        phase = (t - ts[near]) / T
+        T_step = np.minimum(np.diff(np.concatenate([[ts[0] - 0.55], ts])), 1.5 * T_nat)
+        h_nat = walk.natural_bounce
+        h = np.array([s.bounce if s.bounce > 0 else h_nat for s in walk.steps])
+        # A_k = G h_k (2 pi / T_k)^2 (module docstring), within 0.5-3x the natural step's
+        A_nat = gain * h_nat * (2 * math.pi / T_nat) ** 2
+        A = np.clip(gain * h * (2 * math.pi / T_step) ** 2, 0.5 * A_nat, 3.0 * A_nat)[near]
+        phase = (t - ts[near]) / T_step[near]
         walking = np.abs(phase) <= 0.5
         av = np.where(walking, 0.5 * A * np.cos(2 * math.pi * phase), 0.0)
+        if walking.any():
+            width = max(1, int(round(HAND_JITTER[1] * rate)))
+            av = av + np.where(walking, HAND_JITTER[0] * _smooth_noise(rng, n, width), 0.0)
     c, s = np.cos(psi - math.pi / 2), np.sin(psi - math.pi / 2)
     f_nav = np.column_stack([np.zeros(n), np.zeros(n), G0 + av])
     # R = Rz(psi - pi/2): body = R^T nav
     acc = np.column_stack([c * f_nav[:, 0] + s * f_nav[:, 1], -s * f_nav[:, 0] + c * f_nav[:, 1], f_nav[:, 2]])
     gyr = np.column_stack([np.zeros(n), np.zeros(n), dpsi])
-    pos, _ = walk.position_at(t)
     m_nav = np.tile([0.0, EARTH_FIELD_T * math.cos(EARTH_DIP), -EARTH_FIELD_T * math.sin(EARTH_DIP)], (n, 1))
     if mag_field is not None:
-        m_nav = m_nav + mag_field(pos)
+        pos, _ = walk.position_at(t)
+        m_nav = m_nav + _field_along(mag_field, pos)
     mag = np.column_stack([c * m_nav[:, 0] + s * m_nav[:, 1], -s * m_nav[:, 0] + c * m_nav[:, 1], m_nav[:, 2]])
+    handled_att = []
     for a, b, handled in walk.pauses:
         idx = np.flatnonzero((t >= a) & (t < b))
         if handled and len(idx) > 2:
-            _handle(idx, t, psi, f_nav, m_nav, acc, gyr, mag, rng)
+            handled_att.append((idx, _handle(idx, t, psi, f_nav, m_nav, acc, gyr, mag, rng)))
+    rv = _rotation_vector(t, psi, m_nav, handled_att, rv_rng) if rv_rng is not None else None
     if grade is None:
-        return ImuBlock(t, acc, gyr, mag)
+        return ImuBlock(t, acc, gyr, mag), rv, gain
     acc, gyr = apply_errors(t, acc, gyr, GRADES[grade], rng)
     mag = mag + 0.4 * UT_TO_T * rng.standard_normal(mag.shape)
-    return ImuBlock(t, acc, gyr, mag, **_full_scale(grade))
+    return ImuBlock(t, acc, gyr, mag, **_full_scale(grade)), rv, gain
+
+
+def magnetic_heading_error(m_nav: np.ndarray) -> np.ndarray:
+    """rad: the error of a heading read against the field ``m_nav`` (N, 3, nav frame): North looks
+    rotated by atan2(h_y, h_x) - pi/2, so e_m = pi/2 - atan2(h_y, h_x) (0 in the Earth's field alone)."""
+    return wrap_angle(math.pi / 2 - np.arctan2(m_nav[:, 1], m_nav[:, 0]))
+
+
+def _rotation_vector(t: np.ndarray, psi: np.ndarray, m_nav: np.ndarray, handled_att, rng: np.random.Generator):
+    """Android's rotation vector (module docstring): (t, quaternions w x y z with w >= 0)."""
+    from scipy.signal import lfilter
+    from scipy.spatial.transform import Rotation
+
+    n = len(t)
+    if n == 0:
+        return t.copy(), np.zeros((0, 4))
+    dt = float(np.median(np.diff(t))) if n > 1 else 0.02
+    e_m = np.unwrap(magnetic_heading_error(m_nav))
+    bias = RV_GYRO_BIAS[0] * float(rng.standard_normal()) + np.cumsum(RV_GYRO_BIAS[1] * math.sqrt(dt) * rng.standard_normal(n))
+    # de/dt = b - (e - e_m) / tau, discretised exactly for a held input: e_k = a e_(k-1) + (1 - a) x_k,
+    # x = e_m + b tau, a = exp(-dt / tau); started converged (e_0 = x_0)
+    x = e_m + bias * RV_MAG_TAU_S
+    a = math.exp(-dt / RV_MAG_TAU_S)
+    e, _ = lfilter([1.0 - a], [1.0, -a], x, zi=[a * x[0]])
+    # walking and standing the attitude is Rz(psi - pi/2), estimated Rz(psi - pi/2 + e)
+    yaw = psi - math.pi / 2 + e
+    q = np.column_stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)])
+    for idx, R in handled_att:  # handled: Rz(e) R, R = Rz(psi - pi/2) Exp(theta)
+        q[idx] = (Rotation.from_euler("z", e[idx][:, None]) * R).as_quat(scalar_first=True)
+    q[q[:, 0] < 0] *= -1.0  # Android's rotation vector carries x y z; w = sqrt(1 - |xyz|^2) >= 0
+    return t.copy(), q
 
 
 @dataclass

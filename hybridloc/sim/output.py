@@ -8,12 +8,13 @@ plus ``floorplan.geojson`` (WGS84) for GIS tools.
 Walk folder (``hybridloc sim walk``), per walker ``w<NNNN>``:
 
 * ``w<NNNN>.txt.gz``: the phone in the Indoor Location Competition trace format (accelerometer,
-  gyroscope, magnetometer in uT, WiFi, iBeacon; waypoints = true positions at route corners and
+  gyroscope, magnetometer in uT, Android's rotation vector as real phones log it, WiFi, iBeacon; waypoints = true positions at route corners and
   pauses, marked like an operator would, each with its floor name as an extra field). The header's
   FloorName is the start floor (the format has one floor per trace; ``truth_steps.csv`` has the floor
   of every step);
 * ``w<NNNN>_foot.csv``: the foot IMU in the plain IMU CSV (when the carrier includes a foot unit);
-* ``w<NNNN>_truth_steps.csv``: ``t,x,y,z,floor,heading,length`` of every true step;
+* ``w<NNNN>_truth_steps.csv``: ``t,x,y,z,floor,heading,length,bounce`` of every true step (bounce:
+  the centre of mass's vertical excursion over the step, m);
 * ``w<NNNN>_truth_foot.csv``: ``t,x,y,z,stance`` of the foot at every IMU sample;
 * ``w<NNNN>_fixes.csv``: ``t,x,y,floor,sigma,source,sigma_random`` of simulated GPS and RFID fixes
   (:func:`hybridloc.io.fixes.read_fixes_csv`; ``sigma_random``: the GPS fix's random part, for the
@@ -102,7 +103,7 @@ def _to_lonlat(geom, origin):
     return shapely.transform(geom, f)
 
 
-def _waypoints(walk: Walk) -> list[tuple[float, float, float, int]]:
+def waypoints(walk: Walk) -> list[tuple[float, float, float, int]]:
     """True positions an operator would mark: at the start, at every turn and pause, and at the end;
     (t, x, y, floor index) each."""
     out = [(walk.t0, walk.start[0], walk.start[1], int(walk.start[2]))]
@@ -124,9 +125,13 @@ def _waypoints(walk: Walk) -> list[tuple[float, float, float, int]]:
     return dedup
 
 
-def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radio: WalkRadio, device_model: str = "SIM PHONE") -> None:
+def write_ilc_trace(
+    path: str | os.PathLike, world: World, walk: Walk, imu, radio: WalkRadio, device_model: str = "SIM PHONE", rotation_vector=None
+) -> None:
+    """The phone's trace; ``rotation_vector`` (t, quaternions w x y z, :func:`.imu.phone_sensors`) adds
+    TYPE_ROTATION_VECTOR lines ``x y z 3`` as ILC phones log them (accuracy 3, high; w >= 0 implied)."""
     ms = lambda t: int(round(t * 1000))  # noqa: E731
-    lines: list[tuple[int, int, str]] = []
+    lines: list[tuple[int, float, str]] = []
     brand, _, model = device_model.partition(" ")
     mag = imu.mag_body * 1e6
     for i in range(len(imu)):
@@ -135,6 +140,10 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
         lines.append((tm, 0, f"{tm}\tTYPE_ACCELEROMETER\t{a[0]:.6f}\t{a[1]:.6f}\t{a[2]:.6f}\t3"))
         lines.append((tm, 1, f"{tm}\tTYPE_GYROSCOPE\t{g[0]:.6f}\t{g[1]:.6f}\t{g[2]:.6f}\t3"))
         lines.append((tm, 2, f"{tm}\tTYPE_MAGNETIC_FIELD\t{m[0]:.4f}\t{m[1]:.4f}\t{m[2]:.4f}\t3"))
+    if rotation_vector is not None:
+        for tr, q in zip(rotation_vector[0].tolist(), rotation_vector[1][:, 1:].tolist()):
+            tm = ms(tr)
+            lines.append((tm, 2.5, f"{tm}\tTYPE_ROTATION_VECTOR\t{q[0]:.8f}\t{q[1]:.8f}\t{q[2]:.8f}\t3"))
     for s in radio.wifi:
         tm = ms(s.t)
         for k, r in s.rssi_dbm.items():
@@ -151,7 +160,7 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
                     f"{tm}\tTYPE_BEACON\t{uuid.upper()}\t{major}\t{minor}\t-59\t{int(r)}\t{10 ** ((-59 - r) / 20):.3f}\tSIM:{major}:{minor}\t{tm}",
                 )
             )
-    for t, x, y, floor in _waypoints(walk):  # each mark with its floor (the format's extension): walks take the stairs
+    for t, x, y, floor in waypoints(walk):  # each mark with its floor (the format's extension): walks take the stairs
         lines.append((ms(t), 5, f"{ms(t)}\tTYPE_WAYPOINT\t{x:.4f}\t{y:.4f}\t{world.floor_name(floor)}"))
     lines.sort(key=lambda r: (r[0], r[1]))
     fl = world.floor_name(walk.start[2])
@@ -170,11 +179,22 @@ def write_ilc_trace(path: str | os.PathLike, world: World, walk: Walk, imu, radi
 def write_truth(prefix: Path, walk: Walk, radio: WalkRadio | None, foot: FootTruth | None, world: World) -> None:
     with open(f"{prefix}_truth_steps.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["t", "x", "y", "z", "floor", "heading", "length"])
+        w.writerow(["t", "x", "y", "z", "floor", "heading", "length", "bounce"])
         z = walk.start[2] * STOREY
         for s in walk.steps:
             z += s.dz
-            w.writerow([f"{s.t:.3f}", f"{s.x:.4f}", f"{s.y:.4f}", f"{z:.3f}", world.floor_name(s.floor), f"{s.heading:.6f}", f"{s.length:.4f}"])
+            w.writerow(
+                [
+                    f"{s.t:.3f}",
+                    f"{s.x:.4f}",
+                    f"{s.y:.4f}",
+                    f"{z:.3f}",
+                    world.floor_name(s.floor),
+                    f"{s.heading:.6f}",
+                    f"{s.length:.4f}",
+                    f"{s.bounce:.5f}",
+                ]
+            )
     if foot is not None:
         with open(f"{prefix}_truth_foot.csv", "w", newline="") as f:
             w = csv.writer(f)
@@ -203,6 +223,8 @@ def write_truth(prefix: Path, walk: Walk, radio: WalkRadio | None, foot: FootTru
         "speed": walk.speed,
         "step_length": walk.step_length,
         "length_k": walk.length_k,
+        "leg_length": walk.leg_length,
+        "pendulum_correction": walk.pendulum_correction,
         "t0": walk.t0,
         "t1": walk.t1,
         "loop": walk.loop,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .building import World, generate_world, world_from_plan
-from .imu import disturbance_field, foot_imu, phone_imu
+from .imu import disturbance_field, foot_imu, phone_sensors
 from .output import write_foot_csv, write_ilc_trace, write_truth, write_world
 from .radio import make_radio_model, simulate_radio
 from .walker import simulate_walk
@@ -70,9 +70,9 @@ def simulate_walks(world: World, walkers: int, minutes: float, carrier: str, out
         device = ["SIM PHONE-A", "SIM PHONE-B", "SIM PHONE-C"][i % 3]
         offset = [0.0, -4.0, 3.0][i % 3]
         if carrier in ("phone", "both"):
-            imu = phone_imu(walk, rng, mag_field=field)
+            phone = phone_sensors(walk, rng, mag_field=field)
             radio = simulate_radio(model, walk, rng, device, offset)
-            write_ilc_trace(f"{prefix}.txt.gz", world, walk, imu, radio, device)
+            write_ilc_trace(f"{prefix}.txt.gz", world, walk, phone.imu, radio, device, phone.rotation_vector)
         if carrier in ("foot", "both"):
             fimu, foot_truth = foot_imu(walk, rng)
             write_foot_csv(prefix, fimu)

@@ -1,10 +1,25 @@
 """Walkers: routes through a generated building and the truth of every step.
 
-A walker has a speed (N(1.25, 0.15) m/s), a natural step length (N(0.65, 0.06) m) and a step-length
-constant K of the bounce-height model L = K (mean |a_v| T^2)^(1/3) (N(0.70, 0.04): the real-walk fit,
-with the 5 % spread between people of Weinberg's constant); the cadence is speed / step length. A
-route visits a few random rooms along shortest paths of the walkable graph (stairs take 16 steps per
-storey on two flights of 8 joined by a landing's half turn, a lift ride 10 s of standing), pauses
+A walker has a preferred speed (N(1.25, 0.15) m/s) and natural step length (N(0.65, 0.06) m); the
+cadence is speed / step length. Their gait (:func:`com_excursion`):
+
+* a leg length l (N(0.90, 0.05) m: about 0.53 of stature, adult stature ~N(1.71, 0.09) m; Winter,
+  Biomechanics and Motor Control of Human Movement, segment proportions) and the inverted-pendulum
+  correction factor c of Zijlstra and Hof (N(1.25, 0.08); see :data:`PENDULUM_CORRECTION`);
+* a pace per route leg (to each destination): the speed times u, u log-normal (sd
+  :data:`PACE_SD`), with the walk ratio (step length / cadence) kept, as people keep it across
+  speeds (Sekiya and Nagasaki 1998, Gait & Posture 7: the walk ratio is nearly constant over a
+  person's range of speeds): step length L sqrt(u), cadence sqrt(u) L / speed;
+* steps that vary from one to the next (length CV :data:`STEP_LENGTH_CV`, time +-3 %, the body's
+  vertical excursion CV :data:`BOUNCE_CV`: healthy adults' step-to-step variability is a few %).
+
+Every true step carries the vertical excursion of the centre of mass (CoM) it makes, from the
+inverted pendulum the stance leg is (:func:`com_excursion`); the phone's IMU (:mod:`.imu`) turns it
+into the vertical bounce at the step's frequency, so the step length follows the bounce as
+Weinberg-type step models assume (and as loosely as on real walkers).
+
+A route visits a few random rooms along shortest paths of the walkable graph (stairs take 16 steps
+per storey on two flights of 8 joined by a landing's half turn, a lift ride 10 s of standing), pauses
 3-15 s at each destination (sometimes handling the phone), some routes return to their start (loops)
 and some start outdoors in front of the entrance.
 
@@ -35,6 +50,41 @@ class TrueStep:
     heading: float  # rad, CCW from East
     length: float  # m (horizontal)
     dz: float  # m, height change (stairs)
+    bounce: float = 0.0  # m, vertical excursion of the centre of mass over the step, trough to crest
+
+
+#: Zijlstra and Hof (2003, Gait & Posture 18, "Assessment of spatio-temporal gait parameters from
+#: trunk accelerations during human walking"): the compass-gait inverted pendulum s = 2 sqrt(2 l h - h^2)
+#: underestimates step length (pelvic rotation, the stance knee, the foot's roll-over lengthen the step
+#: for a given rise of the CoM); their step lengths needed a correction factor of about 1.25, which
+#: differs between people (spread here 0.08).
+PENDULUM_CORRECTION = (1.25, 0.08)
+#: m, leg length (greater trochanter to floor): mean, sd between adults
+LEG_LENGTH_M = (0.90, 0.05)
+#: relative sd of a walker's pace from one route leg to the next (log-normal)
+PACE_SD = 0.10
+#: Hz: a faster pace than this is not walking (brisk walking reaches ~2.5-3 steps/s)
+MAX_CADENCE_HZ = 3.0
+#: step-to-step coefficient of variation of step length (healthy adults' 2-3 %)
+STEP_LENGTH_CV = 0.025
+#: step-to-step coefficient of variation of the CoM's vertical excursion
+BOUNCE_CV = 0.08
+
+
+def com_excursion(step_length, leg_length, correction=PENDULUM_CORRECTION[0]):
+    """Vertical excursion h (m) of the centre of mass over a step of ``step_length`` (m).
+
+    The stance leg is an inverted pendulum of length l: from double support (the CoM lowest, the legs
+    at +-s/2 from it) to mid-stance (the CoM above the foot, highest) the hip rises by
+    h = l - sqrt(l^2 - (s / 2)^2), i.e. s = 2 sqrt(2 l h - h^2) (Zijlstra and Hof 2003, eq. 1), with
+    their correction factor c on the step length: h = l - sqrt(l^2 - (s / (2 c))^2). For small steps
+    h ~ s^2 / (8 l c^2). Moving up and down by h once per step of period T, the CoM's vertical
+    acceleration swings by h (2 pi / T)^2 peak to peak; with the walk ratio r = s / f kept, that is
+    pi^2 s^4 / (2 l c^2 r^2), so s = (2 l c^2 r^2 / pi^2)^(1/4) (a_max - a_min)^(1/4): Weinberg's
+    fourth root, with a constant that depends on the walker (Harle's survey sec. V-A: Weinberg's
+    relation takes the leg's angle as constant "although it is actually related to the leg length")."""
+    half = np.asarray(step_length, float) / (2.0 * correction)
+    return leg_length - np.sqrt(np.maximum(leg_length**2 - half**2, 0.0))
 
 
 @dataclass
@@ -42,7 +92,10 @@ class Walk:
     walker: int
     speed: float
     step_length: float
-    length_k: float  # K of the bounce-height step model (hybridloc.pdr.steplength.BounceHeightLength)
+    #: K of the bounce-height step model (hybridloc.pdr.steplength.BounceHeightLength) at the walker's
+    #: natural step with a sinusoidal bounce: L = K (mean |a_v| T^2)^(1/3), mean |a_v| = h (2 pi / T)^2 / pi,
+    #: so K = L / (4 pi h)^(1/3); derived from the gait, for reference (the IMU no longer uses it)
+    length_k: float
     t0: float
     t1: float
     steps: list[TrueStep]
@@ -51,6 +104,13 @@ class Walk:
     lift_rides: list[tuple[float, float]] = field(default_factory=list)
     loop: bool = False
     outdoor_start: bool = False
+    leg_length: float = LEG_LENGTH_M[0]  # m
+    pendulum_correction: float = PENDULUM_CORRECTION[0]
+
+    @property
+    def natural_bounce(self) -> float:
+        """m: the CoM's vertical excursion at the walker's natural step (:func:`com_excursion`)."""
+        return float(com_excursion(self.step_length, self.leg_length, self.pendulum_correction))
 
     def _arrays(self):
         if getattr(self, "_cache", None) is None or self._cache[0] != len(self.steps):
@@ -79,8 +139,13 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
     time is up (a closed loop for return-to-start tests), otherwise 30 % of routes loop by chance."""
     speed = float(np.clip(rng.normal(1.25, 0.15), 0.8, 1.8))
     L = float(np.clip(rng.normal(0.65, 0.06), 0.5, 0.9))
-    K = float(np.clip(rng.normal(0.70, 0.04), 0.57, 0.85))
+    leg = float(np.clip(rng.normal(*LEG_LENGTH_M), 0.75, 1.05))
+    corr = float(np.clip(rng.normal(*PENDULUM_CORRECTION), 1.0, 1.5))
     cadence = speed / L
+
+    def bounce(length: float) -> float:
+        return float(com_excursion(length, leg, corr)) * float(np.exp(BOUNCE_CV * rng.standard_normal()))
+
     comp = world.component
     size = np.bincount(comp)
     # destinations in parts of the building big enough to walk in (a real plan's grid leaves islands)
@@ -117,6 +182,11 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
             continue
         path = world.shortest_path(node, dest)
         pts = _polyline(world, path)
+        # this leg's pace u (speed x u): step length L sqrt(u) and cadence sqrt(u) x the natural one, so the
+        # walk ratio (step length / cadence) stays the walker's
+        pace = math.sqrt(float(np.exp(PACE_SD * rng.standard_normal())))
+        # (a leg never steps faster than MAX_CADENCE_HZ, nor than the walker's own cadence if that is faster)
+        L_leg, cadence_leg = L * pace, min(cadence * pace, max(cadence, MAX_CADENCE_HZ))
         # split the route into same-floor polylines joined by floor changes
         k = 0
         t_stop = math.inf if close_loop else t_end  # a closing walk finishes its route
@@ -136,7 +206,8 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
                         t += 1.0 / (0.8 * cadence) * float(rng.uniform(0.97, 1.03))
                         heading = math.pi / 2 if (j // STEPS_PER_FLIGHT) % 2 == 0 else -math.pi / 2
                         x, y = x + 0.29 * math.cos(heading), y + 0.29 * math.sin(heading)
-                        steps.append(TrueStep(t, x, y, fa if j < n - 1 else fb, heading, 0.29, math.copysign(STOREY / 16, fb - fa)))
+                        # the body rises and falls over each stair step like a natural step (its own bounce)
+                        steps.append(TrueStep(t, x, y, fa if j < n - 1 else fb, heading, 0.29, math.copysign(STOREY / 16, fb - fa), bounce(L)))
                 fl = fb
                 x, y = xb, yb
                 k += 1
@@ -149,19 +220,31 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
             arc = np.concatenate([[0.0], np.cumsum(seg)])
             total = float(arc[-1])
             if total > 1e-6:
-                # People spread a leg evenly over whole steps: n = round(total / L) steps of total / n
-                # (2 % jitter) along the polyline, so there are no tiny leftover steps.
-                n_steps = max(1, int(round(total / L)))
-                s_pos = 0.0
-                for j_step in range(n_steps):
-                    if t >= t_stop:
-                        break
-                    s_new = total if j_step == n_steps - 1 else min(total, s_pos + total / n_steps * float(rng.uniform(0.98, 1.02)))
-                    nx, ny = float(np.interp(s_new, arc, poly[:, 0])), float(np.interp(s_new, arc, poly[:, 1]))
-                    t += 1.0 / cadence * float(rng.uniform(0.97, 1.03))
-                    heading = math.atan2(ny - y, nx - x)
-                    steps.append(TrueStep(t, nx, ny, fl, heading, math.hypot(nx - x, ny - y), 0.0))
-                    x, y, s_pos = nx, ny, s_new
+                # People spread a leg evenly over whole steps: n = round(total / L) steps along the
+                # polyline, each total / n times its own variation (CV STEP_LENGTH_CV, renormalised to
+                # the leg), so there are no tiny leftover steps.
+                n_steps = max(1, int(round(total / L_leg)))
+                w = np.clip(1.0 + STEP_LENGTH_CV * rng.standard_normal(n_steps), 0.9, 1.1)
+                s_ends = total * np.cumsum(w) / w.sum()
+                s_ends[-1] = total
+                dts = rng.uniform(0.97, 1.03, n_steps) / cadence_leg
+                t_after = t + np.cumsum(dts)
+                n_keep = int(np.searchsorted(t_after - dts, t_stop, side="left"))  # steps begun before t_stop
+                if n_keep:
+                    nx = np.interp(s_ends[:n_keep], arc, poly[:, 0])
+                    ny = np.interp(s_ends[:n_keep], arc, poly[:, 1])
+                    px, py = np.concatenate([[x], nx[:-1]]), np.concatenate([[y], ny[:-1]])
+                    lengths = np.hypot(nx - px, ny - py)
+                    headings = np.arctan2(ny - py, nx - px)
+                    h = com_excursion(lengths, leg, corr) * np.exp(BOUNCE_CV * rng.standard_normal(n_keep))
+                    steps.extend(
+                        TrueStep(ti, xi, yi, fl, hi, li, 0.0, bi)
+                        for ti, xi, yi, hi, li, bi in zip(
+                            t_after[:n_keep].tolist(), nx.tolist(), ny.tolist(), headings.tolist(), lengths.tolist(), h.tolist()
+                        )
+                    )
+                    t, x, y = float(t_after[n_keep - 1]), float(nx[-1]), float(ny[-1])
+                    heading = float(headings[-1])
             k = j
         node = dest
         pause = float(rng.uniform(3.0, 15.0))
@@ -172,7 +255,7 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         walker,
         speed,
         L,
-        K,
+        L / (4 * math.pi * float(com_excursion(L, leg, corr))) ** (1.0 / 3.0),
         t0,
         min(t, t_end) if math.isfinite(t_end) else t,
         steps,
@@ -181,4 +264,6 @@ def simulate_walk(world: World, rng: np.random.Generator, minutes: float, walker
         lifts,
         loop,
         outdoor,
+        leg,
+        corr,
     )
