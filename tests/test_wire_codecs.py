@@ -818,13 +818,13 @@ def _fast_or_reason(payload: bytes):
 
 
 # JSON text put in as one more member: what json and orjson read differently, or refuse
-_TAILS = ["", "NaN", "Infinity", "-Infinity", "1e999", r'"\ud800"', "123456789012345678901234567890", "[" * 3000]
+_TAILS = ["", "NaN", "Infinity", "-Infinity", "1e999", r'"\ud800"', "123456789012345678901234567890", "9" * 4300, "9" * 4301, "[" * 3000]
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.dictionaries(st.text(max_size=8), _json_values, max_size=6), st.sampled_from(_TAILS))
 def test_fast_json_reads_what_the_standard_parser_reads(obj, tail):
-    """The decoders' orjson path accepts exactly what json accepts, with the same values (big integers
+    """The decoders' msgspec path accepts exactly what json accepts, with the same values (big integers
     exact), and every refusal keeps json's reason (NaN, overflowing literals, lone surrogates, nesting)."""
     text = json.dumps(obj)
     if tail:
