@@ -33,23 +33,33 @@ from benchmarks import headline
 from hybridloc.wire.zconfig import free_port
 
 
-def _client(ep: str, device: str, n_batches: int, spool: str, q) -> None:
+def _client(ep: str, device: str, n_batches: int, spool: str, q, n_steps: int = 100, n_scans: int = 10) -> None:
     import zenoh
 
     from hybridloc.clients.uplink import Uplink
     from hybridloc.types import RfScan, StepEvent
     from hybridloc.wire.zconfig import client_config
 
-    steps = [StepEvent(float(i) * 0.5, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(100)]
-    scans = [RfScan(float(i), "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(10)]
+    # steps 0.1 s apart (a batch of 1,000 spans 100 s, inside the wire's batch-span limit), the batch's
+    # times shifted by its span so that times keep rising from batch to batch
+    span = 0.1 * n_steps
+    steps = [StepEvent(float(i) * 0.1, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(n_steps)]
+    scans = [RfScan(float(i) * span / n_scans, "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(n_scans)]
     with zenoh.open(client_config(ep)) as s:
         up = Uplink(s, "bench", device, spool, resend_after=5.0)
         up.wait_connected(20)
         t0 = time.perf_counter()
-        for _ in range(n_batches):
+        for k in range(n_batches):
             while up.pending >= 64:
                 up.wait_acked(up.acked + 1, timeout=0.5)
-            up.send(steps=steps, scans=scans)
+            dt = k * span
+            up.send(
+                steps=[
+                    StepEvent(st.t + dt, st.length, st.heading, st.sigma_length, st.sigma_heading, st.heading_change, st.sigma_heading_change)
+                    for st in steps
+                ],
+                scans=[RfScan(sc.t + dt, sc.technology, sc.rssi_dbm) for sc in scans],
+            )
         ok = up.wait_acked(timeout=120)
         q.put((device, time.perf_counter() - t0, ok, up.n_resent))
         up.close()
@@ -72,14 +82,17 @@ def _serve(ep: str, db: str, *extra: str) -> subprocess.Popen:
     return p
 
 
-def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
+def ingest_run(db_url: str, n_clients: int, n_batches: int, n_steps: int = 100, n_scans: int = 10) -> dict:
     ep = f"tcp/127.0.0.1:{free_port()}"
     server = _serve(ep, db_url)
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     tmp = tempfile.mkdtemp()
     try:
-        procs = [ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q)) for i in range(n_clients)]
+        procs = [
+            ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q, n_steps, n_scans))
+            for i in range(n_clients)
+        ]
         for p in procs:
             p.start()
         res = [q.get(timeout=600) for _ in procs]
@@ -97,16 +110,16 @@ def ingest_run(db_url: str, n_clients: int, n_batches: int) -> dict:
 
     eng = m.make_engine(db_url)
     with Session(eng) as s:
-        n_steps = s.execute(select(func.count()).select_from(m.Step)).scalar_one()
-        n_scans = s.execute(select(func.count()).select_from(m.Scan)).scalar_one()
+        got_steps = s.execute(select(func.count()).select_from(m.Step)).scalar_one()
+        got_scans = s.execute(select(func.count()).select_from(m.Scan)).scalar_one()
     eng.dispose()
-    expect_steps, expect_scans = n_clients * n_batches * 100, n_clients * n_batches * 10
+    expect_steps, expect_scans = n_clients * n_batches * n_steps, n_clients * n_batches * n_scans
     return {
         "clients": n_clients,
         "wall": wall,
-        "steps": n_steps,
-        "scans": n_scans,
-        "lossless": n_steps == expect_steps and n_scans == expect_scans and all(r[2] for r in res),
+        "steps": got_steps,
+        "scans": got_scans,
+        "lossless": got_steps == expect_steps and got_scans == expect_scans and all(r[2] for r in res),
         "resent": sum(r[3] for r in res),
     }
 
@@ -172,6 +185,42 @@ def start_postgres(tmp: Path) -> tuple[str, callable]:
 
     pg = TempPostgres().start()
     return pg.database("bench"), pg.stop
+
+
+def raw_insert_rate(db_url: str, rows: int = 200_000) -> float:
+    """Rows/s of a plain executemany of 8-column step rows into a fresh table of the same database, in
+    one transaction: the database's own ceiling on this machine, with no server around it (sqlite3 in
+    WAL mode, synchronous=NORMAL as the store sets it; psycopg for PostgreSQL)."""
+    params = [(i, "dev000", i * 0.1, 0.7, 0.3, 0.05, 0.1, 0.0) for i in range(rows)]
+    cols = "(batch_id INTEGER, device_id TEXT, t REAL, length REAL, heading REAL, sigma_length REAL, sigma_heading REAL, heading_change REAL)"
+    if "://" not in db_url or db_url.startswith("sqlite"):
+        import sqlite3
+
+        path = db_url.split("///", 1)[-1]
+        con = sqlite3.connect(path)
+        con.execute("PRAGMA journal_mode=WAL")
+        con.execute("PRAGMA synchronous=NORMAL")
+        con.execute(f"CREATE TABLE raw_step {cols}")
+        t0 = time.perf_counter()
+        with con:
+            con.executemany("INSERT INTO raw_step VALUES (?,?,?,?,?,?,?,?)", params)
+        dt = time.perf_counter() - t0
+        con.execute("DROP TABLE raw_step")
+        con.close()
+        return rows / dt
+    import psycopg
+
+    dsn = db_url.replace("postgresql+psycopg://", "postgresql://")
+    with psycopg.connect(dsn) as con:
+        con.execute(f"CREATE TABLE raw_step {cols.replace('REAL', 'DOUBLE PRECISION')}")
+        t0 = time.perf_counter()
+        with con.cursor() as cur:
+            cur.executemany("INSERT INTO raw_step VALUES (%s,%s,%s,%s,%s,%s,%s,%s)", params)
+        con.commit()
+        dt = time.perf_counter() - t0
+        con.execute("DROP TABLE raw_step")
+        con.commit()
+    return rows / dt
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -3,8 +3,10 @@
 Every batch gets the device's next sequence number and is written to the spool folder (one JSON file
 per batch, written atomically) *before* it is published. The server acknowledges the highest batch it
 has persisted; acknowledged files are deleted. Unacknowledged batches are published again, in order
-from the oldest, when the acknowledgement does not advance for ``resend_after`` seconds (a lost
-message, a server restart, a reconnect). The server keeps only the next batch in sequence, so a resend
+from the oldest, when the acknowledgement does not advance for the retransmission timeout (a lost
+message, a server restart, a reconnect): TCP's adaptive timeout (:mod:`hybridloc.wire.retransmit`),
+at least ``resend_after`` seconds, longer when acknowledgements are slow, doubling after each resend,
+so a loaded server is not flooded with copies of what it is still working through. The server keeps only the next batch in sequence, so a resend
 can neither duplicate nor reorder data. The spool survives the client process, so a restarted client
 continues its sequence where it stopped.
 
@@ -32,6 +34,7 @@ import zenoh
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch
+from hybridloc.wire.retransmit import RetransmitTimer
 
 log = logging.getLogger("hybridloc.clients.uplink")
 #: the errors of a full disk or quota
@@ -69,6 +72,10 @@ class Uplink:
         self.next_seq = max([self.acked] + existing) + 1
         self._last_progress = time.monotonic()
         self.n_resent = 0
+        #: the retransmission timeout (RFC 6298): floor ``resend_after``
+        self.timer = RetransmitTimer(resend_after)
+        self._first_sent: dict[int, float] = {}  # seq -> monotonic time of its first send
+        self._resent: set[int] = set()  # seqs sent more than once (Karn: their acks give no RTT sample)
         self._key = P.key_batch(site, device)
         self._ack_sub = session.declare_subscriber(P.key_ack(site, device), self._on_ack)
         self._acked_event = threading.Condition(self._lock)
@@ -103,6 +110,10 @@ class Uplink:
             if len(payload) > P.MAX_BATCH_BYTES:
                 raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
             self._spool(seq, payload)
+            now = time.monotonic()
+            if self.pending == 1:  # the first unacknowledged batch starts the timer (not an old ack)
+                self._last_progress = now
+            self._first_sent[seq] = now
         self._put(payload)
         return seq
 
@@ -183,7 +194,12 @@ class Uplink:
             return
         with self._lock:
             if seq > self.acked:
+                now = time.monotonic()
+                if seq in self._first_sent and seq not in self._resent:
+                    self.timer.sample(now - self._first_sent[seq])
                 for s in range(self.acked + 1, seq + 1):
+                    self._first_sent.pop(s, None)
+                    self._resent.discard(s)
                     self._memory.pop(s, None)
                     try:
                         (self.spool / f"{s:012d}.json").unlink()
@@ -191,17 +207,20 @@ class Uplink:
                         pass
                 self.acked = seq
                 self._write_state()
-                self._last_progress = time.monotonic()
+                self._last_progress = now
                 self._acked_event.notify_all()
 
     def resend_if_stalled(self) -> int:
-        """Publish the unacknowledged batches again (oldest first) if the ack has not moved for a while."""
+        """Publish the unacknowledged batches again (oldest first) if the ack has not moved for the
+        retransmission timeout; the timeout then doubles (up to its maximum) until an ack comes."""
         with self._lock:
-            if self.pending == 0 or time.monotonic() - self._last_progress < self.resend_after:
+            if self.pending == 0 or time.monotonic() - self._last_progress < self.timer.rto:
                 return 0
             files = {int(p.stem): p for p in self._pending_files()}
             memory = {k: v for k, v in self._memory.items() if k > self.acked}
             self._last_progress = time.monotonic()
+            self._resent.update(set(files) | set(memory))
+            self.timer.backoff()
         n = 0
         for seq in sorted(set(files) | set(memory)):
             if seq in memory:

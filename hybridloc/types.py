@@ -235,6 +235,15 @@ class StepEvent:
                 raise ValueError("StepEvent.heading_change must be finite")
             object.__setattr__(self, "heading_change", wrap_angle(self.heading_change))
 
+    @classmethod
+    def _checked_already(cls, fields: dict) -> StepEvent:
+        """A step from ``fields`` (every field by name) that already pass :meth:`__post_init__`'s checks,
+        angles already wrapped: the wire decoder's fast path for batches of thousands of steps, which
+        makes the same checks once (and is tested to give the same steps)."""
+        obj = object.__new__(cls)
+        obj.__dict__.update(fields)
+        return obj
+
     @property
     def displacement_enu(self) -> np.ndarray:
         """Horizontal displacement of the step, shape (2,), m."""

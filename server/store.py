@@ -25,7 +25,7 @@ from collections.abc import Collection
 from dataclasses import dataclass
 from typing import cast
 
-from sqlalchemy import CursorResult, func, insert, select, update
+from sqlalchemy import CursorResult, Table, func, insert, select, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
@@ -189,26 +189,32 @@ class Store:
 
     @staticmethod
     def _insert_records(s: Session, stored: list[tuple[int, Batch]]) -> None:
-        """The steps, scans and marks of the batches ``stored`` as (batch row id, batch): an executemany each."""
+        """The steps, scans and marks of the batches ``stored`` as (batch row id, batch): an executemany each.
+
+        The steps, a thousand rows a large batch, go to the driver's executemany as plain tuples (the
+        ORM's bulk INSERT built a parameter dict per row, most of a large batch's storing time); the
+        scans (a JSON column, which SQLAlchemy serialises) and marks through Core."""
         steps = [
-            {
-                "batch_id": bid,
-                "device_id": b.device,
-                "t": st.t,
-                "length": st.length,
-                "heading": st.heading,
-                "sigma_length": st.sigma_length,
-                "sigma_heading": st.sigma_heading,
-                "heading_change": st.heading_change,
-                "sigma_heading_change": st.sigma_heading_change,
-                "height_change": st.height_change,
-                "sigma_height_change": st.sigma_height_change,
-                "floor_change": st.floor_change,
-                "degraded": st.degraded,
-            }
+            (
+                bid,
+                b.device,
+                st.t,
+                st.length,
+                st.heading,
+                st.sigma_length,
+                st.sigma_heading,
+                st.heading_change,
+                st.sigma_heading_change,
+                st.height_change,
+                st.sigma_height_change,
+                st.floor_change,
+                st.degraded,
+            )
             for bid, b in stored
             for st in b.steps
         ]
+        if steps:
+            s.connection().exec_driver_sql(_step_insert_sql(s.get_bind().dialect.paramstyle), steps)
         scans = [
             {
                 "batch_id": bid,
@@ -225,7 +231,7 @@ class Store:
             for sc in b.scans
         ]
         marks = [{"batch_id": bid, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for bid, b in stored for mk in b.marks]
-        for table, params in ((m.Step, steps), (m.Scan, scans), (m.SurveyMark, marks)):
+        for table, params in ((cast(Table, m.Scan.__table__), scans), (cast(Table, m.SurveyMark.__table__), marks)):
             if params:
                 s.execute(insert(table), params)
 
@@ -545,6 +551,31 @@ class Store:
                     ).all()
                 },
             }
+
+
+#: The step table's columns as :meth:`Store._insert_records` writes them (all but the id)
+_STEP_COLUMNS = (
+    "batch_id",
+    "device_id",
+    "t",
+    "length",
+    "heading",
+    "sigma_length",
+    "sigma_heading",
+    "heading_change",
+    "sigma_heading_change",
+    "height_change",
+    "sigma_height_change",
+    "floor_change",
+    "degraded",
+)
+
+
+def _step_insert_sql(paramstyle: str) -> str:
+    """INSERT INTO step (...) VALUES (...) in the driver's positional style (sqlite3 ``qmark``,
+    psycopg ``format``/``pyformat``)."""
+    mark = "?" if paramstyle == "qmark" else "%s"
+    return f"INSERT INTO step ({', '.join(_STEP_COLUMNS)}) VALUES ({', '.join([mark] * len(_STEP_COLUMNS))})"
 
 
 #: Largest IN list in one statement (SQLite allows 32,766 bound parameters since 3.32, PostgreSQL 65,535).

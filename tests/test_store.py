@@ -228,3 +228,13 @@ def test_walk_read_after_a_real_zenoh_ingest(tmp_path, db_url):
         (s["t"], s["rssi"], s["freq"], s["age"], "SM-G960F") for s in scans
     ]
     assert w.device_model == "SM-G960F" and w.end == WalkEnd.OPEN and math.isclose(w.duration, steps[-1].t - steps[0].t)
+
+
+def test_the_driver_level_step_insert_names_every_step_column():
+    """Store._insert_records writes steps through the driver with its own column list: it must be the
+    step table's columns (all but the id), in order, or a migration adding one would go unwritten."""
+    from hybridloc.server import db as m
+    from hybridloc.server.store import _STEP_COLUMNS, _step_insert_sql
+
+    assert list(_STEP_COLUMNS) == [c.name for c in m.Step.__table__.columns if c.name != "id"]
+    assert _step_insert_sql("qmark").count("?") == len(_STEP_COLUMNS) and _step_insert_sql("pyformat").count("%s") == len(_STEP_COLUMNS)

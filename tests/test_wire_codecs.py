@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 import shapely
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from hybridloc.types import (
@@ -834,3 +834,62 @@ def test_fast_json_reads_what_the_standard_parser_reads(obj, tail):
     assert fast == slow
     if isinstance(slow, dict):
         assert json.dumps(fast, sort_keys=True) == json.dumps(slow, sort_keys=True)  # ints stay ints, floats floats
+
+
+_step_value = (
+    st.floats(allow_nan=True, allow_infinity=True, width=64)
+    | st.floats(min_value=-10, max_value=10)
+    | st.integers(min_value=-(2**60), max_value=2**60)
+    | st.booleans()
+    | st.none()
+    | st.text(max_size=40)
+)
+_STEP_KEYS = [
+    "t",
+    "length",
+    "heading",
+    "sigma_length",
+    "sigma_heading",
+    "heading_change",
+    "sigma_heading_change",
+    "height_change",
+    "sigma_height_change",
+    "floor_change",
+    "degraded",
+]
+
+
+def _outcome(fn, s):
+    try:
+        r = C._structure(fn, s)
+    except P.Rejected as rej:
+        return ("rejected", rej.reason)
+    return (r, [(k, type(getattr(r, k))) for k in _STEP_KEYS])
+
+
+_finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False)
+
+
+@st.composite
+def _step_dicts(draw):
+    """A well-formed step (every field a finite float, or the optional ones left out), then up to two
+    fields replaced by anything or removed: the fast path's edges."""
+    s = {k: draw(_finite) for k in _STEP_KEYS if k not in ("floor_change", "degraded")}
+    s.update(length=abs(s["length"]), sigma_length=abs(s["sigma_length"]), sigma_heading=abs(s["sigma_heading"]))
+    s.update(sigma_height_change=abs(s["sigma_height_change"]), floor_change=draw(st.integers(-3, 3)), degraded=draw(st.sampled_from(["", "no-mag"])))
+    for k in draw(st.lists(st.sampled_from(_STEP_KEYS + ["extra"]), max_size=2)):
+        if draw(st.booleans()):
+            s[k] = draw(_step_value)
+        else:
+            s.pop(k, None)
+    return s
+
+
+@settings(max_examples=1500, deadline=None)
+@given(_step_dicts())
+@example({"t": 1.0, "length": 0.7, "heading": 0.1, "sigma_length": 0.1, "sigma_heading": 0.1, "floor_change": 10**17 + 1})  # past a float's integers
+@example({"t": 1.0, "length": 0.7, "heading": 0.1, "sigma_length": 0.1, "sigma_heading": 0.1, "sigma_height_change": -1.0})
+def test_fast_step_decoding_gives_the_checked_steps(s):
+    """A step dict read by the fast path equals the checked path's step (values and their types), and
+    one the fast path declines gets the checked path's reason."""
+    assert _outcome(C._step_from, s) == _outcome(C._step_checked, s)

@@ -54,6 +54,7 @@ from ..types import (
     Technology,
     rssi_in_range,
 )
+from ..units import wrap_angle
 from . import limits
 from .messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
 from .protocol import (
@@ -204,6 +205,32 @@ def step_to_dict(s: StepEvent) -> dict:
 
 
 def _step_from(s: dict) -> StepEvent:
+    """A step as sent; plain well-formed steps (every number a float, in range) take the fast path,
+    anything else the checked one, which names the reason. Both give the same steps (tested)."""
+    if type(s) is dict:
+        t, ln, hd, sl, sh = s.get("t"), s.get("length"), s.get("heading"), s.get("sigma_length"), s.get("sigma_heading")
+        hc, shc = s.get("heading_change"), s.get("sigma_heading_change")
+        dh, sdh, fc, dg = s.get("height_change", 0.0), s.get("sigma_height_change", 0.0), s.get("floor_change", 0), s.get("degraded", "")
+        if (
+            type(t) is float and type(ln) is float and type(hd) is float and type(sl) is float and type(sh) is float
+            and type(dh) is float and type(sdh) is float
+            and (hc is None or type(hc) is float) and (shc is None or type(shc) is float)
+            and type(fc) is int and -(2**53) < fc < 2**53 and type(dg) is str and len(dg) <= 32
+            # one sum is finite only when every term is (an overflowing sum goes the checked way too)
+            and math.isfinite(t + ln + hd + sl + sh + dh + sdh + (hc or 0.0) + (shc or 0.0))
+            and ln >= 0.0 and sl >= 0.0 and sh >= 0.0 and sdh >= 0.0
+        ):  # fmt: skip
+            return StepEvent._checked_already(
+                {
+                    "t": t, "length": ln, "heading": wrap_angle(hd), "sigma_length": sl, "sigma_heading": sh,
+                    "heading_change": None if hc is None else wrap_angle(hc), "sigma_heading_change": shc,
+                    "height_change": dh, "sigma_height_change": sdh, "floor_change": fc, "degraded": dg,
+                }
+            )  # fmt: skip
+    return _step_checked(s)
+
+
+def _step_checked(s: dict) -> StepEvent:
     hc, shc = s.get("heading_change"), s.get("sigma_heading_change")
     return StepEvent(
         _finite(s["t"], "step t"), _finite(s["length"], "length"), _finite(s["heading"], "heading"),
