@@ -123,17 +123,15 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     db = str(args.db)
     if "://" not in db and not Path(db).is_file():
         raise MissingData(f"{db}: no such database (the running server's --db)")
-    import zenoh
-
+    from ..server.dashboard.run import open_session
     from ..server.store import Store
-    from ..wire.zconfig import client_config
 
     store = Store(db, migrate=False)  # the server owns the schema
     try:
-        session = zenoh.open(client_config(args.endpoint, security(args)))
-    except zenoh.ZError as exc:
+        session = open_session(args.endpoint, security(args))
+    except OSError as exc:
         store.close()
-        raise BadInput(f"cannot reach the server at {args.endpoint}: {str(exc).splitlines()[0][:160]}") from None
+        raise BadInput(str(exc)) from None
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())

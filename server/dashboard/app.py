@@ -31,6 +31,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import anyio
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
 from starlette.requests import Request
@@ -231,23 +232,17 @@ def create_app(
     async def live_ws(ws: WebSocket) -> None:
         await ws.accept()
         client = Client(ws.state.hl_sites)
-        pump = asyncio.create_task(hub.pump(client, ws.send_text))
+        async with anyio.create_task_group() as tg:
 
-        async def read() -> None:  # notices the browser leaving (a pump blocked in a wait would not)
-            while True:
-                msg = await ws.receive()
-                if msg["type"] == "websocket.disconnect":
-                    return
+            async def read() -> None:  # notices the browser leaving (a pump blocked in a wait would not)
+                while (await ws.receive())["type"] != "websocket.disconnect":
+                    pass
+                tg.cancel_scope.cancel()
 
-        reader = asyncio.create_task(read())
-        try:
-            await asyncio.wait({pump, reader}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for t in (pump, reader):
-                t.cancel()
-            await asyncio.gather(pump, reader, return_exceptions=True)
-            with contextlib.suppress(Exception):
-                await ws.close()
+            tg.start_soon(read)
+            with contextlib.suppress(Exception):  # a send to a browser that left
+                await hub.pump(client, ws.send_text)
+            tg.cancel_scope.cancel()
 
     async def http_error(request: Request, exc: Exception) -> Response:
         assert isinstance(exc, HTTPException)

@@ -7,7 +7,7 @@ a floor switch costs one small query.
 Coverage (the heat layer) comes from the site's newest radio map (:mod:`hybridloc.radio.radiomap`):
 per floor a grid of cells of ``cell_size`` m. Without a transmitter the value is the cell's support
 n_eff, the kernel-weighted number of labelled scans behind the cell's statistics (how much the map
-knows there; drawn on a log scale); for one transmitter it is its mean RSSI mu (dBm) where its
+knows there; drawn on a log scale, where at least :data:`MIN_SUPPORT`); for one transmitter it is its mean RSSI mu (dBm) where its
 detection probability pd reaches :data:`MIN_DETECTION`, and nothing elsewhere.
 """
 
@@ -30,6 +30,9 @@ from ..store import Store
 
 #: A transmitter's cell is drawn where it is detected at least this often.
 MIN_DETECTION = 0.1
+#: A cell is drawn in the support layer where at least this many effective scans are behind it (the
+#: kernel's weight falls off as exp(-d^2 / 2 bandwidth^2): 0.05 is a scan ~2.4 bandwidths away).
+MIN_SUPPORT = 0.05
 #: Transmitters listed per floor (by detected area), for the per-transmitter layer.
 MAX_TRANSMITTERS = 300
 
@@ -166,6 +169,7 @@ class SiteData:
         cells = np.asarray(fm.cells, float).reshape(-1, 2)
         if tx is None:
             values = np.asarray(fm.support, float)
+            values = np.where(values >= MIN_SUPPORT, values, np.nan)
             unit, label, scale = "scans", "radio map support (effective scans per cell)", "log"
         else:
             col = {rmap.transmitters[int(t)]: j for j, t in enumerate(fm.tx)}.get(tx)

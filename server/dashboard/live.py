@@ -325,7 +325,9 @@ class Hub:
         self.clients.add(c)
         try:
             c.wake.clear()
+            began = loop.time()
             await send(_dumps(self.snapshot(c)))
+            await asyncio.sleep(max(0.0, min_interval_s - (loop.time() - began)))
             while True:
                 await c.wake.wait()
                 c.wake.clear()

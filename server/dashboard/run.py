@@ -44,6 +44,19 @@ def parse_listen(text: str) -> tuple[str, int]:
     return host.strip("[]"), p
 
 
+def open_session(endpoint: str, security=None):
+    """A client session to a running server (as the operator user under its ACL); OSError naming the
+    endpoint when it cannot be reached or refuses the credentials."""
+    import zenoh
+
+    from hybridloc.wire.zconfig import client_config
+
+    try:
+        return zenoh.open(client_config(endpoint, security))
+    except zenoh.ZError as exc:
+        raise OSError(f"cannot reach the server at {endpoint}: {str(exc).splitlines()[0][:160]}") from None
+
+
 class Dashboard:
     def __init__(
         self,

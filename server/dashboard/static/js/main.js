@@ -225,6 +225,7 @@ function drawRow(key) {
   cell.title = rej.map(([r, n]) => `${r}: ${n}`).join("\n") || "no rejections";
   tr.dataset.rejections = String(nrej);
   tr.querySelector(".online").textContent = d.online ? "yes" : "no";
+  tr.dataset.ellipse = d.cov ? "1" : "0";
   tr.querySelector(".follow button").classList.toggle("on", view.follow === key);
   rowAge(tr, d);
 }
