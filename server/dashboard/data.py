@@ -140,18 +140,25 @@ class SiteData:
         return v, rmap
 
     def _floor_map(self, site: str, floor: str):
+        """(version, map, floor map or None). None: a floor of the site's plan the map has no cell on
+        yet (an empty layer, not an error); NotFound for a floor neither knows, or no map at all."""
         got = self._map(site)
         if got is None:
             raise NotFound(f"site {site!r} has no radio map")
         version, rmap = got
         fm = rmap.floors.get(floor)
         if fm is None:
+            plan = self.plan(site)
+            if plan is not None and any(f["properties"].get("floor") == floor for f in plan["features"]):
+                return version, rmap, None
             raise NotFound(f"the radio map of site {site!r} (version {version}) has no floor {floor!r} (floors: {', '.join(rmap.floors) or '-'})")
         return version, rmap, fm
 
     def transmitters(self, site: str, floor: str) -> dict:
         """The floor's transmitters, those detected over the largest area first."""
         version, rmap, fm = self._floor_map(site, floor)
+        if fm is None:
+            return {"site": site, "floor": floor, "map_version": version, "transmitters": []}
         area = (fm.pd >= MIN_DETECTION).sum(axis=0) * fm.cell_size**2
         order = np.argsort(-area, kind="stable")[:MAX_TRANSMITTERS]
         return {
@@ -165,6 +172,9 @@ class SiteData:
         """The heat layer of ``floor``: a grid (row-major from the south-west cell, ``null`` where the
         map has no cell or the transmitter is not heard) with its extent in the site frame, m."""
         version, rmap, fm = self._floor_map(site, floor)
+        if fm is None:
+            note = f"the radio map (version {version}) has no cell on floor {floor} yet"
+            return {"site": site, "floor": floor, "tx": tx, "map_version": version, "cell": None, "nx": 0, "ny": 0, "values": [], "note": note}
         cell = float(fm.cell_size)
         cells = np.asarray(fm.cells, float).reshape(-1, 2)
         if tx is None:

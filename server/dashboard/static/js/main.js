@@ -339,6 +339,7 @@ function clearCoverage() {
   coverageLayer.clearLayers();
   coverageOverlay = null;
   delete body.dataset.coverage;
+  delete body.dataset.coverageEmpty;
   $("legend").hidden = true;
 }
 
@@ -373,7 +374,8 @@ async function refreshCoverage() {
   const cov = await r.json();
   if (!isCurrent(req, view, coverageSeq)) return;
   if (!cov.nx || !cov.ny) {
-    $("coverage-note").textContent = "no radio map cells on this floor";
+    $("coverage-note").textContent = cov.note || "no radio map cells on this floor";
+    body.dataset.coverageEmpty = req.floor;
     return;
   }
   coverageOverlay = L.imageOverlay(gridImage(cov), gridBounds(cov), { opacity: 0.75, className: "cov", interactive: false, pane: "coverage" });
