@@ -209,6 +209,7 @@ function drawRow(key) {
     dot.className = "dot";
     dot.style.backgroundColor = deviceColour(d.id); // CSSOM, allowed by the style-src policy
     tr.querySelector(".id").append(dot, document.createTextNode(d.id));
+    tr.querySelector(".id").title = d.id;
     const btn = document.createElement("button");
     btn.type = "button";
     btn.textContent = "follow";
