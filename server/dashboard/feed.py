@@ -8,7 +8,8 @@ rejections per device, map versions, SLAM figures).
 Zenoh runs the callbacks on its own threads. Each callback decodes the payload there (the codecs are
 the only validation; a refused payload is counted and dropped) and hands the record to the loop with
 ``loop.call_soon_threadsafe``, which never blocks: the Zenoh thread goes back to the network at once,
-whatever the loop is doing. After the loop is closed a late sample is dropped.
+whatever the loop is doing (records queued while a wake-up is pending ride on it: see
+:meth:`Feed._hand_over`). After the loop is closed a late sample is dropped.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import asyncio
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 
 import zenoh
 
@@ -43,6 +44,8 @@ class Feed:
         self._subs: list = []
         self._stop = threading.Event()
         self._poller: threading.Thread | None = None
+        self._queue: deque = deque()
+        self._wake_pending = False
 
     def start(self, loop: asyncio.AbstractEventLoop) -> Feed:
         self._loop = loop
@@ -64,13 +67,34 @@ class Feed:
         self._loop = None
 
     def _hand_over(self, fn, *args) -> None:
+        """Queue ``fn(*args)`` for the loop and wake it with ``call_soon_threadsafe`` unless a wake-up is
+        already pending: one loop wake-up drains every record queued meanwhile (at 300 poses/s most
+        records ride on a wake-up already scheduled). No lock: ``deque.append`` and ``popleft`` are
+        atomic, and the drain clears the flag *before* it empties the queue, so a record appended
+        after the last ``popleft`` always finds the flag clear and schedules a new drain."""
         loop = self._loop
         if loop is None or loop.is_closed():
             return
+        self._queue.append((fn, args))
+        if self._wake_pending:
+            return
+        self._wake_pending = True
         try:
-            loop.call_soon_threadsafe(fn, *args)
+            loop.call_soon_threadsafe(self._drain)
         except RuntimeError:  # the loop closed in between
             pass
+
+    def _drain(self) -> None:
+        """On the loop: apply every queued record, in arrival order."""
+        self._wake_pending = False
+        q = self._queue
+        while q:
+            fn, args = q.popleft()
+            try:
+                fn(*args)
+            except Exception:  # noqa: BLE001 - one bad record must not drop the others
+                self.counts["apply-errors"] += 1
+                log.exception("dashboard: applying a record failed")
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """On a Zenoh thread: decode, then hand over (never waits for the loop)."""

@@ -22,7 +22,10 @@ const L = window.L;
 const body = document.body;
 const $ = (id) => document.getElementById(id);
 const nowS = () => Date.now() / 1000;
-const perf = new URLSearchParams(location.search).has("perf") ? (window.__hlPerf = { samples: [] }) : null;
+const params = new URLSearchParams(location.search);
+// ?perf: the page records, per WebSocket frame, the time from its arrival to the animation frame
+// after it was drawn (benchmarks/bench_dashboard.py); ?svg: SVG paths instead of one canvas
+const perf = params.has("perf") ? (window.__hlPerf = { samples: [] }) : null;
 
 const model = newModel();
 const view = {
@@ -40,7 +43,7 @@ const map = L.map("map", {
   minZoom: -4,
   maxZoom: 6,
   zoomSnap: 0.25,
-  preferCanvas: true, // one canvas for hundreds of devices (SVG paths per device cost more)
+  preferCanvas: !params.has("svg"), // one canvas for hundreds of devices (SVG paths per device cost more)
   attributionControl: false,
 });
 map.setView([0, 0], 0);
