@@ -1,5 +1,5 @@
-"""One typed settings object for the server, the clients and the command line (and the dashboard to
-come): site, endpoint, database, security files and the local filter's tuning.
+"""One typed settings object for the server, the clients, the command line and the dashboard: site,
+endpoint, database, security files, the local filter's tuning and the dashboard's page.
 
 Read by :func:`load_settings` from a TOML file (``hybridloc --config FILE``, or the file named by
 ``HYBRIDLOC_CONFIG``) and from ``HYBRIDLOC_*`` environment variables. Precedence, highest first: a

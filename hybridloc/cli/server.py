@@ -195,6 +195,12 @@ def _print_status(st: dict) -> None:
     print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
     print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
     print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
+    by_device = st.get("rejections") or {}
+    if by_device:
+        print(
+            "rejections by device: "
+            + "; ".join(f"{dev} ({', '.join(f'{r} {n}' for r, n in sorted(by.items()))})" for dev, by in sorted(by_device.items()))
+        )
     slam = st.get("slam") or {}
     for site, sm in sorted(slam.items()):
         cov = f"{100 * sm['coverage']:.0f} %" if sm.get("coverage") is not None else "-"
