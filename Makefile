@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: test lint demo install bench clean postgres
+.PHONY: test lint demo install bench clean postgres chromium
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -35,13 +35,25 @@ postgres:
 	  sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends postgresql >/dev/null; \
 	else echo "make: PostgreSQL server binaries are missing and cannot be installed here: the PostgreSQL tests will skip"; fi
 
-test: lint postgres
+# Chromium, the dashboard's browser tests' browser (Playwright drives Debian's chromium; no browser
+# download): installed with apt when missing (as root or with password-less sudo); elsewhere those tests
+# skip and say why
+chromium:
+	@if [ -x /usr/bin/chromium ]; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  echo "make: installing Debian's chromium (the dashboard's browser tests)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; \
+	elif command -v sudo >/dev/null && sudo -n true 2>/dev/null && command -v apt-get >/dev/null; then \
+	  sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; \
+	else echo "make: chromium is missing and cannot be installed here: the dashboard's browser tests will skip"; fi
+
+test: lint postgres chromium
 	$(BIN)/python -m pytest
 
 demo: $(STAMP)
 	$(BIN)/hybridloc demo
 
-bench: $(STAMP) postgres
+bench: $(STAMP) postgres chromium
 	$(BIN)/python -m benchmarks
 
 clean:

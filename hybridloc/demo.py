@@ -93,13 +93,15 @@ def run_platform(
     plan=None,
     slam: bool = False,
     wait_timeout: float = 300.0,
+    beside=None,
 ) -> PlatformRun:
     """:func:`run_pipeline`, and with ``slam`` the server's crowd SLAM worker on the site as ``hybridloc
     serve`` runs it: the floor plan ``plan`` stored first (what ``floorplan import`` does), every walk
     added to the graph when it ends (the surveys with their marks, the phone clients without), the
     clients hearing their walks' provisional corrections and new map versions while they walk; after
     the clients, a batch re-solve of every floor on demand (what ``slam rebuild`` does), whose corrected
-    tracks and crowd map the returned :class:`CrowdOutcome` holds."""
+    tracks and crowd map the returned :class:`CrowdOutcome` holds. ``beside(server)``, when given, starts
+    something that lives with the server (the demo's dashboard) and returns its ``stop``."""
     import shutil
 
     from .clients.agent import Agent, PoseWriter, open_client, replay_phone
@@ -127,9 +129,12 @@ def run_platform(
         raise ValueError("run_platform: the crowd SLAM needs the site's floor plan")
     server, crowd_slam = _start_server(ep, str(db), site, slam)
     crowd = None
+    stop_beside = None
     try:
-        if slam:
+        if slam or (beside is not None and plan is not None):
             server.store.save_floor_plan(site, plan)  # the operator's `floorplan import`
+        if beside is not None:
+            stop_beside = beside(server)
 
         def run_agent(path, kind, spd):
             tr = read_ilc_trace(path)
@@ -183,6 +188,8 @@ def run_platform(
         if crowd_slam.on:
             crowd = _crowd_outcome(server, crowd_slam, site, [r.device for _, r in results], wait_timeout, say)
     finally:
+        if stop_beside is not None:
+            stop_beside()
         server.stop()
     return PlatformRun(results, crowd)
 
@@ -222,7 +229,26 @@ def bundled_split(sample: Path = ILC_SITE1_F1):
     return [t for t in traces if t not in others], others, read_ilc_site(sample)
 
 
-def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4, sample: Path = ILC_SITE1_F1, slam: bool = True) -> int:
+def _dashboard_beside(listen: str):
+    """``beside`` for :func:`run_platform`: the operator dashboard on the demo's server (``demo
+    --dashboard HOST:PORT``), its URL with a fresh token printed; returns its stop."""
+
+    def start(server):
+        from .server.dashboard.auth import Access, new_token
+        from .server.dashboard.run import Dashboard, parse_listen
+
+        host, port = parse_listen(listen)
+        token = new_token()
+        dash = Dashboard(server.session, server.store, Access({token: None}), host, port).start()
+        print(f"[demo] dashboard on {dash.url}?token={token} (up while the replay runs)", flush=True)
+        return dash.stop
+
+    return start
+
+
+def run_demo(
+    out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4, sample: Path = ILC_SITE1_F1, slam: bool = True, dashboard: str | None = None
+) -> int:
     t_start = time.monotonic()
     out.mkdir(parents=True, exist_ok=True)
     if sim:
@@ -238,7 +264,8 @@ def run_demo(out: Path, sim: bool = False, speed: float = 20.0, workers: int = 4
     else:
         survey, others, plan = bundled_split(sample)
     axes = geo.corridor_axes(plan)
-    run = run_platform(survey, others, out, speed, workers, corridor_axes=axes, plan=plan, slam=slam)
+    beside = _dashboard_beside(dashboard) if dashboard else None
+    run = run_platform(survey, others, out, speed, workers, corridor_axes=axes, plan=plan, slam=slam, beside=beside)
     results, crowd = run.results, run.crowd
     from .fusion import LocalFusion
 

@@ -1,5 +1,5 @@
-"""One typed settings object for the server, the clients and the command line (and the dashboard to
-come): site, endpoint, database, security files and the local filter's tuning.
+"""One typed settings object for the server, the clients, the command line and the dashboard: site,
+endpoint, database, security files, the local filter's tuning and the dashboard's page.
 
 Read by :func:`load_settings` from a TOML file (``hybridloc --config FILE``, or the file named by
 ``HYBRIDLOC_CONFIG``) and from ``HYBRIDLOC_*`` environment variables. Precedence, highest first: a
@@ -18,6 +18,11 @@ line's own, so no file and no variable change nothing). Example file::
     [filter]
     kind = "particle"                  # kalman | particle | kourogi
     speed = 0                          # replay speed factor (0: as fast as possible)
+
+    [http]                             # the operator dashboard (serve --http, hybridloc dashboard)
+    listen = "127.0.0.1:8080"          # HOST:PORT of the page; off when not set
+    token = "..."                      # the page's token (none: serve --http generates one)
+    tokens_file = "dashboard-tokens"   # lines "token: site1,site2" ("token: *": every site)
 
     [slam]                             # the server's crowd-SLAM worker per served site
     enabled = true
@@ -84,6 +89,17 @@ class SlamSettings:
 
 
 @dataclass(frozen=True)
+class HttpSettings:
+    """The operator dashboard (``serve --http``, ``dashboard``)."""
+
+    listen: str | None = None  # HOST:PORT of the page; off when not set
+    token: str | None = None  # a token for every site (none: generated and printed)
+    tokens_file: str | None = None  # lines "token: site1,site2"
+    stale_s: float = 10.0  # a device whose newest pose or fix is older than this, s, is drawn stale
+    lost_s: float = 60.0  # ... and lost after this long, s
+
+
+@dataclass(frozen=True)
 class Settings:
     site: str | None = None  # the site a client reports to and the server serves
     endpoint: str = "tcp/127.0.0.1:7447"  # Zenoh endpoint: the server listens on it, clients connect to it
@@ -93,6 +109,7 @@ class Settings:
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
     slam: SlamSettings = field(default_factory=SlamSettings)
+    http: HttpSettings = field(default_factory=HttpSettings)
 
     def get(self, dotted: str) -> Any:
         """``get("security.tls_ca")``: a setting by its dotted key."""
@@ -102,7 +119,7 @@ class Settings:
         return obj
 
 
-_SECTIONS = {"security": SecuritySettings, "filter": FilterSettings, "slam": SlamSettings}
+_SECTIONS = {"security": SecuritySettings, "filter": FilterSettings, "slam": SlamSettings, "http": HttpSettings}
 _CHOICES = {"method": LOCATE_METHODS, "filter.kind": FILTER_KINDS}
 
 

@@ -357,7 +357,13 @@ class Server:
         try:
             slam = {site: dict(self.store.slam.summary(site), worker=w.status()) for site, w in list(self.slam_workers.items())}
             st = Status(
-                sorted(self._online_now()), dict(self.counts), self.store.status(), {k: v[0] for k, v in self.locators.items()}, slam, self.sites
+                sorted(self._online_now()),
+                dict(self.counts),
+                self.store.status(),
+                {k: v[0] for k, v in self.locators.items()},
+                slam,
+                self.sites,
+                self.store.rejections_by_device(),
             )
             q.reply(P.KEY_STATUS, C.STATUS.encode(st), encoding=C.STATUS.encoding)
         except Exception as exc:  # noqa: BLE001
@@ -387,7 +393,10 @@ class _KnnOne:
         return self.knn.locate_many(scans) if scans else []
 
 
-def serve_forever(server: Server) -> None:
+def serve_forever(server: Server, beside=None) -> None:
+    """Run ``server`` until SIGTERM or SIGINT. ``beside(server)``, when given, starts something that
+    lives with it once it listens (the dashboard of ``serve --http``) and returns an object whose
+    ``stop()`` ends it before the server stops."""
     import signal
 
     stop = threading.Event()
@@ -395,7 +404,12 @@ def serve_forever(server: Server) -> None:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with server:
         print(f"hybridloc server listening on {server.endpoint} (router mode)", flush=True)
-        while not stop.is_set():
-            stop.wait(0.5)
-            if server.worker_error is not None:
-                raise RuntimeError(f"ingest worker failed: {server.worker_error}")
+        extra = beside(server) if beside is not None else None
+        try:
+            while not stop.is_set():
+                stop.wait(0.5)
+                if server.worker_error is not None:
+                    raise RuntimeError(f"ingest worker failed: {server.worker_error}")
+        finally:
+            if extra is not None:
+                extra.stop()

@@ -533,6 +533,14 @@ class Store:
             )
             return (row.version, row.data) if row else None
 
+    def rejections_by_device(self) -> dict[str, dict[str, int]]:
+        """Stored rejections: device -> reason -> count (``?``: messages on keys naming no device)."""
+        out: dict[str, dict[str, int]] = {}
+        with Session(self.engine) as s:
+            for r in s.execute(select(m.Rejection).order_by(m.Rejection.device_id, m.Rejection.reason)).scalars():
+                out.setdefault(r.device_id, {})[r.reason] = int(r.count)
+        return out
+
     def status(self) -> dict:
         with Session(self.engine) as s:
             return {

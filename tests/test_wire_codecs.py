@@ -198,6 +198,7 @@ statuses = st.builds(
     st.dictionaries(ids, st.integers(1, 10**6), max_size=4),
     st.dictionaries(ids, st.dictionaries(st.text(max_size=20), slam_values, max_size=5), max_size=3),
     st.lists(ids, max_size=3, unique=True).map(tuple),
+    st.dictionaries(ids, st.dictionaries(st.text(max_size=20), st.integers(0, 10**9), min_size=1, max_size=4), max_size=3),
 )
 map_infos = st.builds(MapInfo, ids, st.integers(1, 10**9))
 
@@ -789,6 +790,14 @@ def test_map_version_progress_and_status_slam_rejections():
     assert st_new.as_dict()["slam"] == {"site1": {"walks_pending": 2, "coverage": None}}
     assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": {"site1": 3}})) == "malformed-json"
     assert _reason(C.STATUS, _dumps({**json.loads(old), "slam": [1]})) == "malformed-json"
+    # status: rejections per device are optional too (older servers send none: {}), each a count >= 0
+    assert st_old.rejections == {} and st_old.as_dict()["rejections"] == {}
+    st_rej = C.STATUS.decode(C.STATUS.encode(Status(rejections={"dev01": {"duplicate": 2, "step-too-long": 1}})))
+    assert st_rej.rejections == {"dev01": {"duplicate": 2, "step-too-long": 1}}
+    for bad in ({"dev01": 3}, [1]):
+        assert _reason(C.STATUS, _dumps({**json.loads(old), "rejections": bad})) == "malformed-json"
+    for bad in ({"dev01": {"duplicate": -1}}, {"dev01": {"duplicate": 1.5}}, {"dev01": {"duplicate": True}}):
+        assert _reason(C.STATUS, _dumps({**json.loads(old), "rejections": bad})) == "bad-value"
 
 
 # ---------------------------------------------------------------------------------------------- fast JSON path

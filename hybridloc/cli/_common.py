@@ -62,7 +62,11 @@ def security(args: argparse.Namespace):
     devices = []
     if getattr(args, "acl_devices", None):
         devices = [ln.split(":")[0].strip() for ln in Path(args.acl_devices).read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    extra = {}
+    if getattr(args, "acl_operator", None):
+        extra["acl_operators"] = list(args.acl_operator)
     return Security(
+        **extra,
         users_file=getattr(args, "users", None),
         user=getattr(args, "user", None),
         password=getattr(args, "password", None),

@@ -12,7 +12,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     pyplot("the demo's figure")  # before minutes of work, not after
 
-    return run_demo(Path(args.out), sim=args.sim, speed=args.speed, slam=not args.no_slam)
+    if args.dashboard:
+        from ..server.dashboard.run import parse_listen
+
+        parse_listen(args.dashboard)  # a bad HOST:PORT is one line before minutes of work
+    return run_demo(Path(args.out), sim=args.sim, speed=args.speed, slam=not args.no_slam, dashboard=args.dashboard)
 
 
 def register(sub) -> None:
@@ -24,5 +28,12 @@ def register(sub) -> None:
         "--no-slam",
         action="store_true",
         help="the server without its crowd SLAM (the demo as it was before it: no corrected tracks, the survey map alone)",
+    )
+    demo.add_argument(
+        "--dashboard",
+        nargs="?",
+        const="127.0.0.1:8080",
+        metavar="HOST:PORT",
+        help="keep the operator dashboard up while the replay runs (default 127.0.0.1:8080) and print its URL",
     )
     demo.set_defaults(func=_cmd_demo)

@@ -11,9 +11,63 @@ from ..progress import Progress
 from ._common import check_db_driver, security
 
 
+def _dashboard_access(args: argparse.Namespace):
+    """(Access, the URL's query: ``?token=...`` for a generated token, else "") of the --http-token /
+    --http-tokens options (or the settings); no token at all: one is generated and printed."""
+    from ..server.dashboard.auth import Access, check_token, new_token, read_tokens_file
+
+    tokens: dict = {}
+    query = ""
+    if args.http_tokens:
+        tokens.update(read_tokens_file(args.http_tokens))
+    if args.http_token:
+        tokens[check_token(args.http_token, "--http-token")] = None
+    if not tokens:
+        token = new_token()
+        tokens[token] = None
+        query = f"?token={token}"
+    return Access(tokens), query
+
+
+def _dashboard_options(args: argparse.Namespace) -> tuple[str, int]:
+    from ..server.dashboard.run import parse_listen
+
+    host, port = parse_listen(args.http)
+    for name, v in (("--http-stale", args.http_stale), ("--http-lost", args.http_lost)):
+        if not v > 0:
+            raise BadInput(f"{name} must be > 0 s, got {v:g}")
+    if args.http_lost <= args.http_stale:
+        raise BadInput(f"--http-lost ({args.http_lost:g} s) must be longer than --http-stale ({args.http_stale:g} s)")
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        print(
+            f"warning: the dashboard serves plain HTTP on {host}, beyond loopback: its token and data cross the network in clear "
+            "(put a TLS proxy in front of it)",
+            file=sys.stderr,
+        )
+    return host, port
+
+
+def _start_dashboard(args: argparse.Namespace, session, store, access, query: str):
+    from ..server.dashboard.run import Dashboard
+
+    host, port = _dashboard_options(args)
+    dash = Dashboard(session, store, access, host, port, stale_after_s=args.http_stale, lost_after_s=args.http_lost).start()
+    how = "" if query else " (open it as /?token=TOKEN with your token)"
+    print(f"hybridloc dashboard on {dash.url}{query}{how}", flush=True)
+    return dash
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     check_db_driver(args.db)
     from ..server.service import Server, serve_forever
+
+    dashboard = None
+    if args.http:
+        _dashboard_options(args)  # refuse bad options before anything starts
+        access, query = _dashboard_access(args)
+
+        def dashboard(server):
+            return _start_dashboard(args, server.session, server.store, access, query)
 
     slam_sites, slam_options = [], None
     if args.slam is not False and args.site:
@@ -51,8 +105,60 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             f"{slam_options.batch_every_walks or '-'} walks or {slam_options.batch_interval_s:g} s",
             file=sys.stderr,
         )
-    serve_forever(server)
+    serve_forever(server, dashboard)
     return 0
+
+
+def _cmd_dashboard(args: argparse.Namespace) -> int:
+    """The dashboard beside a running server: a Zenoh client (an operator user under --acl-devices)
+    and the server's database, read only."""
+    import signal
+    import threading
+
+    check_db_driver(args.db)
+    if not args.http:
+        raise BadInput("hybridloc dashboard needs --http HOST:PORT (or http.listen in the settings)")
+    _dashboard_options(args)
+    access, query = _dashboard_access(args)
+    db = str(args.db)
+    if "://" not in db and not Path(db).is_file():
+        raise MissingData(f"{db}: no such database (the running server's --db)")
+    from ..server.dashboard.run import open_session
+    from ..server.store import Store
+
+    store = Store(db, migrate=False)  # the server owns the schema
+    try:
+        session = open_session(args.endpoint, security(args))
+    except OSError as exc:
+        store.close()
+        raise BadInput(str(exc)) from None
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    dash = None
+    try:
+        dash = _start_dashboard(args, session, store, access, query)
+        while not stop.is_set():
+            stop.wait(0.5)
+    finally:
+        if dash is not None:
+            dash.stop()
+        session.close()
+        store.close()
+    return 0
+
+
+def _add_http_options(p: argparse.ArgumentParser, serve: bool) -> None:
+    p.add_argument(
+        "--http",
+        metavar="HOST:PORT",
+        help=("also serve the operator dashboard on HOST:PORT (off unless given; " if serve else "serve the dashboard on HOST:PORT (")
+        + "port 0: any free port; see docs/dashboard.md)",
+    )
+    p.add_argument("--http-token", metavar="TOKEN", help="the dashboard's token for every site (default: one generated and printed in the URL)")
+    p.add_argument("--http-tokens", metavar="FILE", help="dashboard tokens limited to sites: lines 'token: site1,site2' ('token: *': every site)")
+    p.add_argument("--http-stale", type=float, metavar="S", help="the page draws a device stale S seconds after its newest pose or fix (default 10)")
+    p.add_argument("--http-lost", type=float, metavar="S", help="... and lost after S seconds (default 60)")
 
 
 def _cmd_db_upgrade(args: argparse.Namespace) -> int:
@@ -89,6 +195,12 @@ def _print_status(st: dict) -> None:
     print("messages: " + ", ".join(f"{k} {v}" for k, v in sorted(st["counts"].items())))
     print("rejections stored: " + (", ".join(f"{k} {v}" for k, v in st["db"]["rejections"].items()) or "none"))
     print("radio maps: " + (", ".join(f"{k} v{v}" for k, v in st["db"]["maps"].items()) or "none"))
+    by_device = st.get("rejections") or {}
+    if by_device:
+        print(
+            "rejections by device: "
+            + "; ".join(f"{dev} ({', '.join(f'{r} {n}' for r, n in sorted(by.items()))})" for dev, by in sorted(by_device.items()))
+        )
     slam = st.get("slam") or {}
     for site, sm in sorted(slam.items()):
         cov = f"{100 * sm['coverage']:.0f} %" if sm.get("coverage") is not None else "-"
@@ -180,15 +292,28 @@ def register(sub) -> None:
     sv.add_argument("--user", help="with --connect under authentication: the server user this process presents to the other routers")
     sv.add_argument("--password", help="... and its password")
     sv.add_argument("--acl-devices", help="file listing device ids (one per line, or the users file): each may use only its own keys")
+    sv.add_argument(
+        "--acl-operator",
+        action="append",
+        metavar="USER",
+        help="with --acl-devices: a read-only operator user (repeatable; default operator): may hear poses, fixes, tracks, "
+        "progress and map versions and ask the status and maps, never a batch or an ack (hybridloc dashboard --user USER)",
+    )
     sv.add_argument("--tls-cert", help="server certificate (PEM) for tls/ endpoints")
     sv.add_argument("--tls-key", help="server private key (PEM)")
     sv.add_argument("--no-slam", dest="slam", action="store_const", const=False, help="no crowd-SLAM worker for the --site sites")
     sv.add_argument("--slam-idle", type=float, metavar="S", help="a walk whose device sent nothing for S seconds is finished (default 180)")
     sv.add_argument("--slam-batch-every", type=int, metavar="N", help="re-solve the site in batch after N new walks (default 25; 0: not by count)")
     sv.add_argument("--slam-interval", type=float, metavar="S", help="... or S seconds after the last batch run (default 3600; 0: not by time)")
+    _add_http_options(sv, serve=True)
     sv.set_defaults(
         func=_cmd_serve,
         _settings={
+            "http": "http.listen",
+            "http_token": "http.token",
+            "http_tokens": "http.tokens_file",
+            "http_stale": "http.stale_s",
+            "http_lost": "http.lost_s",
             "endpoint": "endpoint",
             "db": "db",
             "site": "site[]",
@@ -201,6 +326,29 @@ def register(sub) -> None:
             "slam_idle": "slam.idle_s",
             "slam_batch_every": "slam.batch_every",
             "slam_interval": "slam.interval_s",
+        },
+    )
+
+    dp = sub.add_parser("dashboard", help="the operator dashboard beside a running server (a live web page; see docs/dashboard.md)")
+    dp.add_argument("--endpoint", help="the server's Zenoh endpoint")
+    dp.add_argument("--db", help="the server's database (read only)")
+    _add_http_options(dp, serve=False)
+    dp.add_argument("--user", help="Zenoh user (under --acl-devices: a read-only operator user, default name operator)")
+    dp.add_argument("--password")
+    dp.add_argument("--tls-ca", help="CA of the server's certificate for tls/ endpoints")
+    dp.set_defaults(
+        func=_cmd_dashboard,
+        _settings={
+            "endpoint": "endpoint",
+            "db": "db",
+            "http": "http.listen",
+            "http_token": "http.token",
+            "http_tokens": "http.tokens_file",
+            "http_stale": "http.stale_s",
+            "http_lost": "http.lost_s",
+            "user": "security.user",
+            "password": "security.password",
+            "tls_ca": "security.tls_ca",
         },
     )
 

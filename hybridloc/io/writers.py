@@ -111,12 +111,18 @@ def point_features(t: Sequence[float], pos: np.ndarray, origin: GeodeticOrigin |
     ]
 
 
-def write_geojson(path: str | os.PathLike, features: Iterable[dict], origin: GeodeticOrigin | None = None) -> None:
+def geojson_collection(features: Iterable[dict], origin: GeodeticOrigin | None = None) -> dict:
+    """A FeatureCollection of ``features``; without an origin it says its coordinates are site-frame
+    metres (a ``crs_note`` foreign member: RFC 7946 itself allows only WGS84)."""
     fc: dict = {"type": "FeatureCollection", "features": list(features)}
     if origin is None:
         fc["crs_note"] = "coordinates are hybridloc site-frame metres (x east, y north), not WGS84"
+    return fc
+
+
+def write_geojson(path: str | os.PathLike, features: Iterable[dict], origin: GeodeticOrigin | None = None) -> None:
     with open(path, "w", encoding="utf-8") as f:
-        json.dump(fc, f, ensure_ascii=False)
+        json.dump(geojson_collection(features, origin), f, ensure_ascii=False)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -519,6 +519,8 @@ class StatusCodec(Codec[Status]):
             d["slam"] = {site: dict(v) for site, v in s.slam.items()}
         if s.sites:  # optional: a process serving every site sends the bytes it always sent
             d["sites"] = list(s.sites)
+        if s.rejections:  # optional: a server with nothing refused sends the bytes it always sent
+            d["rejections"] = {device: dict(v) for device, v in s.rejections.items()}
         return _dumps(d)
 
     def decode(self, payload: bytes) -> Status:
@@ -536,7 +538,13 @@ class StatusCodec(Codec[Status]):
         sites = msg.get("sites") or []
         if not isinstance(sites, list):
             raise Rejected("malformed-json", "sites must be a list of site ids")
-        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps, slam, tuple(_id(x, "site") for x in sites))
+        rejections = {}
+        for device, by_reason in _object(msg.get("rejections") or {}, "rejections").items():
+            by_reason = _object(by_reason, "rejections")
+            if not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in by_reason.values()):
+                raise Rejected("bad-value", "rejections must be counts >= 0")
+            rejections[str(device)[:64]] = {str(k)[:64]: n for k, n in by_reason.items()}
+        return Status(tuple(online), counts, _object(msg.get("db", {}), "db"), maps, slam, tuple(_id(x, "site") for x in sites), rejections)
 
 
 class MapInfoCodec(Codec[MapInfo]):

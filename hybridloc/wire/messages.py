@@ -100,6 +100,10 @@ class Status:
     sites : tuple of str
         The sites this server process serves (``serve --site``); empty: every site. On the wire only
         when not empty. Several processes on one mesh each answer ``hl/v1/status``.
+    rejections : Mapping[str, Mapping[str, int]]
+        Device -> reason -> messages refused (stored counts, since the database began; ``?`` for
+        messages on keys that name no device). On the wire only when not empty: older servers send
+        none, and their payloads decode with ``{}``.
     """
 
     online: tuple[str, ...] = ()
@@ -108,6 +112,7 @@ class Status:
     maps_loaded: Mapping[str, int] = field(default_factory=dict)
     slam: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     sites: tuple[str, ...] = ()
+    rejections: Mapping[str, Mapping[str, int]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "online", tuple(self.online))
@@ -122,6 +127,7 @@ class Status:
             "maps_loaded": dict(self.maps_loaded),
             "slam": {site: dict(v) for site, v in self.slam.items()},
             "sites": list(self.sites),
+            "rejections": {device: dict(v) for device, v in self.rejections.items()},
         }
 
 

@@ -11,7 +11,10 @@ Every configuration turns multicast and gossip scouting off and names its endpoi
   and an access-control list generated from the device list: every device may publish and declare
   liveliness only under its own ``hl/v1/*/<device>/**`` keys, query only its own ``locate`` and the
   site maps, and receive only its own ``ack``, ``fix`` and ``track`` and the sites' ``map/version`` and
-  ``progress`` announcements (which it may not put: only the server announces).
+  ``progress`` announcements (which it may not put: only the server announces). Read-only operator
+  users (the dashboard: ``hybridloc dashboard --user operator``) may subscribe to every device's
+  ``pose``, ``fix`` and ``track`` and every site's ``progress`` and ``map/version``, and query the
+  status and the site maps; never a batch or an ack, and they may put nothing.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ class Security:
     tls_ca: str | None = None  # client: CA that signed the server certificate
     acl_devices: list[str] = field(default_factory=list)  # server: device user names to confine
     server_user: str = "server"
+    #: server, with ``acl_devices``: read-only operator user names (the dashboard's)
+    acl_operators: list[str] = field(default_factory=lambda: ["operator"])
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -75,7 +80,7 @@ def server_config(endpoint: str, security: Security | None = None, connect: list
         c.insert_json5("transport/link/tls/listen_certificate", json.dumps(str(Path(s.tls_cert).resolve())))
         c.insert_json5("transport/link/tls/listen_private_key", json.dumps(str(Path(s.tls_key).resolve())))
     if s.acl_devices:
-        c.insert_json5("access_control", json.dumps(acl_for_devices(s.acl_devices, s.server_user)))
+        c.insert_json5("access_control", json.dumps(acl_for_devices(s.acl_devices, s.server_user, s.acl_operators)))
     return c
 
 
@@ -92,8 +97,19 @@ def client_config(endpoint: str, security: Security | None = None) -> zenoh.Conf
     return c
 
 
-def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
-    """Access control: deny by default; each device confined to its own keys; the server may do all."""
+#: What a read-only operator (the dashboard) hears: every device's pose, fix and corrected track, and
+#: every site's progress and new map versions. Never a batch or an ack.
+OPERATOR_HEARS = (f"{P.PREFIX}/*/*/pose", f"{P.PREFIX}/*/*/fix", P.SUB_TRACKS, P.SUB_PROGRESS, P.SUB_MAP_VERSIONS)
+#: ... and what it may ask: the status and the site maps.
+OPERATOR_ASKS = (P.KEY_STATUS, P.SUB_MAPS)
+
+
+def acl_for_devices(devices: list[str], server_user: str = "server", operators: list[str] | tuple[str, ...] = ()) -> dict:
+    """Access control: deny by default; each device confined to its own keys; each operator may only
+    listen (:data:`OPERATOR_HEARS`) and ask (:data:`OPERATOR_ASKS`); the server may do all. A name
+    that is both (a users file given as the device list holds the operators too) is an operator."""
+    operators = [P.check_id(o, "operator") for o in dict.fromkeys(operators) if o != server_user]
+    devices = [d for d in devices if d not in operators]
     rules, subjects, policies = [], [], []
     rules.append(
         {
@@ -174,4 +190,15 @@ def acl_for_devices(devices: list[str], server_user: str = "server") -> dict:
         ]
         subjects.append({"id": sid, "usernames": [d]})
         policies.append({"rules": [f"{rid}_pub", f"{rid}_route", f"{rid}_sub", f"{rid}_listen", f"{rid}_hear", f"{rid}_query"], "subjects": [sid]})
+    if operators:
+        rules += [
+            # subscriptions declared by the operator (ingress) and the puts routed to it (egress); the
+            # rule names the wildcards the dashboard subscribes with (the router checks the declared key)
+            {"id": "op_listen", "messages": ["declare_subscriber"], "flows": ["ingress"], "permission": "allow", "key_exprs": list(OPERATOR_HEARS)},
+            {"id": "op_hear", "messages": ["put"], "flows": ["egress"], "permission": "allow", "key_exprs": list(OPERATOR_HEARS)},
+            {"id": "op_ask", "messages": ["query"], "flows": ["ingress"], "permission": "allow", "key_exprs": list(OPERATOR_ASKS)},
+            {"id": "op_answer", "messages": ["reply"], "flows": ["egress"], "permission": "allow", "key_exprs": list(OPERATOR_ASKS)},
+        ]
+        subjects.append({"id": "operators", "usernames": operators})
+        policies.append({"rules": ["op_listen", "op_hear", "op_ask", "op_answer"], "subjects": ["operators"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
