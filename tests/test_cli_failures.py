@@ -36,6 +36,7 @@ CASES: dict[str, list[str]] = {
     "client foot": ["client", "foot", "--site", "s", "--replay", "{f}", "--spool", "{o}/spool"],
     "client survey": ["client", "survey", "--site", "s", "--replay", "{f}", "--spool", "{o}/spool"],
     "serve": ["--config", "{f}", "serve", "--db", "{o}/h.db"],
+    "dashboard": ["--config", "{f}", "dashboard", "--db", "{o}/h.db", "--http", "127.0.0.1:0"],
     "db upgrade": ["--config", "{f}", "db", "upgrade", "--db", "{o}/h.db"],
     "status": ["--config", "{f}", "status", "--timeout", "0.1"],
     "locate": ["locate", "{f}", "--map", "{f}", "--format", "msft", "--out", "{o}"],
