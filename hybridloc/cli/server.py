@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import BadInput, MissingData
 from ..progress import Progress
-from ._common import check_db_driver, security
+from ._common import add_batch_arguments, batch_client, check_db_driver, security
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -149,7 +149,8 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
         bar.update(i, f"({dev})")
 
     try:
-        v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)
+        with batch_client(args, "[rebuild]") as client:
+            v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress, client=client)
     finally:
         st.close()
     if v is None:
@@ -238,4 +239,5 @@ def register_map(msub) -> None:
     mr.add_argument("--site")
     mr.add_argument("--db")
     mr.add_argument("--cache", help="folder for per-device labelled scans (default <db>.rebuild)")
+    add_batch_arguments(mr)
     mr.set_defaults(func=_cmd_map_rebuild, _parser=mr, _required=("site",), _settings={"site": "site", "db": "db"})
