@@ -48,6 +48,7 @@ import json
 import logging
 import os
 import queue
+import time
 import uuid
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -74,8 +75,6 @@ from .store import Store
 
 log = logging.getLogger("hybridloc.server.dask")
 
-#: how long the client waits for a scheduler at ``--scheduler`` before giving up, s
-CONNECT_TIMEOUT_S = 10.0
 #: how often the waiting loop passes the workers' progress events on, s
 POLL_S = 0.25
 
@@ -98,9 +97,20 @@ def batch_client(scheduler: str | None = None, workers: int | None = None) -> It
 
     if workers is not None and workers < 1:
         raise BadInput(f"--workers must be at least 1 (got {workers})")
+    # Dask's own loggers say INFO at every connection and shutdown: quiet unless this process asks for INFO
+    dlog = logging.getLogger("distributed")
+    level_before = dlog.level
+    dlog.setLevel(logging.INFO if logging.getLogger().getEffectiveLevel() < logging.WARNING else logging.WARNING)
+    try:
+        yield from _open_client(scheduler, workers, Client, LocalCluster)
+    finally:
+        dlog.setLevel(level_before)
+
+
+def _open_client(scheduler: str | None, workers: int | None, Client, LocalCluster) -> Iterator:
     if scheduler:
         try:
-            client = Client(scheduler, timeout=CONNECT_TIMEOUT_S)
+            client = Client(scheduler)  # waits up to Dask's distributed.comm.timeouts.connect (30 s)
         except (OSError, ValueError, TypeError) as exc:
             raise BadInput(f"cannot reach the Dask scheduler at {scheduler} ({type(exc).__name__}: {exc})") from exc
         try:
@@ -197,34 +207,35 @@ def floor_groups(walk_floors: Iterable[Iterable[str]], floors: Iterable[str]) ->
 
 
 # ------------------------------------------------------------------------------------------ slam: tasks
-def _group_state(site: str, plan, map_bytes: bytes | None, held: list):
-    """Task: the CrowdSlam of one group - its walks held with their current tracks, in the serial order."""
-    from hybridloc.radio.radiomap import RadioMap
-    from hybridloc.slam.online import CrowdSlam
+class GroupSolver:
+    """A Dask actor (lives on one worker): the CrowdSlam of one connected group of floors - the group's
+    walks held with their current tracks, in the serial order - and its floors solved one call at a time
+    (:meth:`solve`), each call's :class:`~.slam_batch.FloorDone` sent straight back to the client.
 
-    slam = CrowdSlam(site, plan)
-    if map_bytes is not None:
-        slam.set_map(RadioMap.load(io.BytesIO(map_bytes)))
-    for walk, track in held:
-        slam.hold(walk, track)
-    return slam
+    An actor, not a chain of tasks passing the CrowdSlam on: a floor's result must reach the client as
+    soon as it is solved (the checkpoint), while the state stays on the worker; as a chained task's
+    output the result would need a getter task, which a worker runs only after the next solve it has
+    already queued (a run killed then loses a finished floor). A worker runs its actors' calls on one
+    thread, one solve at a time."""
 
+    def __init__(self, site: str, plan, map_bytes: bytes | None, held: list, fold_walks: list[int], topic: str):
+        from hybridloc.radio.radiomap import RadioMap
+        from hybridloc.slam.online import CrowdSlam
 
-def _floor_task(state, floor: str, fold_walks: list[int], topic: str):
-    """Task: one floor of a group solved (:func:`~.slam_batch.solve_floor`) -> (the group's CrowdSlam,
-    the floor's :class:`~.slam_batch.FloorDone`); ``state`` is the group's CrowdSlam or the previous
-    floor task's pair."""
-    slam = state[0] if isinstance(state, tuple) else state
+        self.fold_walks, self.topic = fold_walks, topic
+        self.slam = CrowdSlam(site, plan)
+        if map_bytes is not None:
+            self.slam.set_map(RadioMap.load(io.BytesIO(map_bytes)))
+        for walk, track in held:
+            self.slam.hold(walk, track)
 
-    def say(stage: str, fl: str, done: int, total: int) -> None:
-        _send_event(topic, {"stage": stage, "floor": fl, "done": done, "total": total})
+    def solve(self, floor: str) -> FloorDone:
+        """One floor of the group (:func:`~.slam_batch.solve_floor`), in the serial order of the floors."""
 
-    return slam, solve_floor(slam, floor, fold_walks, say)
+        def say(stage: str, fl: str, done: int, total: int) -> None:
+            _send_event(self.topic, {"stage": stage, "floor": fl, "done": done, "total": total})
 
-
-def _floor_result(pair) -> FloorDone:
-    """Task: the floor's result out of a floor task's pair (what comes back to the client)."""
-    return pair[1]
+        return solve_floor(self.slam, floor, self.fold_walks, say)
 
 
 def _crowd_map_task(walks: list, tracks: dict, site: str, plan) -> CrowdMapBuilt:
@@ -241,11 +252,10 @@ def solve_run_on_dask(
     say: ProgressFn,
     hb: _Heartbeat,
 ) -> BatchSummary:
-    """The floors ``todo`` (minus ``done_before``) of a claimed batch run solved as Dask tasks (module
-    docstring), each floor written here when its task returns (within a group in the serial order),
-    then the crowd map as one more task and :func:`~.slam_batch.finish`."""
-    from distributed import wait
-
+    """The floors ``todo`` (minus ``done_before``) of a claimed batch run solved on Dask (module
+    docstring): a :class:`GroupSolver` actor per connected group of floors, its floors asked one after
+    the other in the serial order, each written here as it returns; then the crowd map as a task and
+    :func:`~.slam_batch.finish`."""
     plan = store.load_floor_plan(site)
     got = store.load_map(site)
     map_bytes = got[1] if got is not None else None
@@ -253,14 +263,12 @@ def solve_run_on_dask(
     walks = {wid: store.read_walk(wid) for wid, _ in order}
     fold_walks = sorted(walks)
     solve = [f for f in todo if f not in done_before]
-    groups = [
-        g for g in floor_groups((w.floors for w in walks.values()), set(todo) | {f for w in walks.values() for f in w.floors}) if set(g) & set(solve)
-    ]
+    every_floor = set(todo) | {f for w in walks.values() for f in w.floors}
+    groups = [g for g in floor_groups((w.floors for w in walks.values()), every_floor) if set(g) & set(solve)]
     tally = _Tally()
     n = len(todo)
     finished = len(done_before & set(todo))
     say("floors", solve[0] if solve else "", finished, n)
-    errors = _infrastructure_errors()
     tag = f"{run_id}-{uuid.uuid4().hex[:8]}"  # keys of this call only (a shared scheduler may run others)
     events = _Events(client, say)
     futures: list = []
@@ -270,29 +278,36 @@ def solve_run_on_dask(
         if groups:
             payloads = [[(walks[wid], tr) for wid, tr in order if set(walks[wid].floors) & set(g)] for g in groups]
             # one scatter call: Dask spreads the list's items over the workers (round robin), and each
-            # group's chain then runs where its walks are
+            # group's actor is then made where its walks are
             held_f = client.scatter(payloads, hash=False)
-            chains: list[deque] = []
-            for g, hf in zip(groups, held_f):
-                state = client.submit(_group_state, site, plan_f, map_f, hf, key=f"hybridloc-hold-{site}-{'+'.join(g)}-{tag}", pure=False)
-                chain: deque = deque()
-                for fl in [f for f in solve if f in g]:  # the serial order of the floors
-                    state = client.submit(_floor_task, state, fl, fold_walks, events.topic, key=f"hybridloc-floor-{site}-{fl}-{tag}", pure=False)
-                    chain.append((fl, client.submit(_floor_result, state, key=f"hybridloc-result-{site}-{fl}-{tag}", pure=False)))
-                chains.append(chain)
-                futures += [state, hf] + [f for _, f in chain]
-            del state
-            while any(chains):
-                heads = [c[0][1] for c in chains if c]
-                with contextlib.suppress(TimeoutError):
-                    wait(heads, timeout=POLL_S, return_when="FIRST_COMPLETED")
-                events.drain()
-                for c in chains:
-                    while c and c[0][1].done():
-                        fl, fut = c.popleft()
-                        write_floor(store, run_id, fut.result(), tally, hb)
+            made = [
+                client.submit(
+                    GroupSolver, site, plan_f, map_f, hf, fold_walks, events.topic, actor=True, key=f"hybridloc-group-{site}-{'+'.join(g)}-{tag}"
+                )
+                for g, hf in zip(groups, held_f)
+            ]
+            futures += held_f + made
+            # per group: its floors to solve (serial order) and the call running
+            queues = [deque(f for f in solve if f in g) for g in groups]
+            running: list = [None] * len(groups)
+            actors = [None] * len(groups)
+            while any(queues) or any(r is not None for r in running):
+                for k, q in enumerate(queues):
+                    if actors[k] is None and made[k].done():
+                        actors[k] = made[k].result()
+                    if actors[k] is not None and running[k] is None and q:
+                        running[k] = (q[0], actors[k].solve(q[0]))
+                    if running[k] is not None and running[k][1].done():
+                        fl, call = running[k]
+                        running[k] = None
+                        q.popleft()
+                        write_floor(store, run_id, call.result(), tally, hb)
                         finished += 1
                         say("floors", fl, finished, n)
+                events.drain()
+                if not any(r is not None and r[1].done() for r in running):
+                    time.sleep(POLL_S / 5)
+            del actors, running
         events.drain()
 
         def build(map_walks: list, tracks: dict) -> CrowdMapBuilt:
@@ -302,7 +317,7 @@ def solve_run_on_dask(
             return fut.result()
 
         return finish(store, site, run_id, todo, done_before, tally, say, hb, lambda wid: walks[wid] if wid in walks else store.read_walk(wid), build)
-    except errors as exc:
+    except _infrastructure_errors() as exc:
         raise WorkerLost(f"site {site}: batch run {run_id}: the Dask cluster lost a worker or the scheduler ({type(exc).__name__}: {exc})") from exc
     finally:
         events.close()

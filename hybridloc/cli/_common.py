@@ -206,20 +206,29 @@ def add_batch_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, metavar="N", help="worker processes of the local Dask cluster (default: the usable cores)")
 
 
+def check_batch_arguments(args: argparse.Namespace) -> None:
+    """The batch options that cannot go together (before the command reads anything)."""
+    if args.workers is not None and (args.serial or args.scheduler):
+        raise BadInput("--workers sizes the local Dask cluster: not with --serial or --scheduler")
+    if args.workers is not None and args.workers < 1:
+        raise BadInput(f"--workers must be at least 1 (got {args.workers})")
+
+
 def batch_client(args: argparse.Namespace, label: str):
     """The Dask client of a batch command's options (a context manager; None with ``--serial``); says on
     stderr where the tasks run."""
     import contextlib
 
-    if args.workers is not None and (args.serial or args.scheduler):
-        raise BadInput("--workers sizes the local Dask cluster: not with --serial or --scheduler")
+    check_batch_arguments(args)
     if args.serial:
         return contextlib.nullcontext(None)
     from ..server.dask_batch import batch_client as open_client
     from ..server.dask_batch import usable_cores
 
     where = (
-        f"the Dask scheduler at {args.scheduler}" if args.scheduler else f"a local Dask cluster of {args.workers or usable_cores()} worker processes"
+        f"the Dask scheduler at {args.scheduler}"
+        if args.scheduler
+        else f"a local Dask cluster of {args.workers if args.workers is not None else usable_cores()} worker processes"
     )
     print(f"{label} tasks on {where}", file=sys.stderr)
     return open_client(args.scheduler, args.workers)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import BadInput, MissingData
 from ..progress import Progress
-from ._common import add_batch_arguments, batch_client, check_db_driver, security
+from ._common import add_batch_arguments, batch_client, check_batch_arguments, check_db_driver, security
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -137,6 +137,7 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_rebuild(args: argparse.Namespace) -> int:
+    check_batch_arguments(args)
     check_db_driver(args.db)
     from ..server.rebuild import rebuild
     from ..server.store import Store

@@ -198,11 +198,13 @@ def _sqlite_path(url: str) -> str | None:
 
 
 def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
+    from ._common import batch_client, check_batch_arguments, check_db_driver, executor_of
+
+    check_batch_arguments(args)
+    check_db_driver(args.db)
     from ..server.slam_batch import site_floors, sites_with_walks
     from ..server.store import Store
-    from ._common import batch_client, check_db_driver, executor_of
 
-    check_db_driver(args.db)
     path = _sqlite_path(args.db)
     if path is not None and not Path(path).is_file():
         raise MissingData(f"{path}: no such database (the server's SQLite file, or a database URL)")
@@ -211,10 +213,13 @@ def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
         sites = [args.site] if args.site else sites_with_walks(st)
         if not sites:
             raise MissingData(f"no ended walks in {args.db}: nothing to re-solve")
-        if args.site and not site_floors(st, args.site):
+        known = site_floors(st, args.site) if args.site else []
+        if args.site and not known:
             raise BadInput(f"site {args.site!r} has no ended walks with a floor in {args.db}")
         if args.floor and args.site is None:
             raise BadInput("--floor needs --site")
+        if args.floor and args.floor not in known:  # before any cluster starts (run_batch says the same)
+            raise BadInput(f"site {args.site!r} has no walks on floor(s) {args.floor} (floors: {', '.join(known)})")
         with batch_client(args, "[slam rebuild]") as client:
             out = _rebuild_sites(st, sites, args, client)
             executor = executor_of(args, client)
