@@ -42,7 +42,15 @@ def _device_survey(store: Store, site: str, device: str):
 def label_device(device: str, steps, marks, scans) -> list[dict]:
     """A device's labelled scans as cache rows (pure: no database; a Dask task under ``--scheduler``):
     the scans labelled by the PDR bridged between consecutive marks of one floor at a time (a survey
-    walk changing floor is split there); none without two marks and a step."""
+    walk changing floor is split there); none without two marks and a step. On one BLAS thread
+    wherever it runs (a result must not depend on the thread count: server/slam_batch.py, solve_floor)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        return _label_rows(device, steps, marks, scans)
+
+
+def _label_rows(device: str, steps, marks, scans) -> list[dict]:
     rows: list[dict] = []
     by_floor: dict[str, list] = {}
     for mk in marks:
@@ -75,7 +83,10 @@ def map_bytes(labelled: list[LabelledScan], site: str) -> bytes:
     """The radio map of the labelled scans, as the bytes stored (pure; a Dask task with a client)."""
     import tempfile
 
-    rmap = build_radio_map(labelled, site=site, params=BuildParams(max_age_s=8.0))
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):  # as label_device
+        rmap = build_radio_map(labelled, site=site, params=BuildParams(max_age_s=8.0))
     with tempfile.TemporaryDirectory(prefix="hybridloc-map-") as d:
         tmpf = Path(d) / "map.npz"
         rmap.save(tmpf)

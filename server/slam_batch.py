@@ -340,14 +340,22 @@ class FloorDone:
 
 def solve_floor(slam: CrowdSlam, floor: str, fold_walks: list[int], say: ProgressFn) -> FloorDone:
     """:meth:`CrowdSlam.rebuild_floor` of one floor and the stored state of each of its walks (pure: no
-    database). ``fold_walks``: the walks held when the run began (their rank is each walk's EM fold)."""
+    database). ``fold_walks``: the walks held when the run began (their rank is each walk's EM fold).
+
+    On one BLAS thread, wherever it runs (this process, the server's SLAM child, a Dask worker): the
+    tracks' covariances (the solver's marginals) differ in their last bits with the BLAS thread count,
+    and one thread was not slower (48 simulated walks on 2 floors, benchmarks/bench_rebuild.py's site,
+    one run each on a shared 2-core machine: 30.9 s against 34.9 s with its 2 threads)."""
+    from threadpoolctl import threadpool_limits
+
     t_f = time.monotonic()
 
     def inner(stage: str, _floor: str, done: int, total: int) -> None:
         if stage != "done":  # the solver's own end of the floor: "floors" says it next
             say(stage, floor, done, total)
 
-    out = slam.rebuild_floor(floor, progress=inner, fold_walks=fold_walks)
+    with threadpool_limits(limits=1):
+        out = slam.rebuild_floor(floor, progress=inner, fold_walks=fold_walks)
     results = [result_of(int(wid), _on_floor(wo.track, floor), wo.quarantined) for wid, wo in sorted(out.walks.items())]
     return FloorDone(floor, results, list(out.loops), dict(out.stats or {}, seconds=time.monotonic() - t_f))
 
@@ -406,9 +414,12 @@ class CrowdMapBuilt:
 
 def crowd_map(walks: list, tracks: dict[int, CorrectedTrack], site: str, plan) -> CrowdMapBuilt:
     """The labels of every walk's absolute track and the crowd radio maps built from them (pure: no
-    database; ``walks`` in the order of ``tracks``)."""
-    labels = labels_from_tracks(walks, tracks)
-    maps = build_crowd_maps(labels, site, plan)
+    database; ``walks`` in the order of ``tracks``; on one BLAS thread, as :func:`solve_floor`)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        labels = labels_from_tracks(walks, tracks)
+        maps = build_crowd_maps(labels, site, plan)
     rmap = maps.get("wifi")
     per_walk = Counter(int(ls.source) for ls in labels)
     by_id = {int(w.walk_id): w for w in walks}
