@@ -9,6 +9,7 @@ from . import (
     bench_loop_signal,
     bench_phone_pdr,
     bench_radiomap,
+    bench_rebuild,
     bench_server,
     bench_sim,
     bench_slam,
@@ -26,3 +27,4 @@ if __name__ == "__main__":
     bench_loop_signal.main([])
     bench_anchoring.main([])
     bench_slam_worker.main([])
+    bench_rebuild.main([])

@@ -54,7 +54,13 @@ LEASE_S = 60.0
 
 ProgressFn = Callable[[str, str, int, int], None]
 
-__all__ = ["LEASE_S", "BatchSummary", "SlamBusy", "load_site", "run_batch", "site_floors"]
+
+class WorkerLost(ComputationFailed):
+    """The Dask cluster lost a worker or the scheduler while it solved a run: like a killed process, the
+    floors written stay checkpointed and the next call resumes after them (the lease is released)."""
+
+
+__all__ = ["LEASE_S", "BatchSummary", "FloorDone", "SlamBusy", "WorkerLost", "load_site", "run_batch", "site_floors", "solve_floor"]
 
 
 @dataclass
@@ -183,12 +189,9 @@ def load_site(store: Store, site: str) -> CrowdSlam:
     _, rmap = load_radio_map(store, site)
     if rmap is not None:
         slam.set_map(rmap)
-    states = store.slam.walk_states(site)
-    tracks = store.slam.tracks(site)
-    for wid in store.slam.solvable_walks(site):
-        st = states.get(wid)
-        if st is not None and st.status in (CORRECTED, RELATIVE) and wid in tracks:
-            slam.hold(store.read_walk(wid), tracks[wid])
+    for wid, track in hold_order(store, site):
+        if track is not None:
+            slam.hold(store.read_walk(wid), track)
     return slam
 
 
@@ -261,6 +264,7 @@ def run_batch(
     slam: CrowdSlam | None = None,
     lease_s: float = LEASE_S,
     floor_hook: Callable[[str], None] | None = None,
+    client=None,
 ) -> BatchSummary:
     """Re-solve ``floors`` (None: every floor of the site's walks) of ``site`` from the database ``db``
     (a URL or an open :class:`Store`) and store the result atomically (module docstring).
@@ -269,10 +273,15 @@ def run_batch(
     finished, the resumed ones included), the solver's own stages inside a floor, "map" and "done".
     ``slam``: the site's CrowdSlam when the caller keeps one (the server's child), else it is rebuilt
     from the database. ``floor_hook(floor)`` runs before each floor is solved (tests: slow a run down).
+    ``client``: a :class:`distributed.Client`: the floors are solved as Dask tasks, a chain per connected
+    group of floors (:mod:`.dask_batch`), and written here as they come (not with ``slam`` or
+    ``floor_hook``); None: in this process, one floor after another.
 
     :class:`MissingData` for a site without ended walks, :class:`BadInput` for a floor none of its walks
     names, :class:`SlamBusy` while another process solves the site, :class:`ComputationFailed` when a
     solve fails (the run is ended as failed; the previous map stays)."""
+    if client is not None and (slam is not None or floor_hook is not None):
+        raise ValueError("run_batch: a Dask client solves from the database, without a kept CrowdSlam or a floor hook")
     t0 = time.monotonic()
     store, own = (db, False) if isinstance(db, Store) else (Store(str(db)), True)
     say = progress or (lambda *_: None)
@@ -293,11 +302,17 @@ def run_batch(
             log.info("site %s: resuming batch run %d after floors %s", site, run_id, sorted(done_before) or "none")
         try:
             with _Heartbeat(store, site, run_id, lease, lease_s) as hb:
-                summary = _solve_run(store, site, run_id, todo, done_before, say, slam, hb, floor_hook)
+                if client is None:
+                    summary = _solve_run(store, site, run_id, todo, done_before, say, slam, hb, floor_hook)
+                else:
+                    from .dask_batch import solve_run_on_dask
+
+                    summary = solve_run_on_dask(client, store, site, run_id, todo, done_before, say, hb)
         except SlamBusy:
             raise
-        except (KeyboardInterrupt, SystemExit):
-            # interrupted (Ctrl-C, SIGTERM): the floors done stay checkpointed; free the run for a resume
+        except (KeyboardInterrupt, SystemExit, WorkerLost):
+            # interrupted (Ctrl-C, SIGTERM, a Dask worker or scheduler gone): the floors done stay
+            # checkpointed; free the run for a resume
             store.slam.release_lease(run_id, lease["token"])
             raise
         except Exception as exc:
@@ -312,60 +327,115 @@ def run_batch(
             store.close()
 
 
-def _solve_run(
-    store: Store,
-    site: str,
-    run_id: int,
-    todo: list[str],
-    done_before: set[str],
-    say: ProgressFn,
-    slam: CrowdSlam | None,
-    hb: _Heartbeat,
-    floor_hook: Callable[[str], None] | None,
-) -> BatchSummary:
-    plan = store.load_floor_plan(site)
-    if slam is None:
-        slam = load_site(store, site)
-    # every solvable walk is in the graph: the held ones with their current track, the others (pending,
-    # failed before, added while a batch ran) without one
-    for wid in store.slam.solvable_walks(site):
-        if wid not in slam.walks:
-            slam.hold(store.read_walk(wid), None)
-    by_state: Counter = Counter()
-    quarantined: list[int] = []
-    acc = rej = 0
-    n = len(todo)
-    finished = len(done_before & set(todo))
-    for fl in todo:
-        if fl in done_before:
-            continue
-        say("floors", fl, finished, n)
-        if floor_hook is not None:
-            floor_hook(fl)
-        t_f = time.monotonic()
+@dataclass
+class FloorDone:
+    """One floor of a batch run solved: what :meth:`~.slam_store.SlamStore.write_floor` stores (computed
+    by this process or by a Dask worker, :mod:`.dask_batch`, and written by the run's own process)."""
 
-        def inner(stage: str, _floor: str, done: int, total: int, fl: str = fl) -> None:
-            if stage != "done":  # the solver's own end of the floor: "floors" says it next
-                say(stage, fl, done, total)
+    floor: str
+    results: list[WalkResult]
+    loops: list
+    stats: dict
 
-        out = slam.rebuild_floor(fl, progress=inner)
-        results = []
-        for wid, wo in sorted(out.walks.items()):
-            res = result_of(int(wid), _on_floor(wo.track, fl), wo.quarantined)
-            results.append(res)
-            by_state[res.status] += 1
+
+def solve_floor(slam: CrowdSlam, floor: str, fold_walks: list[int], say: ProgressFn) -> FloorDone:
+    """:meth:`CrowdSlam.rebuild_floor` of one floor and the stored state of each of its walks (pure: no
+    database). ``fold_walks``: the walks held when the run began (their rank is each walk's EM fold).
+
+    On one BLAS thread, wherever it runs (this process, the server's SLAM child, a Dask worker): the
+    tracks' covariances (the solver's marginals) differ in their last bits with the BLAS thread count,
+    and one thread was not slower (48 simulated walks on 2 floors, benchmarks/bench_rebuild.py's site,
+    one run each on a shared 2-core machine: 30.9 s against 34.9 s with its 2 threads)."""
+    from threadpoolctl import threadpool_limits
+
+    t_f = time.monotonic()
+
+    def inner(stage: str, _floor: str, done: int, total: int) -> None:
+        if stage != "done":  # the solver's own end of the floor: "floors" says it next
+            say(stage, floor, done, total)
+
+    with threadpool_limits(limits=1):
+        out = slam.rebuild_floor(floor, progress=inner, fold_walks=fold_walks)
+    results = [result_of(int(wid), _on_floor(wo.track, floor), wo.quarantined) for wid, wo in sorted(out.walks.items())]
+    return FloorDone(floor, results, list(out.loops), dict(out.stats or {}, seconds=time.monotonic() - t_f))
+
+
+@dataclass
+class _Tally:
+    """What the floors of a run gave, summed as they are written."""
+
+    by_state: Counter = field(default_factory=Counter)
+    quarantined: list[int] = field(default_factory=list)
+    accepted: int = 0
+    rejected: int = 0
+
+    def add(self, fd: FloorDone) -> None:
+        for res in fd.results:
+            self.by_state[res.status] += 1
             if res.status == QUARANTINED:
-                quarantined.append(int(wid))
-        loops = list(out.loops)
-        acc += sum(bool(lp.accepted) for lp in loops)
-        rej += sum(not lp.accepted for lp in loops)
-        hb.check()
-        store.slam.write_floor(run_id, fl, results, loops, stats=dict(out.stats or {}, seconds=time.monotonic() - t_f))
-        finished += 1
-        say("floors", fl, finished, n)
-    # the labels of every walk's absolute track: this run's on its floors, the current ones elsewhere
-    say("map", "", 0, 1)
-    run_floors = set(todo)
+                self.quarantined.append(int(res.walk_id))
+        self.accepted += sum(bool(lp.accepted) for lp in fd.loops)
+        self.rejected += sum(not lp.accepted for lp in fd.loops)
+
+
+def write_floor(store: Store, run_id: int, fd: FloorDone, tally: _Tally, hb: _Heartbeat) -> None:
+    """Check the lease, store the floor's checkpoint (one transaction), count it."""
+    tally.add(fd)
+    hb.check()
+    store.slam.write_floor(run_id, fd.floor, fd.results, fd.loops, stats=fd.stats)
+
+
+def hold_order(store: Store, site: str) -> list[tuple[int, CorrectedTrack | None]]:
+    """Every solvable walk of the site as a batch run holds it, in that order: first those with a current
+    track (corrected or relative: :func:`load_site`), then the others without one (pending, failed
+    before, added while a batch ran). The order is each floor's order of pieces, which the incremental
+    re-add of a walk the batch could not fit reads: a Dask worker holding a part of the site holds it
+    in the same order (:mod:`.dask_batch`)."""
+    states = store.slam.walk_states(site)
+    tracks = store.slam.tracks(site)
+    solvable = store.slam.solvable_walks(site)
+    first = [w for w in solvable if (st := states.get(w)) is not None and st.status in (CORRECTED, RELATIVE) and w in tracks]
+    held = set(first)
+    return [(w, tracks[w]) for w in first] + [(w, None) for w in solvable if w not in held]
+
+
+@dataclass
+class CrowdMapBuilt:
+    """The crowd radio map of a run (:func:`crowd_map`): its bytes (None: too few labels), the WiFi label
+    count, every label's walk (how many each: the coverage) and the walks with survey marks among them."""
+
+    data: bytes | None
+    n_wifi: int
+    n_labels: int
+    labels_per_walk: dict[int, int]
+    survey_walks: list[int]
+    n_marks: int
+
+
+def crowd_map(walks: list, tracks: dict[int, CorrectedTrack], site: str, plan) -> CrowdMapBuilt:
+    """The labels of every walk's absolute track and the crowd radio maps built from them (pure: no
+    database; ``walks`` in the order of ``tracks``; on one BLAS thread, as :func:`solve_floor`)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):
+        labels = labels_from_tracks(walks, tracks)
+        maps = build_crowd_maps(labels, site, plan)
+    rmap = maps.get("wifi")
+    per_walk = Counter(int(ls.source) for ls in labels)
+    by_id = {int(w.walk_id): w for w in walks}
+    survey = [w for w in sorted(per_walk) if by_id[w].marks]
+    return CrowdMapBuilt(
+        _map_bytes(rmap) if rmap is not None else None,
+        sum(1 for ls in labels if ls.scan.technology.value == "wifi"),
+        len(labels),
+        dict(sorted(per_walk.items())),
+        survey,
+        int(sum(len(by_id[w].marks) for w in survey)),
+    )
+
+
+def run_tracks_for_map(store: Store, site: str, run_id: int, run_floors: set[str]) -> dict[int, CorrectedTrack]:
+    """The tracks a run's map labels: this run's on its floors, the current ones elsewhere."""
     tracks = store.slam.run_tracks(run_id, statuses=(CORRECTED, RELATIVE))
     states = store.slam.walk_states(site)
     for wid, tr in store.slam.tracks(site).items():
@@ -377,44 +447,127 @@ def _solve_run(
             piece = _on_floor(tr, f)
             if piece is not None:
                 tracks[wid] = _merge(tracks[wid], piece) if wid in tracks else piece
-    walks = {wid: slam.walks[wid] if wid in slam.walks else store.read_walk(wid) for wid in tracks}
-    labels = labels_from_tracks(list(walks.values()), tracks)
-    maps = build_crowd_maps(labels, site, plan)
-    wifi = [ls for ls in labels if ls.scan.technology.value == "wifi"]
-    labelled = sorted({int(ls.source) for ls in labels})
-    survey = [w for w in labelled if walks[w].marks]
-    coverage = _coverage(store, site, labels)
+    return tracks
+
+
+def finish(
+    store: Store,
+    site: str,
+    run_id: int,
+    todo: list[str],
+    done_before: set[str],
+    tally: _Tally,
+    say: ProgressFn,
+    hb: _Heartbeat,
+    walk_of: Callable[[int], object],
+    build: Callable[[list, dict[int, CorrectedTrack]], CrowdMapBuilt],
+) -> BatchSummary:
+    """The run's crowd map from the labels of every walk's absolute track (``build``: :func:`crowd_map`
+    here or on a worker), then :meth:`~.slam_store.SlamStore.finish_run`: the new map and tracks current
+    in one transaction. ``walk_of(walk_id)``: the walk (held in memory, else read)."""
+    say("map", "", 0, 1)
+    tracks = run_tracks_for_map(store, site, run_id, set(todo))
+    walks = {wid: walk_of(wid) for wid in tracks}
+    built = build([walks[w] for w in tracks], tracks)
+    labelled = sorted(built.labels_per_walk)
+    coverage = _coverage(store, site, built.labels_per_walk)
     provenance = {
         "walks": labelled,
-        "survey_walks": survey,
-        "marks": int(sum(len(walks[w].marks) for w in survey)),
+        "survey_walks": built.survey_walks,
+        "marks": built.n_marks,
         "floors": todo,
         "coverage": coverage,
         "run": run_id,
         "resumed_after": sorted(done_before),
     }
-    rmap = maps.get("wifi")
     hb.check()
     version = store.slam.finish_run(
         run_id,
-        _map_bytes(rmap) if rmap is not None else None,
-        n_scans=len(wifi),
+        built.data,
+        n_scans=built.n_wifi,
         provenance=provenance,
-        stats={"walks": dict(by_state), "quarantined": quarantined, "loops_accepted": acc, "loops_rejected": rej, "labels": len(labels)},
+        stats={
+            "walks": dict(tally.by_state),
+            "quarantined": tally.quarantined,
+            "loops_accepted": tally.accepted,
+            "loops_rejected": tally.rejected,
+            "labels": built.n_labels,
+        },
     )
-    if rmap is None:
-        log.info("site %s: batch run %d built no radio map (%d WiFi labels); the previous map stays", site, run_id, len(wifi))
+    if built.data is None:
+        log.info("site %s: batch run %d built no radio map (%d WiFi labels); the previous map stays", site, run_id, built.n_wifi)
+    n = len(todo)
     say("done", "", n, n)
-    changed = {wid: walks[wid].device for wid in tracks if wid in walks}
+    changed = {wid: walks[wid].device for wid in tracks}  # type: ignore[attr-defined]
     return BatchSummary(
-        site, run_id, False, todo, sorted(done_before), dict(by_state), quarantined, acc, rej, version, len(wifi), coverage, 0.0, changed
+        site,
+        run_id,
+        False,
+        todo,
+        sorted(done_before),
+        dict(tally.by_state),
+        tally.quarantined,
+        tally.accepted,
+        tally.rejected,
+        version,
+        built.n_wifi,
+        coverage,
+        0.0,
+        changed,
     )
 
 
-def _coverage(store: Store, site: str, labels) -> float | None:
+def _solve_run(
+    store: Store,
+    site: str,
+    run_id: int,
+    todo: list[str],
+    done_before: set[str],
+    say: ProgressFn,
+    slam: CrowdSlam | None,
+    hb: _Heartbeat,
+    floor_hook: Callable[[str], None] | None,
+) -> BatchSummary:
+    """The serial path: one CrowdSlam of the whole site in this process, the floors one after another."""
+    plan = store.load_floor_plan(site)
+    if slam is None:
+        slam = load_site(store, site)
+    # every solvable walk is in the graph: the held ones with their current track, the others (pending,
+    # failed before, added while a batch ran) without one
+    for wid in store.slam.solvable_walks(site):
+        if wid not in slam.walks:
+            slam.hold(store.read_walk(wid), None)
+    fold_walks = sorted(slam.walks)
+    tally = _Tally()
+    n = len(todo)
+    finished = len(done_before & set(todo))
+    for fl in todo:
+        if fl in done_before:
+            continue
+        say("floors", fl, finished, n)
+        if floor_hook is not None:
+            floor_hook(fl)
+        write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
+        finished += 1
+        say("floors", fl, finished, n)
+    return finish(
+        store,
+        site,
+        run_id,
+        todo,
+        done_before,
+        tally,
+        say,
+        hb,
+        lambda wid: slam.walks[wid] if wid in slam.walks else store.read_walk(wid),
+        lambda walks, tracks: crowd_map(walks, tracks, site, plan),
+    )
+
+
+def _coverage(store: Store, site: str, labels_per_walk: dict[int, int]) -> float | None:
     """Share of the scans of the site's ended walks without survey marks that got an absolute label."""
     crowd = {w.walk_id: w.n_scans for w in store.walks(site, ended_only=True) if w.n_marks == 0}
     total = sum(crowd.values())
     if not total:
         return None
-    return sum(1 for ls in labels if int(ls.source) in crowd) / total
+    return sum(n for w, n in labels_per_walk.items() if w in crowd) / total

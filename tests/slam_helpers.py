@@ -24,11 +24,11 @@ from hybridloc.wire.messages import Batch
 SITE = "5dd3d7732a57a34356595932"
 
 
-def sample_plan(two_floors: bool = False) -> FloorPlan:
+def sample_plan(two_floors: bool = False, n_floors: int | None = None) -> FloorPlan:
+    """The sample's plan; with ``two_floors`` (or ``n_floors``) F1's copied as F2 (F3...), one level each."""
     plan = read_ilc_site(ILC_SITE1_F1)
-    floors = plan.floors
-    if two_floors:
-        floors = (floors[0], dataclasses.replace(floors[0], name="F2", level=1))
+    n = n_floors or (2 if two_floors else 1)
+    floors = (plan.floors[0],) + tuple(dataclasses.replace(plan.floors[0], name=f"F{k + 1}", level=k) for k in range(1, n))
     return FloorPlan(SITE, floors, (), plan.origin)
 
 
@@ -40,18 +40,21 @@ def sample_walks(marks_every: int = 3) -> list[Walk]:
     return [w for w, _ in walks_from_files(paths, marks=[i % marks_every == 0 for i in range(len(paths))], workers=2)]
 
 
-def floor_of(i: int, two_floors: bool) -> str:
+def floor_of(i: int, two_floors: bool, floors: tuple[str, ...] | None = None) -> str:
+    if floors:
+        return floors[i % len(floors)]
     return "F2" if two_floors and i % 2 else "F1"
 
 
-def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str = "dev") -> list[str]:
+def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str = "dev", floors: tuple[str, ...] | None = None) -> list[str]:
     """Each walk as one device's ended walk (batches of at most 500 records, the last with the end-of-walk
     marker); a walk without marks names its floor through a fix, as the server does when it answers a
-    scan. Returns the device ids."""
+    scan. Walk i is on ``floors[i % len(floors)]`` (default F1, or F1 / F2 alternately with
+    ``two_floors``). Returns the device ids."""
     devices = []
     for i, w in enumerate(walks):
         dev = f"{prefix}{i:02d}"
-        fl = floor_of(i, two_floors)
+        fl = floor_of(i, two_floors, floors)
         recs = [("s", r) for r in w.steps] + [("c", r) for r in w.scans] + [("m", SurveyMark(r.t, r.x, r.y, fl)) for r in w.marks]
         recs.sort(key=lambda x: x[1].t)
         chunks = [recs[k : k + 500] for k in range(0, len(recs), 500)] or [[]]
@@ -74,6 +77,17 @@ def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str 
             store.add_fixes([(dev, AbsoluteFix(w.scans[0].t, np.zeros(2), np.eye(2), "wifi", fl))])
         devices.append(dev)
     return devices
+
+
+def crossing_walk(a: Walk, b: Walk, gap_s: float = 5.0) -> Walk:
+    """Walk ``a``, then ``gap_s`` later walk ``b`` one floor up (its first step a floor change): one walk
+    on two floors, as a walker taking the stairs gives. Neither may have marks (they name one floor)."""
+    assert not a.marks and not b.marks
+    dt = a.t_end + gap_s - b.t_start
+    steps_b = [dataclasses.replace(s, t=s.t + dt) for s in b.steps]
+    steps_b[0] = dataclasses.replace(steps_b[0], floor_change=1)
+    scans_b = [dataclasses.replace(c, t=c.t + dt) for c in b.scans]
+    return dataclasses.replace(a, t_end=b.t_end + dt, steps=a.steps + tuple(steps_b), scans=a.scans + tuple(scans_b))
 
 
 def stretched(walk: Walk, factor: float) -> Walk:

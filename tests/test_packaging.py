@@ -62,7 +62,8 @@ def test_conventions_written_once():
 
 
 # import name -> distribution name, where they differ
-_DIST_OF = {"sklearn": "scikit-learn", "zenoh": "eclipse-zenoh"}
+# module -> the core dependency that installs it (distributed comes with dask[distributed])
+_DIST_OF = {"sklearn": "scikit-learn", "zenoh": "eclipse-zenoh", "distributed": "dask"}
 
 
 def test_plain_install_brings_every_package_imported():

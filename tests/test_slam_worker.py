@@ -12,7 +12,8 @@ child process, ``hybridloc serve`` and ``hybridloc slam rebuild`` as real subpro
   (:func:`test_a_walk_with_impossible_steps_is_quarantined_and_the_map_stays`);
 * the server SIGKILLed during a batch run loses no acknowledged batch and resumes the run after the floor
   it finished (:func:`test_server_killed_during_a_batch_run_resumes_and_loses_nothing`);
-* ``slam rebuild``: progress, atomic, resumable after SIGKILL, one JSON line; bad input exits 2
+* ``slam rebuild``: progress, atomic, resumable after SIGKILL, one JSON line; bad input exits 2; a run on
+  the local Dask cluster killed midway leaves no worker process and is resumed by ``--serial``
   (:func:`test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill`);
 * two batch runs of a site never run at once (:func:`test_one_batch_run_per_site_and_stale_leases_resume`).
 """
@@ -31,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 import zenoh
 from sqlalchemy import select
@@ -188,6 +190,7 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
 
     r = subprocess.run([*CLI, "slam", "rebuild", "--db", db], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1])["executor"]["kind"] == "dask-local"  # the default
     first = json.loads(r.stdout.strip().splitlines()[-1])["sites"][0]
     assert first["map_version"] == 1 and first["floors"] == ["F1", "F2"] and not first["resumed"]
     assert "[slam rebuild]" in r.stderr and "floors" in r.stderr
@@ -197,16 +200,25 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
     st.close()
     assert before_map[0] == 1 and len(before_tracks) >= first["walks_corrected"] > 0
 
-    # a second run killed after its first floor: readers still see version 1 and its tracks
-    p = subprocess.Popen([*CLI, "slam", "rebuild", "--db", db, "--site", SITE], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # a second run killed after its first floor: readers still see version 1 and its tracks. One Dask
+    # worker: the floors' tasks run one after the other, F1 first (F1 and F2 share no walk: two groups)
+    p = subprocess.Popen(
+        [*CLI, "slam", "rebuild", "--db", db, "--site", SITE, "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    workers: list = []
     try:
         _wait(lambda: (rid := _running_batch(db)) is not None and _floors_done(db, rid), 240, "the first floor's checkpoint")
+        workers = psutil.Process(p.pid).children(recursive=True)
+        assert workers, "no Dask worker process under slam rebuild"
         p.send_signal(signal.SIGKILL)
         p.wait(30)
     finally:
         if p.poll() is None:
             p.kill()
             p.wait()
+    # the worker processes exit with the killed command (Dask's parent-alive pipe): none left running
+    _, alive = psutil.wait_procs(workers, timeout=15)
+    assert not alive, f"Dask worker processes outlived the killed command: {alive}"
     run = _running_batch(db)
     done = _floors_done(db, run)
     assert list(done) == ["F1"]
@@ -218,8 +230,8 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
     for wid, tr in before_tracks.items():
         np.testing.assert_array_equal(mid_tracks[wid].pos_enu, tr.pos_enu)
 
-    # run again: resumes the killed run after F1 (not solved again), completes it atomically
-    r = subprocess.run([*CLI, "slam", "rebuild", "--db", db, "--site", SITE], capture_output=True, text=True, timeout=300)
+    # run again, serially: resumes the killed run after F1 (not solved again), completes it atomically
+    r = subprocess.run([*CLI, "slam", "rebuild", "--db", db, "--site", SITE, "--serial"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     again = json.loads(r.stdout.strip().splitlines()[-1])["sites"][0]
     assert (again["run"], again["resumed"], again["floors_skipped"], again["map_version"]) == (run, True, ["F1"], 2)

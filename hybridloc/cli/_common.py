@@ -198,3 +198,48 @@ def check_db_driver(url: str) -> None:
 
     if str(url).startswith(("postgresql", "postgres:")):
         require("psycopg", "postgres", "a PostgreSQL database")
+
+
+# ------------------------------------------------------------------------------------------ batch work on Dask
+def add_batch_arguments(p: argparse.ArgumentParser) -> None:
+    """``--scheduler ADDRESS``, ``--workers N``, ``--serial``: where ``map rebuild`` / ``slam rebuild`` run
+    (hybridloc.server.dask_batch)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--scheduler", metavar="ADDRESS", help="run the tasks on this Dask scheduler (tcp://HOST:PORT; its workers need hybridloc)")
+    g.add_argument("--serial", action="store_true", help="no Dask: everything in this process, one task after another")
+    p.add_argument("--workers", type=int, metavar="N", help="worker processes of the local Dask cluster (default: the usable cores)")
+
+
+def check_batch_arguments(args: argparse.Namespace) -> None:
+    """The batch options that cannot go together (before the command reads anything)."""
+    if args.workers is not None and (args.serial or args.scheduler):
+        raise BadInput("--workers sizes the local Dask cluster: not with --serial or --scheduler")
+    if args.workers is not None and args.workers < 1:
+        raise BadInput(f"--workers must be at least 1 (got {args.workers})")
+
+
+def batch_client(args: argparse.Namespace, label: str):
+    """The Dask client of a batch command's options (a context manager; None with ``--serial``); says on
+    stderr where the tasks run."""
+    import contextlib
+
+    check_batch_arguments(args)
+    if args.serial:
+        return contextlib.nullcontext(None)
+    from ..server.dask_batch import batch_client as open_client
+    from ..server.dask_batch import usable_cores
+
+    where = (
+        f"the Dask scheduler at {args.scheduler}"
+        if args.scheduler
+        else f"a local Dask cluster of {args.workers if args.workers is not None else usable_cores()} worker processes"
+    )
+    print(f"{label} tasks on {where}", file=sys.stderr)
+    return open_client(args.scheduler, args.workers)
+
+
+def executor_of(args: argparse.Namespace, client) -> dict:
+    """Where a batch command's tasks ran (its JSON line's ``executor``): serial, or Dask with its workers."""
+    if client is None:
+        return {"kind": "serial", "workers": 1}
+    return {"kind": "dask-scheduler" if args.scheduler else "dask-local", "workers": len(client.nthreads())}

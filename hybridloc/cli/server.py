@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..errors import BadInput, MissingData
 from ..progress import Progress
-from ._common import check_db_driver, security
+from ._common import add_batch_arguments, batch_client, check_batch_arguments, check_db_driver, security
 
 
 def _dashboard_access(args: argparse.Namespace):
@@ -249,6 +249,7 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_rebuild(args: argparse.Namespace) -> int:
+    check_batch_arguments(args)
     check_db_driver(args.db)
     from ..server.rebuild import rebuild
     from ..server.store import Store
@@ -261,7 +262,8 @@ def _cmd_map_rebuild(args: argparse.Namespace) -> int:
         bar.update(i, f"({dev})")
 
     try:
-        v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress)
+        with batch_client(args, "[rebuild]") as client:
+            v, n, relabelled = rebuild(st, args.site, args.cache or (str(args.db) + ".rebuild"), progress, client=client)
     finally:
         st.close()
     if v is None:
@@ -386,4 +388,5 @@ def register_map(msub) -> None:
     mr.add_argument("--site")
     mr.add_argument("--db")
     mr.add_argument("--cache", help="folder for per-device labelled scans (default <db>.rebuild)")
+    add_batch_arguments(mr)
     mr.set_defaults(func=_cmd_map_rebuild, _parser=mr, _required=("site",), _settings={"site": "site", "db": "db"})

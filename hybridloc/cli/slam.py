@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..errors import BadInput, MissingData
+from ._common import add_batch_arguments
 
 
 def _cmd_slam_run(args: argparse.Namespace) -> int:
@@ -197,12 +198,13 @@ def _sqlite_path(url: str) -> str | None:
 
 
 def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
-    from ..progress import Progress
-    from ..server.slam_batch import run_batch, site_floors, sites_with_walks
-    from ..server.store import Store
-    from ._common import check_db_driver
+    from ._common import batch_client, check_batch_arguments, check_db_driver, executor_of
 
+    check_batch_arguments(args)
     check_db_driver(args.db)
+    from ..server.slam_batch import site_floors, sites_with_walks
+    from ..server.store import Store
+
     path = _sqlite_path(args.db)
     if path is not None and not Path(path).is_file():
         raise MissingData(f"{path}: no such database (the server's SQLite file, or a database URL)")
@@ -211,61 +213,74 @@ def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
         sites = [args.site] if args.site else sites_with_walks(st)
         if not sites:
             raise MissingData(f"no ended walks in {args.db}: nothing to re-solve")
-        if args.site and not site_floors(st, args.site):
+        known = site_floors(st, args.site) if args.site else []
+        if args.site and not known:
             raise BadInput(f"site {args.site!r} has no ended walks with a floor in {args.db}")
         if args.floor and args.site is None:
             raise BadInput("--floor needs --site")
-        out = []
-        for site in sites:
-            bars: dict[str, Progress] = {}
-
-            def progress(stage: str, floor: str, done: int, total: int, site: str = site, bars: dict = bars) -> None:
-                label = " ".join(x for x in ("[slam rebuild]", site, "" if stage == "floors" else floor, stage) if x)
-                if stage == "done":
-                    return
-                bar = bars.get(label)
-                if bar is None:
-                    bar = bars[label] = Progress(label, total, bar_width=30 if stage == "floors" else 0)
-                bar.total = total
-                bar.update(done, floor if stage == "floors" else "")
-
-            t0 = time.monotonic()
-            sm = run_batch(st, site, [args.floor] if args.floor else None, progress)
-            for b in bars.values():
-                b.close()
-            summary = st.slam.summary(site)
-            how = f"resumed run {sm.run_id} after floor(s) {', '.join(sm.floors_skipped)}" if sm.floors_skipped else f"run {sm.run_id}"
-            if sm.resumed and not sm.floors_skipped:
-                how = f"resumed run {sm.run_id} (no floor was finished)"
-            mv = f"radio map version {sm.map_version}" if sm.map_version is not None else "no new radio map (too few labelled scans)"
-            cov = f"{100 * sm.coverage:.0f} %" if sm.coverage is not None else "-"
-            print(
-                f"site {site}: {mv} ({how}, floors {', '.join(sm.floors)}, {time.monotonic() - t0:.0f} s); "
-                f"walks corrected {sm.walks.get('corrected', 0)}, relative {sm.walks.get('relative', 0)}, quarantined {len(sm.quarantined)}; "
-                f"loops accepted {sm.loops_accepted}, rejected {sm.loops_rejected}; coverage {cov}"
-            )
-            out.append(
-                {
-                    "site": site,
-                    "run": sm.run_id,
-                    "resumed": sm.resumed,
-                    "floors": sm.floors,
-                    "floors_skipped": sm.floors_skipped,
-                    "map_version": sm.map_version,
-                    "walks_corrected": sm.walks.get("corrected", 0),
-                    "walks_relative": sm.walks.get("relative", 0),
-                    "walks_quarantined": len(sm.quarantined),
-                    "loops_accepted": sm.loops_accepted,
-                    "loops_rejected": sm.loops_rejected,
-                    "coverage": sm.coverage,
-                    "site_walks_corrected": summary["walks_corrected"],
-                    "seconds": round(time.monotonic() - t0, 1),
-                }
-            )
+        if args.floor and args.floor not in known:  # before any cluster starts (run_batch says the same)
+            raise BadInput(f"site {args.site!r} has no walks on floor(s) {args.floor} (floors: {', '.join(known)})")
+        with batch_client(args, "[slam rebuild]") as client:
+            out = _rebuild_sites(st, sites, args, client)
+            executor = executor_of(args, client)
     finally:
         st.close()
-    print(json.dumps({"sites": out}))
+    print(json.dumps({"sites": out, "executor": executor}))
     return 0
+
+
+def _rebuild_sites(st, sites: list[str], args: argparse.Namespace, client) -> list[dict]:
+    from ..progress import Progress
+    from ..server.slam_batch import run_batch
+
+    out = []
+    for site in sites:
+        bars: dict[str, Progress] = {}
+
+        def progress(stage: str, floor: str, done: int, total: int, site: str = site, bars: dict = bars) -> None:
+            label = " ".join(x for x in ("[slam rebuild]", site, "" if stage == "floors" else floor, stage) if x)
+            if stage == "done":
+                return
+            bar = bars.get(label)
+            if bar is None:
+                bar = bars[label] = Progress(label, total, bar_width=30 if stage == "floors" else 0)
+            bar.total = total
+            bar.update(done, floor if stage == "floors" else "")
+
+        t0 = time.monotonic()
+        sm = run_batch(st, site, [args.floor] if args.floor else None, progress, client=client)
+        for b in bars.values():
+            b.close()
+        summary = st.slam.summary(site)
+        how = f"resumed run {sm.run_id} after floor(s) {', '.join(sm.floors_skipped)}" if sm.floors_skipped else f"run {sm.run_id}"
+        if sm.resumed and not sm.floors_skipped:
+            how = f"resumed run {sm.run_id} (no floor was finished)"
+        mv = f"radio map version {sm.map_version}" if sm.map_version is not None else "no new radio map (too few labelled scans)"
+        cov = f"{100 * sm.coverage:.0f} %" if sm.coverage is not None else "-"
+        print(
+            f"site {site}: {mv} ({how}, floors {', '.join(sm.floors)}, {time.monotonic() - t0:.0f} s); "
+            f"walks corrected {sm.walks.get('corrected', 0)}, relative {sm.walks.get('relative', 0)}, quarantined {len(sm.quarantined)}; "
+            f"loops accepted {sm.loops_accepted}, rejected {sm.loops_rejected}; coverage {cov}"
+        )
+        out.append(
+            {
+                "site": site,
+                "run": sm.run_id,
+                "resumed": sm.resumed,
+                "floors": sm.floors,
+                "floors_skipped": sm.floors_skipped,
+                "map_version": sm.map_version,
+                "walks_corrected": sm.walks.get("corrected", 0),
+                "walks_relative": sm.walks.get("relative", 0),
+                "walks_quarantined": len(sm.quarantined),
+                "loops_accepted": sm.loops_accepted,
+                "loops_rejected": sm.loops_rejected,
+                "coverage": sm.coverage,
+                "site_walks_corrected": summary["walks_corrected"],
+                "seconds": round(time.monotonic() - t0, 1),
+            }
+        )
+    return out
 
 
 def register(sub) -> None:
@@ -296,4 +311,5 @@ def register(sub) -> None:
     rb.add_argument("--db", help="the server database (SQLite file or URL)")
     rb.add_argument("--site", help="the site (default: every site with ended walks)")
     rb.add_argument("--floor", help="re-solve this floor only (needs --site)")
+    add_batch_arguments(rb)
     rb.set_defaults(func=_cmd_slam_rebuild, _parser=rb, _required=("db",), _settings={"db": "db"})

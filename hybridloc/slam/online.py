@@ -655,11 +655,18 @@ class CrowdSlam:
         return corrected_track(self.walks[wid], helds, self.cfg)
 
     # -------------------------------------------------------------- batch
-    def rebuild_floor(self, floor: str, progress: Callable[[str, str, int, int], None] | None = None) -> FloorOutcome:
+    def rebuild_floor(
+        self, floor: str, progress: Callable[[str, str, int, int], None] | None = None, fold_walks: list[int] | None = None
+    ) -> FloorOutcome:
         """Re-solve one floor in batch over its held walks (module docstring); replaces their held
         solution. ``progress(stage, floor, done, total)`` as run_slam calls it (stages "loops",
         "solve", "em N", "done"). An error that cannot be pinned on one walk (inside the floor's loop
-        detection or solve) propagates; the held state is then unchanged."""
+        detection or solve) propagates; the held state is then unchanged.
+
+        ``fold_walks``: the walk ids whose rank sets each walk's EM fold (default: every walk held now).
+        A batch over several floors passes the walks held when it began, so a floor's folds do not
+        depend on which walks an earlier floor quarantined: floors that share no walk then solve alike
+        in any order or process (server/slam_batch.py, server/dask_batch.py)."""
         t0 = time.monotonic()
         cfg = self.cfg
         fl = self._floor(floor)
@@ -676,7 +683,7 @@ class CrowdSlam:
                 progress(stage, floor, done, total)
 
         # a walk's fold in EM: its rank among every held walk of the site
-        fold = {w: r % max(cfg.em_folds, 2) for r, w in enumerate(sorted(self.walks))}
+        fold = {w: r % max(cfg.em_folds, 2) for r, w in enumerate(sorted(self.walks if fold_walks is None else fold_walks))}
         bad: dict[int, tuple[str, CorrectedTrack | None]] = {}
         resolves = 0
         while True:
