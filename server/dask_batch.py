@@ -12,24 +12,25 @@ scheduler`` + ``dask worker`` on other machines; the workers need ``hybridloc`` 
 :class:`distributed.LocalCluster` of worker *processes* (one thread each, as many as the usable cores)
 is started for the command and closed with it. Processes, not threads: a floor's solve is mostly
 Python (the walk graph, the loop front end's candidate lists, the quarantine checks) holding the GIL,
-so threads would take turns on one core; a process costs ~1 s to start (imports) and the pickling of
-its inputs, small beside a floor's solve (seconds to a minute). Dask starts worker processes with
-one BLAS thread each (``OMP_NUM_THREADS=1``...), so two workers on two cores do not oversubscribe.
-A worker process whose parent dies (the command killed) exits at once (Dask's parent-alive pipe).
+so threads would take turns on one core; a local worker process costs ~3 s of imports (started on
+every worker as soon as the client opens, while this process reads the database: :func:`_warm_up`)
+and ~200 MB. Every solve runs on one BLAS thread (:func:`~.slam_batch.solve_floor`: the covariances'
+last bits depend on the BLAS thread count), so two workers on two cores do not oversubscribe. A
+worker process whose parent dies (the command killed) exits at once (Dask's parent-alive pipe).
 
 **Tasks of a ``slam rebuild``** (:func:`solve_run_on_dask`): per site, per *connected group of floors*:
 floors joined by a walk that crosses between them (a walk's pieces on two floors tie their solves: the
 quarantine check and the incremental re-add of a walk the batch could not fit read the walk's other
-floors), found from the walks' floors. A group is a chain of tasks: one that holds the group's walks
-(every solvable walk with a piece on one of its floors, in the serial path's order, with its current
-track), then one per floor to solve, in the serial order, each taking the group's
-:class:`~hybridloc.slam.online.CrowdSlam` from the one before (Dask keeps it on that worker). Groups
-run in parallel. Nothing else couples floors: each walk's EM fold is its rank among the walks held
-when the run began (``fold_walks``), and frame ids of relative groups are compared only for equality
-within a floor. Inside a floor the solve is one joint problem (one loop front end fitted on the whole
-floor, one GNC schedule, EM with the floor's crowd map), so a floor is the smallest exact task. The
-crowd map at the end is one more task. Results equal the serial path's (tests/test_dask_batch.py
-compares digests of the stored map, tracks and loop audit).
+floors), found from the walks' floors. A group is a Dask actor (:class:`GroupSolver`) on one worker:
+it holds the group's walks (every solvable walk with a piece on one of its floors, in the serial
+path's order, with its current track) and is asked for its floors one after the other, in the serial
+order; each floor's result comes straight back and is written at once. Groups run in parallel.
+Nothing else couples floors: each walk's EM fold is its rank among the walks held when the run began
+(``fold_walks``), and frame ids of relative groups are compared only for equality within a floor.
+Inside a floor the solve is one joint problem (one loop front end fitted on the whole floor, one GNC
+schedule, EM with the floor's crowd map), so a floor is the smallest exact unit. The crowd map at the
+end is one more task. Results equal the serial path's (tests/test_dask_batch.py compares digests of
+the stored map, tracks, walk states and loop audit).
 
 **Tasks of a ``map rebuild``** (:func:`hybridloc.server.rebuild.rebuild` with a client): one per device
 to label (a device's survey walks are labelled together, bridged between its marks), then the map.

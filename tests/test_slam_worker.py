@@ -13,7 +13,7 @@ child process, ``hybridloc serve`` and ``hybridloc slam rebuild`` as real subpro
 * the server SIGKILLed during a batch run loses no acknowledged batch and resumes the run after the floor
   it finished (:func:`test_server_killed_during_a_batch_run_resumes_and_loses_nothing`);
 * ``slam rebuild``: progress, atomic, resumable after SIGKILL, one JSON line; bad input exits 2; a run on
-  the local Dask cluster killed midway leaves no worker process and is resumed by ``--serial``
+  the local Dask cluster (the default) killed midway leaves no worker process and is resumed by ``--serial``
   (:func:`test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill`);
 * two batch runs of a site never run at once (:func:`test_one_batch_run_per_site_and_stale_leases_resume`).
 """
@@ -188,9 +188,9 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
         assert r.returncode == 2 and what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "none.db").exists()
 
-    r = subprocess.run([*CLI, "slam", "rebuild", "--db", db], capture_output=True, text=True, timeout=300)
+    r = subprocess.run([*CLI, "slam", "rebuild", "--db", db, "--serial"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert json.loads(r.stdout.strip().splitlines()[-1])["executor"]["kind"] == "dask-local"  # the default
+    assert json.loads(r.stdout.strip().splitlines()[-1])["executor"]["kind"] == "serial"
     first = json.loads(r.stdout.strip().splitlines()[-1])["sites"][0]
     assert first["map_version"] == 1 and first["floors"] == ["F1", "F2"] and not first["resumed"]
     assert "[slam rebuild]" in r.stderr and "floors" in r.stderr
@@ -216,6 +216,7 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
         if p.poll() is None:
             p.kill()
             p.wait()
+    assert "tasks on a local Dask cluster of 1 worker processes" in p.stderr.read()  # the default: a local cluster
     # the worker processes exit with the killed command (Dask's parent-alive pipe): none left running
     _, alive = psutil.wait_procs(workers, timeout=15)
     assert not alive, f"Dask worker processes outlived the killed command: {alive}"
