@@ -108,18 +108,25 @@ def batch_client(scheduler: str | None = None, workers: int | None = None) -> It
         dlog.setLevel(level_before)
 
 
+@contextlib.contextmanager
+def _warmed(client):
+    """``client``, its workers' imports started (:func:`_warm_up`), closed at the end."""
+    try:
+        warm = _warm_up(client)
+        yield client
+    finally:
+        del warm
+        client.close()
+
+
 def _open_client(scheduler: str | None, workers: int | None, Client, LocalCluster) -> Iterator:
     if scheduler:
         try:
             client = Client(scheduler)  # waits up to Dask's distributed.comm.timeouts.connect (30 s)
         except (OSError, ValueError, TypeError) as exc:
             raise BadInput(f"cannot reach the Dask scheduler at {scheduler} ({type(exc).__name__}: {exc})") from exc
-        try:
-            warm = _warm_up(client)
+        with _warmed(client):
             yield client
-        finally:
-            del warm
-            client.close()
         return
     n = workers or usable_cores()
     cluster = LocalCluster(
@@ -131,13 +138,8 @@ def _open_client(scheduler: str | None, workers: int | None, Client, LocalCluste
         host="127.0.0.1",
     )
     try:
-        client = Client(cluster)
-        try:
-            warm = _warm_up(client)
+        with _warmed(Client(cluster)) as client:
             yield client
-        finally:
-            del warm
-            client.close()
     finally:
         cluster.close()
 

@@ -1,6 +1,7 @@
 """The wire codecs: round trips of every message (hypothesis), every rejection reason named by the
 decoder, nothing but ``Rejected`` escaping a decoder, and today's bytes (golden) so the wire cannot drift."""
 
+import dataclasses
 import json
 import math
 import re
@@ -853,19 +854,7 @@ _step_value = (
     | st.none()
     | st.text(max_size=40)
 )
-_STEP_KEYS = [
-    "t",
-    "length",
-    "heading",
-    "sigma_length",
-    "sigma_heading",
-    "heading_change",
-    "sigma_heading_change",
-    "height_change",
-    "sigma_height_change",
-    "floor_change",
-    "degraded",
-]
+_STEP_KEYS = [f.name for f in dataclasses.fields(StepEvent)]
 
 
 def _outcome(fn, s):
