@@ -393,28 +393,28 @@ class SlamStore:
             if run is None or run.status != RUNNING:
                 raise ValueError(f"SLAM run {run_id} is not running")
             site = run.site_id
-            for fd in s.execute(select(m.SlamFloorDone).where(m.SlamFloorDone.run_id == run_id)).scalars():
-                for wid, w in (fd.stats or {}).get("walks", {}).items():
-                    row = s.get(m.WalkSlam, int(wid))
-                    has_track = w["n_points"] > 0
-                    values = {
-                        "status": w["status"],
-                        "reason": w["reason"],
-                        "anchored": w["anchored"],
-                        "scale": w["scale"],
-                        "heading_bias": w["heading_bias"],
-                        "n_points": w["n_points"],
-                        "updated_at": m.utcnow(),
-                    }
-                    if has_track:
-                        values["run_id"] = run_id
-                    if row is None:
-                        values.setdefault("run_id", None)
-                        s.add(m.WalkSlam(walk_id=int(wid), site_id=site, attempts=1, **values))
-                    else:
-                        for k, v in values.items():
-                            setattr(row, k, v)
-                        row.attempts += 1
+            per_floor = s.execute(select(m.SlamFloorDone).where(m.SlamFloorDone.run_id == run_id).order_by(m.SlamFloorDone.floor)).scalars()
+            for wid, w in _walks_over_floors([(fd.stats or {}).get("walks", {}) for fd in per_floor]).items():
+                row = s.get(m.WalkSlam, wid)
+                has_track = w["n_points"] > 0
+                values = {
+                    "status": w["status"],
+                    "reason": w["reason"],
+                    "anchored": w["anchored"],
+                    "scale": w["scale"],
+                    "heading_bias": w["heading_bias"],
+                    "n_points": w["n_points"],
+                    "updated_at": m.utcnow(),
+                }
+                if has_track:
+                    values["run_id"] = run_id
+                if row is None:
+                    values.setdefault("run_id", None)
+                    s.add(m.WalkSlam(walk_id=wid, site_id=site, attempts=1, **values))
+                else:
+                    for k, v in values.items():
+                        setattr(row, k, v)
+                    row.attempts += 1
             version = None
             if map_data is not None:
                 m.lock_site(s, site)  # the next version is read after any other writer's commit
@@ -685,3 +685,34 @@ def _track_of(walk_id: int, rows: list, anchored: str, scale: float | None, head
         scale if scale is not None else 1.0,
         heading_bias if heading_bias is not None else 0.0,
     )
+
+
+#: which state a walk solved on several floors takes: the most cautious first (quarantined on one floor
+#: keeps it out of every solve), then corrected (an absolute piece anywhere is a correction)
+_STATUS_RANK = {QUARANTINED: 0, CORRECTED: 1, RELATIVE: 2, FAILED: 3}
+
+
+def _walks_over_floors(per_floor: Sequence[dict]) -> dict[int, dict]:
+    """The walk states of a batch run's floor checkpoints, one per walk: a walk crossing floors has a
+    checkpoint entry on each floor it walked, each with that floor's points only (none where it stayed
+    relative there), and all of its points are kept: the counts add up, the state is the highest
+    ranked of its floors' (:data:`_STATUS_RANK`; its reason and anchoring go with it, the first absolute
+    anchoring where it has none), the scale and heading bias are those of the floor with most points
+    (the longest piece estimated them). Floors in a fixed order, so ties resolve alike on every run."""
+    out: dict[int, dict] = {}
+    longest: dict[int, int] = {}  # points of the piece whose scale and heading bias a walk holds
+    for walks in per_floor:
+        for wid, w in walks.items():
+            k = int(wid)
+            a = out.get(k)
+            if a is None:
+                out[k], longest[k] = dict(w), w["n_points"]
+                continue
+            a["n_points"] += w["n_points"]
+            if _STATUS_RANK.get(w["status"], len(_STATUS_RANK)) < _STATUS_RANK.get(a["status"], len(_STATUS_RANK)):
+                a["status"], a["reason"], a["anchored"] = w["status"], w["reason"], w["anchored"]
+            if a["anchored"] == "relative" and w["anchored"] != "relative" and w["n_points"] > 0:
+                a["anchored"] = w["anchored"]
+            if w["n_points"] > longest[k]:
+                a["scale"], a["heading_bias"], longest[k] = w["scale"], w["heading_bias"], w["n_points"]
+    return out

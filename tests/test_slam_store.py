@@ -189,3 +189,23 @@ def test_map_versions_from_concurrent_writers_never_collide(db_url):
         st.close()
     assert not errors, errors
     assert sorted(got) == list(range(1, 31))
+
+
+def test_a_walk_across_floors_keeps_every_floors_points(st):
+    """A walk solved on two floors of one batch run has a checkpoint entry on each (each with that floor's
+    points only): the run keeps both pieces, their count, the corrected state of the floor where it was
+    placed, whatever the order of the floors, and the scale of the longer piece."""
+    w = _fill(st, 2)
+    a = _track(w[0], T0, anchored="loops")
+    upper = CorrectedTrack(w[0], a.t[:5] + 20.0, a.pos_enu[:5], a.cov[:5], ("F2",) * 5, a.kind[:5], "relative", 0.9, -0.2)
+    run = st.slam.begin_run("s1", ["F1", "F2", "F3"])
+    # F1: placed; F2: a short relative piece; F3: nothing to place there (no points)
+    st.slam.write_floor(run, "F1", [WalkResult(w[0], CORRECTED, a), WalkResult(w[1], CORRECTED, _track(w[1], T0 + 1000))])
+    st.slam.write_floor(run, "F2", [WalkResult(w[0], RELATIVE, upper)])
+    st.slam.write_floor(run, "F3", [WalkResult(w[0], RELATIVE, None, "no track")])
+    st.slam.finish_run(run)
+    got = st.slam.tracks("s1")[w[0]]
+    assert len(got) == len(a) + len(upper) and set(got.floor) == {"F1", "F2"}
+    state = st.slam.walk_states("s1")[w[0]]
+    assert (state.status, state.n_points) == (CORRECTED, len(a) + len(upper))
+    assert got.anchored == "loops" and got.scale == a.scale and got.heading_bias == a.heading_bias
