@@ -20,6 +20,22 @@ include the backlog the window allows (up to ``--window`` simulated seconds of b
 stored, acknowledgement latency p50/p99 (first send of a batch to the ack that covers it), fixes
 answered and their latency (batch sent to fix received), the server's peak memory, and lost /
 doubled counted in the database against what the clients sent. The last line is one JSON object.
+
+Faults during the load (issue #23 point 4, the long form of tests/test_server_faults.py), each
+``--fault KIND@SECOND[:DOWN]`` (repeatable; SECOND is the simulated second it starts at, DOWN the wall
+seconds it lasts):
+
+- ``server-kill``: the server SIGKILLed and started again on the same endpoint and database after DOWN
+  (default 0) seconds;
+- ``clients-drop``: ``--drop-fraction`` of the Zenoh sessions (default 0.2) closed for DOWN (default 10)
+  seconds, then opened afresh; their devices keep their unacknowledged batches (a phone's spool) and
+  resend them at once when they are back;
+- ``db-outage``: PostgreSQL paused for DOWN (default 10) seconds (``--db postgres`` only).
+
+For each it prints how long after its end the first acknowledgement arrived (``first_ack_s``) and when
+every batch sent before its end was acknowledged (``caught_up_s``); lost and doubled are counted over
+the whole run as always. (The client spool's full-disk fault is the client agent's, which this generator
+is not: tests/test_server_faults.py covers it.)
 """
 
 from __future__ import annotations
@@ -42,6 +58,22 @@ SITE = "site1"
 STEP_T = (0.25, 0.75)  # two steps per simulated second, ~0.7 m: a walker at 1.4 m/s
 SCAN_EVERY_S = 2
 RESEND_AFTER_S = 2.0
+FAULT_KINDS = {"server-kill": 0.0, "clients-drop": 10.0, "db-outage": 10.0}  # kind: default DOWN seconds
+
+
+def parse_fault(text: str) -> tuple[str, int, float]:
+    """``KIND@SECOND[:DOWN]`` -> (kind, simulated second, wall seconds down); ValueError when malformed."""
+    kind, sep, rest = text.partition("@")
+    if not sep or kind not in FAULT_KINDS:
+        raise ValueError(f"fault {text!r}: expected KIND@SECOND[:DOWN] with KIND one of {', '.join(FAULT_KINDS)}")
+    at, _, down = rest.partition(":")
+    try:
+        sec, dur = int(at), float(down) if down else FAULT_KINDS[kind]
+    except ValueError:
+        raise ValueError(f"fault {text!r}: SECOND must be an integer and DOWN a number of seconds") from None
+    if sec < 0 or not 0.0 <= dur <= 600.0:
+        raise ValueError(f"fault {text!r}: SECOND must be >= 0 and DOWN within 0-600 s")
+    return kind, sec, dur
 
 
 def _map_and_scans(tmp: Path) -> tuple[Path, list]:
@@ -85,6 +117,7 @@ class _Load:
         self.fix_lat: list[float] = []
         self.fixes = self.no_fix = self.resends = 0
         self.misrouted = 0  # samples a callback got for a key it did not declare, or with another key's payload
+        self.down: set[str] = set()  # devices whose session is closed (a clients-drop fault): they only spool
 
     def on_ack(self, sample) -> None:
         from hybridloc.wire import codecs as C
@@ -140,8 +173,80 @@ class _Load:
                 self.fix_lat.append(now - t0)
 
 
+class _Faults:
+    """The run's scheduled faults (:func:`parse_fault`): started at their simulated second, ended after
+    their wall seconds down, and timed until the load has recovered from each."""
+
+    def __init__(self, plan: list[tuple[str, int, float]], load: _Load, ctl: dict):
+        self.todo = sorted(plan, key=lambda f: f[1])
+        self.load, self.ctl = load, ctl  # ctl: kill, start, drop (-> devices), reopen, pause, resume
+        self.ongoing: list[dict] = []  # started, not ended
+        self.watch: list[dict] = []  # ended, not yet caught up
+        self.done: list[dict] = []
+
+    def active(self) -> bool:
+        return bool(self.ongoing or self.watch)
+
+    def start_due(self, sec: int, last_seq: int) -> None:
+        while self.todo and self.todo[0][1] <= sec:
+            kind, at, down = self.todo.pop(0)
+            f = {"kind": kind, "at_s": at, "down_s": down, "t0": time.monotonic(), "devices": None}
+            if kind == "server-kill":
+                self.ctl["kill"]()
+            elif kind == "clients-drop":
+                f["devices"] = self.ctl["drop"]()
+            else:
+                self.ctl["pause"]()
+            f["last_seq"] = last_seq
+            self.ongoing.append(f)
+        self.poll()
+
+    def poll(self) -> None:
+        now = time.monotonic()
+        for f in [f for f in self.ongoing if now - f["t0"] >= f["down_s"]]:
+            self.ongoing.remove(f)
+            if f["kind"] == "server-kill":
+                self.ctl["start"]()  # returns once the new server listens
+            elif f["kind"] == "clients-drop":
+                self.ctl["reopen"]()
+            else:
+                self.ctl["resume"]()
+            f["t_end"] = time.monotonic()
+            devs = f["devices"] if f["devices"] is not None else self.load.devices
+            with self.load.lock:
+                f["acked0"] = {d: self.load.acked[d] for d in devs}
+            f["devs"] = devs
+            self.watch.append(f)
+        if not self.watch:
+            return
+        now = time.monotonic()
+        with self.load.lock:
+            acked = self.load.acked
+            for f in list(self.watch):
+                if "first_ack_s" not in f and any(acked[d] > f["acked0"][d] for d in f["devs"]):
+                    f["first_ack_s"] = round(now - f["t_end"], 2)
+                if all(acked[d] >= f["last_seq"] for d in f["devs"]):  # everything sent before its end
+                    f.setdefault("first_ack_s", 0.0)
+                    f["caught_up_s"] = round(now - f["t_end"], 2)
+                    self.watch.remove(f)
+                    self.done.append(f)
+
+    def report(self) -> list[dict]:
+        keys = ("kind", "at_s", "down_s", "first_ack_s", "caught_up_s")
+        out = [{k: f.get(k) for k in keys} | {"devices": len(f["devs"])} for f in self.done + self.watch]
+        return sorted(out, key=lambda f: f["at_s"])
+
+
 def run(
-    clients: int, minutes: float, db: str, sessions: int | None = None, window: float = 10.0, speed: float = 0.0, fixed_resend: bool = False
+    clients: int,
+    minutes: float,
+    db: str,
+    sessions: int | None = None,
+    window: float = 10.0,
+    speed: float = 0.0,
+    fixed_resend: bool = False,
+    faults: list[tuple[str, int, float]] = (),  # type: ignore[assignment]
+    drop_fraction: float = 0.2,
 ) -> dict:
     import zenoh
 
@@ -165,7 +270,10 @@ def run(
     map_file, scans = _map_and_scans(tmp)
     rng = np.random.default_rng(0)
     ep = f"tcp/127.0.0.1:{free_port()}"
-    proc = _serve(ep, url, "--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam")
+    if any(k == "db-outage" for k, _, _ in faults) and pg is None:
+        raise ValueError("a db-outage fault needs --db postgres (the benchmark's own PostgreSQL server)")
+    serve_args = ("--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam")
+    server = {"proc": _serve(ep, url, *serve_args), "rss": 0.0}
     devices = [f"load{i:05d}" for i in range(clients)]
     n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
     load = _Load(devices, fixed_resend)
@@ -188,6 +296,52 @@ def run(
             if time.monotonic() > deadline:
                 raise RuntimeError("the server does not answer")
         session_of = {d: opened[i % n_sess] for i, d in enumerate(devices)}
+        dropped: list[int] = []
+
+        def kill() -> None:
+            server["rss"] = max(server["rss"], _peak_rss_mb(server["proc"].pid))
+            server["proc"].kill()
+            server["proc"].wait()
+
+        def drop() -> list[str]:
+            k = max(1, int(round(drop_fraction * n_sess)))
+            dropped[:] = sorted(int(i) for i in np.random.default_rng(len(dropped) + 1).choice(n_sess, k, replace=False))
+            out = [d for i in dropped for d in devices[i::n_sess]]
+            with load.lock:
+                load.down.update(out)
+            for i in dropped:
+                opened[i].close()
+            return out
+
+        def reopen() -> None:
+            for i in dropped:
+                s = zenoh.open(client_config(ep))
+                opened[i] = s
+                for d in devices[i::n_sess]:
+                    s.declare_subscriber(P.key_ack(SITE, d), load.on_ack)
+                    s.declare_subscriber(P.key_fix(SITE, d), load.on_fix)
+                    session_of[d] = s
+            back = [d for i in dropped for d in devices[i::n_sess]]
+            with load.lock:
+                load.down.difference_update(back)
+                todo = [(d, [load.payloads[d][q] for q in sorted(load.payloads[d])]) for d in back]
+                for d in back:  # back: what they spooled goes out at once, oldest first
+                    load.resent[d].update(load.payloads[d])
+                    load.last_progress[d] = time.monotonic()
+            for d, payloads in todo:
+                for p in payloads:
+                    session_of[d].put(keys[d], p, encoding=C.BATCH.encoding, congestion_control=block)
+                    load.resends += 1
+
+        ctl = {
+            "kill": kill,
+            "start": lambda: server.__setitem__("proc", _serve(ep, url, *serve_args)),
+            "drop": drop,
+            "reopen": reopen,
+            "pause": lambda: pg.pause(),
+            "resume": lambda: pg.resume(),
+        }
+        fl = _Faults(list(faults), load, ctl)
         keys = {d: P.key_batch(SITE, d) for d in devices}
         scan_idx = {d: int(rng.integers(len(scans))) for d in devices}
         block = zenoh.CongestionControl.BLOCK
@@ -198,13 +352,18 @@ def run(
                 lag = wall0 + sec / speed - time.monotonic()
                 if lag > 0:
                     time.sleep(lag)
-            # the window: no device more than `window` simulated seconds behind on its acks
+            fl.start_due(sec, sec)  # batches 1..sec sent before it
+            # the window: no device more than `window` simulated seconds behind on its acks (a dropped
+            # device, which only spools, does not hold the others back)
             waited = time.monotonic()
             while True:
                 with load.lock:
-                    behind = max(sec - load.acked[d] for d in devices)  # batch k (1-based) is second k - 1
+                    behind = max((sec - load.acked[d] for d in devices if d not in load.down), default=0)  # batch k is second k - 1
                 if behind <= window:
                     break
+                fl.poll()
+                if fl.active():
+                    waited = time.monotonic()
                 if time.monotonic() - waited > 120:
                     raise RuntimeError(f"no acknowledgement progress for 120 s at simulated second {sec}")
                 _resend_stalled(load, session_of, keys, block)
@@ -226,16 +385,23 @@ def run(
                     load.payloads[d][seq] = payload
                     if sc:
                         load.scan_sent[(d, t + 0.5)] = now
-                session_of[d].put(keys[d], payload, encoding=C.BATCH.encoding, congestion_control=block)
+                    down = d in load.down
+                if not down:  # a dropped device spools it (sent when it is back)
+                    session_of[d].put(keys[d], payload, encoding=C.BATCH.encoding, congestion_control=block)
                 sent_steps += len(steps)
                 sent_scans += len(sc)
             _resend_stalled(load, session_of, keys, block)
-        # drain: every batch acknowledged (resending on stalls)
+            fl.poll()
+        # drain: every batch acknowledged (resending on stalls), every fault ended
+        fl.start_due(sim_seconds, sim_seconds)
         deadline = time.monotonic() + 120
         while True:
             with load.lock:
                 done = all(load.acked[d] >= sim_seconds for d in devices)
-            if done or time.monotonic() > deadline:
+            fl.poll()
+            if fl.ongoing:
+                deadline = time.monotonic() + 120
+            if (done and not fl.active()) or time.monotonic() > deadline:
                 break
             _resend_stalled(load, session_of, keys, block)
             time.sleep(0.01)
@@ -247,15 +413,15 @@ def run(
                 if load.fixes + load.no_fix >= sent_scans:
                     break
             time.sleep(0.01)
-        rss = _peak_rss_mb(proc.pid)
+        rss = max(server["rss"], _peak_rss_mb(server["proc"].pid))
     finally:
         for s in opened:
             try:
                 s.close()
             except Exception:  # noqa: BLE001 - best effort at the end of a run
                 pass
-        proc.terminate()
-        proc.wait(timeout=60)
+        server["proc"].terminate()
+        server["proc"].wait(timeout=60)
     stored = _stored(url, devices)
     if pg is not None:
         pg.stop()
@@ -288,7 +454,14 @@ def run(
         "server_peak_rss_mb": round(rss, 1),
         "wall_s": round(wall, 1),
         "realtime_factor": round(sim_seconds / wall, 3),
+        **({"faults": fl.report(), "fault_caught_up_max_s": _max_caught_up(fl.report())} if faults else {}),
     }
+
+
+def _max_caught_up(report: list[dict]) -> float | None:
+    """The slowest recovery of a run's faults (None when one never caught up)."""
+    ts = [f["caught_up_s"] for f in report]
+    return None if not ts or any(t is None for t in ts) else max(ts)
 
 
 def _resend_stalled(load: _Load, session_of, keys, block) -> None:
@@ -300,7 +473,7 @@ def _resend_stalled(load: _Load, session_of, keys, block) -> None:
     todo = []
     with load.lock:
         for d, t in load.last_progress.items():
-            if load.payloads[d] and now - t > load.timers[d].rto:
+            if load.payloads[d] and now - t > load.timers[d].rto and d not in load.down:
                 todo.append((d, [load.payloads[d][s] for s in sorted(load.payloads[d])]))
                 load.last_progress[d] = now
                 load.resent[d].update(load.payloads[d])
@@ -337,12 +510,30 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "--speed", type=float, default=0.0, help="pace the simulated clock at this many times real time (default 0: as fast as the window allows)"
     )
+    ap.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND@SECOND[:DOWN]",
+        help=f"a fault during the load ({', '.join(FAULT_KINDS)}) at a simulated second, lasting DOWN wall seconds; repeatable",
+    )
+    ap.add_argument("--drop-fraction", type=float, default=0.2, help="share of the Zenoh sessions a clients-drop fault closes")
     ap.add_argument("--no-ceiling", action="store_true", help="skip the large-batch ceiling and the raw insert rate")
     ap.add_argument("--ceiling-batches", type=int, default=40, help="batches of 1,000 steps + 100 scans per device for the ceiling")
     args = ap.parse_args(argv)
     if args.clients < 1 or args.minutes <= 0:
         ap.error("--clients must be >= 1 and --minutes > 0")
-    r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed, args.fixed_resend)
+    if not 0.0 < args.drop_fraction <= 1.0:
+        ap.error("--drop-fraction must be in (0, 1]")
+    try:
+        faults = [parse_fault(f) for f in args.fault]
+    except ValueError as e:
+        ap.error(str(e))
+    if any(sec >= args.minutes * 60 for _, sec, _ in faults):
+        ap.error("a fault's SECOND must fall inside the run (< --minutes x 60)")
+    if any(k == "db-outage" for k, _, _ in faults) and args.db != "postgres":
+        ap.error("a db-outage fault needs --db postgres (the benchmark pauses its own PostgreSQL server)")
+    r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed, args.fixed_resend, faults, args.drop_fraction)
     held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
     print(
         f"load: {r['clients']} clients x {r['minutes']:g} simulated min on {r['db']} ({r['sessions']} sessions): "
@@ -351,6 +542,11 @@ def main(argv: list[str] | None = None) -> dict:
         f"fixes {r['fixes']} (+{r['no_fix']} no-fix) p50 {r['fix_p50_ms']} ms p99 {r['fix_p99_ms']} ms, resends {r['resends']}, "
         f"server peak {r['server_peak_rss_mb']} MB, lost {r['lost']}, doubled {r['doubled']}"
     )
+    for f in r.get("faults", []):
+        print(
+            f"fault {f['kind']} at simulated second {f['at_s']} for {f['down_s']:g} s ({f['devices']} devices): "
+            f"first ack {f['first_ack_s']} s after it ended, every batch sent before its end acknowledged after {f['caught_up_s']} s"
+        )
     if not args.no_ceiling:
         r.update(ceiling(args.db, args.ceiling_batches))
         print(

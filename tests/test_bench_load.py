@@ -3,6 +3,8 @@ clients through a real server, every batch stored once, every scan answered."""
 
 import json
 
+import pytest
+
 from benchmarks import bench_load
 
 
@@ -17,3 +19,34 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
+
+
+@pytest.mark.slow  # about a minute; `make bench` runs bench_load with these faults at 300 clients
+def test_bench_load_faults_lose_and_double_nothing_and_recover(capsys):
+    """The long form of tests/test_server_faults.py in small: the server SIGKILLed and restarted, then a
+    third of the sessions closed for a second; every batch stored once, each fault caught up (every batch
+    sent before its end acknowledged) within the clients' reconnection (Zenoh's own, ~1.5 s) plus the
+    resend timeout's cap (bench_load's MAX_RTO_S) and the server's start."""
+    argv = ["--clients", "6", "--minutes", "0.3", "--sessions", "3", "--no-ceiling"]
+    r = bench_load.main([*argv, "--fault", "server-kill@4", "--fault", "clients-drop@10:1", "--drop-fraction", "0.34"])
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == r
+    assert r["lost"] == 0 and r["doubled"] == 0
+    kinds = [(f["kind"], f["at_s"], f["devices"]) for f in r["faults"]]
+    assert kinds == [("server-kill", 4, 6), ("clients-drop", 10, 2)]
+    for f in r["faults"]:
+        assert f["caught_up_s"] is not None and f["first_ack_s"] <= f["caught_up_s"] < 1.5 + bench_load.MAX_RTO_S + 10.0
+    assert r["fault_caught_up_max_s"] == max(f["caught_up_s"] for f in r["faults"])
+
+
+@pytest.mark.parametrize("bad", ["disk-full@3", "server-kill", "server-kill@x", "server-kill@-1", "clients-drop@3:700"])
+def test_a_malformed_fault_is_refused(bad):
+    with pytest.raises(ValueError, match="fault"):
+        bench_load.parse_fault(bad)
+    with pytest.raises(SystemExit):
+        bench_load.main(["--clients", "2", "--minutes", "0.1", "--fault", bad])
+
+
+def test_a_fault_is_parsed_with_its_default_downtime():
+    assert bench_load.parse_fault("server-kill@30") == ("server-kill", 30, 0.0)
+    assert bench_load.parse_fault("clients-drop@30") == ("clients-drop", 30, 10.0)
+    assert bench_load.parse_fault("db-outage@5:2.5") == ("db-outage", 5, 2.5)
