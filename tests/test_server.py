@@ -396,3 +396,23 @@ def test_two_server_processes_split_the_sites_on_one_mesh(tmp_path, db_url):
         rows = ses.execute(select(m.Batch.device_id, m.Batch.seq).order_by(m.Batch.device_id, m.Batch.seq)).all()
     eng.dispose()
     assert rows == [("devA", k) for k in range(1, 11)] + [("devB", k) for k in range(1, 11)]
+
+
+def test_a_backlog_of_one_devices_scans_is_answered_newest_first_and_the_rest_shed(tmp_path):
+    """Load shedding in the locate worker: of a device's scans waiting together, only the newest is
+    located; the older get "no fix, superseded", so each stored batch still hears back exactly once."""
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    got = []
+    with Server(ep, str(tmp_path / "s.db")) as srv, zenoh.open(client_config(ep)) as s:
+        sub = s.declare_subscriber(P.key_fix(SITE, "dev1"), lambda smp: got.append(C.FIX.decode(smp.payload.to_bytes())))
+        other = s.declare_subscriber(P.key_fix(SITE, "dev2"), lambda smp: got.append(C.FIX.decode(smp.payload.to_bytes())))
+        time.sleep(0.3)
+        b = [Batch(SITE, d, k + 1, "", (), _scans(1, 10.0 * k), ()) for d in ("dev1", "dev2") for k in range(3)]
+        srv._answer([(x, x.scans[-1]) for x in b])  # what the ingest worker hands over after storing them
+        _wait(lambda: len(got) == 6)
+        sub.undeclare()
+        other.undeclare()
+        assert srv.counts["fixes-shed"] == 4
+    by_t = {(a.t, a.reason.startswith("superseded")) for a in got}
+    # the newest of each device (t = 20) is located (no map here: "no radio map"), the older two shed
+    assert by_t == {(0.0, True), (10.0, True), (20.0, False)}
