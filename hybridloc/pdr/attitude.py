@@ -184,7 +184,9 @@ class AttitudeFilter:
 
     def __init__(self, config: AttitudeConfig | None = None):
         self.cfg = config or AttitudeConfig()
-        self.q: tuple[float, float, float, float] | None = None
+        self._q: tuple[float, float, float, float] | None = None
+        #: R_body_to_nav of ``q`` (:func:`quat_to_rot`), kept with it: every sample reads it several times
+        self.R: tuple | None = None
         self.bias = [0.0, 0.0, 0.0]
         self.t: float | None = None
         self.mag_ref_norm: float | None = None
@@ -205,6 +207,16 @@ class AttitudeFilter:
         self.n_zaru = 0  # samples read as gyro bias (standing still)
         self.still = False  # held still for still_time: the ZARU is reading the bias
 
+    @property
+    def q(self) -> tuple[float, float, float, float] | None:
+        """The body-to-nav attitude quaternion (w, x, y, z); setting it also sets :attr:`R`."""
+        return self._q
+
+    @q.setter
+    def q(self, q) -> None:
+        self._q = None if q is None else tuple(q)
+        self.R = None if q is None else quat_to_rot(self._q)
+
     def initialise(self, t: float, acc, mag) -> None:
         self.q = triad(acc, mag)
         self.t = t
@@ -212,7 +224,7 @@ class AttitudeFilter:
 
     def update(self, t: float, acc, gyr, mag=None) -> None:
         """One sample: time (s), specific force (m/s^2), rate (rad/s), field (T) or None."""
-        if self.q is None:
+        if self._q is None:
             self.initialise(t, acc, mag)
             return
         dt = t - self.t
@@ -220,8 +232,8 @@ class AttitudeFilter:
         if not (0.0 < dt < 1.0):  # a gap: re-level from the accelerometer, keep yaw
             dt = min(max(dt, 0.0), 0.05)
         cfg = self.cfg
-        q = self.q
-        R = quat_to_rot(q)
+        q = self._q
+        R = self.R
         if cfg.zaru:
             self._zaru(t, dt, acc, gyr, mag)
         wx, wy, wz = gyr[0] - self.bias[0], gyr[1] - self.bias[1], gyr[2] - self.bias[2]
@@ -230,27 +242,31 @@ class AttitudeFilter:
             if g is None:
                 g = [acc[0], acc[1], acc[2]]
             else:
-                c = _cross((wx, wy, wz), g)  # the nav-fixed vector turns by -w x g in the body
+                # the nav-fixed vector turns by -w x g in the body (c = w x g, _cross written out)
+                c0, c1, c2 = wy * g[2] - wz * g[1], wz * g[0] - wx * g[2], wx * g[1] - wy * g[0]
                 a = min(dt / cfg.gravity_tau, 1.0)
-                g = [g[i] - c[i] * dt + a * (acc[i] - (g[i] - c[i] * dt)) for i in range(3)]
+                p0, p1, p2 = g[0] - c0 * dt, g[1] - c1 * dt, g[2] - c2 * dt
+                g = [p0 + a * (acc[0] - p0), p1 + a * (acc[1] - p1), p2 + a * (acc[2] - p2)]
             self._g_body = g
             acc = g
         # --- tilt correction (Mahony): e = a_hat x v, v = predicted up in body = third row of R
-        an = _norm(acc)
+        an = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2])
         if an > 1e-6:
             rel = abs(an - G0) / G0
             w_acc = max(0.0, 1.0 - rel / cfg.acc_gate)
             if w_acc > 0:
                 v = R[2]
-                e = _cross((acc[0] / an, acc[1] / an, acc[2] / an), v)
+                u0, u1, u2 = acc[0] / an, acc[1] / an, acc[2] / an
+                e0, e1, e2 = u1 * v[2] - u2 * v[1], u2 * v[0] - u0 * v[2], u0 * v[1] - u1 * v[0]
                 k = cfg.kp_acc * w_acc
-                wx += k * e[0]
-                wy += k * e[1]
-                wz += k * e[2]
+                wx += k * e0
+                wy += k * e1
+                wz += k * e2
                 ki = cfg.ki_acc * w_acc * dt
-                self.bias[0] -= ki * e[0]
-                self.bias[1] -= ki * e[1]
-                self.bias[2] -= ki * e[2]
+                bias = self.bias
+                bias[0] -= ki * e0
+                bias[1] -= ki * e1
+                bias[2] -= ki * e2
         # --- propagate: q <- q * exp(0.5 w dt)
         ang = math.sqrt(wx * wx + wy * wy + wz * wz) * dt
         if ang > 1e-12:
@@ -258,12 +274,25 @@ class AttitudeFilter:
             dq = (math.cos(ang / 2), wx * s, wy * s, wz * s)
         else:
             dq = (1.0, wx * dt / 2, wy * dt / 2, wz * dt / 2)
-        q = quat_normalize(quat_mul(q, dq))
-        R = quat_to_rot(q)
+        # quat_normalize(quat_mul(q, dq)) and quat_to_rot, written out (the same operations)
+        aw, ax, ay, az = q
+        bw, bx, by, bz = dq
+        w = aw * bw - ax * bx - ay * by - az * bz
+        x = aw * bx + ax * bw + ay * bz - az * by
+        y = aw * by - ax * bz + ay * bw + az * bx
+        z = aw * bz + ax * by - ay * bx + az * bw
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / n, x / n, y / n, z / n
+        q = (w, x, y, z)
+        R = (
+            (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+            (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+            (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+        )
         # --- magnetometer yaw correction with disturbance rejection
         if mag is not None:
             self.has_mag = True
-            mn = _norm(mag)
+            mn = math.sqrt(mag[0] * mag[0] + mag[1] * mag[1] + mag[2] * mag[2])
             m_nav = (
                 R[0][0] * mag[0] + R[0][1] * mag[1] + R[0][2] * mag[2],
                 R[1][0] * mag[0] + R[1][1] * mag[1] + R[1][2] * mag[2],
@@ -303,12 +332,26 @@ class AttitudeFilter:
                     self.n_mag_used += 1
                     # Rotate about nav z by k*err*dt: q <- qz * q, turning measured North onto +y.
                     d = cfg.k_mag * _wrap(yaw_err) * dt
-                    q = quat_normalize(quat_mul((math.cos(d / 2), 0.0, 0.0, math.sin(d / 2)), q))
+                    # quat_normalize(quat_mul((cos d/2, 0, 0, sin d/2), q)) and quat_to_rot, written out
+                    aw, ax, ay, az = math.cos(d / 2), 0.0, 0.0, math.sin(d / 2)
+                    bw, bx, by, bz = q
+                    w = aw * bw - ax * bx - ay * by - az * bz
+                    x = aw * bx + ax * bw + ay * bz - az * by
+                    y = aw * by - ax * bz + ay * bw + az * bx
+                    z = aw * bz + ax * by - ay * bx + az * bw
+                    n = math.sqrt(w * w + x * x + y * y + z * z)
+                    w, x, y, z = w / n, x / n, y / n, z / n
+                    q = (w, x, y, z)
+                    R = (
+                        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+                        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+                        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+                    )
                 else:
                     self.n_mag_rejected += 1
         else:
             self.mag_ok = False
-        self.q = q
+        self._q, self.R = q, R
 
     def _zaru(self, t: float, dt: float, acc, gyr, mag=None) -> None:
         """Zero angular rate update: a phone held still reads its gyro bias (see module docstring)."""
@@ -319,11 +362,11 @@ class AttitudeFilter:
         for i in range(3):
             self._acc_avg[i] += a * (acc[i] - self._acc_avg[i])
             self._gyr_avg[i] += a * (gyr[i] - self._gyr_avg[i])
-        b = self.bias
+        b, aa, ga = self.bias, self._acc_avg, self._gyr_avg
         still = (
-            _norm([acc[i] - self._acc_avg[i] for i in range(3)]) <= cfg.still_acc_tol
-            and _norm([gyr[i] - self._gyr_avg[i] for i in range(3)]) <= cfg.still_gyro_dev
-            and _norm([gyr[i] - b[i] for i in range(3)]) <= (cfg.still_gyro_max if mag is not None else cfg.still_gyro_max_nomag)
+            _norm((acc[0] - aa[0], acc[1] - aa[1], acc[2] - aa[2])) <= cfg.still_acc_tol
+            and _norm((gyr[0] - ga[0], gyr[1] - ga[1], gyr[2] - ga[2])) <= cfg.still_gyro_dev
+            and _norm((gyr[0] - b[0], gyr[1] - b[1], gyr[2] - b[2])) <= (cfg.still_gyro_max if mag is not None else cfg.still_gyro_max_nomag)
         )
         if mag is not None:  # the field's 0.5 s average: a turn of a few tenths of a degree shows through the noise
             if self._mag_avg is None:
@@ -360,15 +403,15 @@ class AttitudeFilter:
         the phone when it is held upright (body -z); their horizontal projections are summed so the
         heading stays continuous as the phone tilts between the two.
         """
-        return forward_heading_of(quat_to_rot(self.q))
+        return forward_heading_of(self.R)
 
     def vertical_accel(self, acc) -> float:
         """Vertical (nav up) component of specific force minus g, m/s^2."""
-        R = quat_to_rot(self.q)
+        R = self.R
         return R[2][0] * acc[0] + R[2][1] * acc[1] + R[2][2] * acc[2] - G0
 
     def horizontal_accel(self, acc) -> tuple[float, float]:
-        R = quat_to_rot(self.q)
+        R = self.R
         return (R[0][0] * acc[0] + R[0][1] * acc[1] + R[0][2] * acc[2], R[1][0] * acc[0] + R[1][1] * acc[1] + R[1][2] * acc[2])
 
 

@@ -162,10 +162,13 @@ class PhonePdr:
     # ------------------------------------------------------------------
     def update(self, t: float, acc, gyr, mag=None) -> list[StepEvent]:
         """Feed one sample (s, m/s^2, rad/s, T or None); returns the steps it completed."""
-        if not (math.isfinite(t) and all(map(math.isfinite, acc)) and all(map(math.isfinite, gyr))):
+        # one sum is finite when every term is (and almost always is): the per-value test only on a miss
+        if not math.isfinite(t + acc[0] + acc[1] + acc[2] + gyr[0] + gyr[1] + gyr[2]) and not (
+            math.isfinite(t) and all(map(math.isfinite, acc)) and all(map(math.isfinite, gyr))
+        ):
             self.stats.reject("non-finite")
             return []
-        if mag is not None and not all(map(math.isfinite, mag)):
+        if mag is not None and not math.isfinite(mag[0] + mag[1] + mag[2]) and not all(map(math.isfinite, mag)):
             mag = None
         if self._last_t is not None:
             dt = t - self._last_t
@@ -192,9 +195,22 @@ class PhonePdr:
         y = b[0] * amag + z[0]
         z[0] = b[1] * amag - a[1] * y + z[1]
         z[1] = b[2] * amag - a[2] * y
-        fwd = att.forward_heading()
-        ah = att.horizontal_accel(acc)
-        self._hist.append((t, y, att.vertical_accel(acc), math.cos(fwd), math.sin(fwd), ah[0], ah[1]))
+        # the attitude's forward heading, and the specific force in nav (horizontal; vertical minus g):
+        # AttitudeFilter.forward_heading / horizontal_accel / vertical_accel on its R, written out once
+        R = att.R
+        r0, r1, r2 = R[0], R[1], R[2]
+        fwd = math.atan2(r1[1] - r1[2], r0[1] - r0[2])
+        self._hist.append(
+            (
+                t,
+                y,
+                r2[0] * acc[0] + r2[1] * acc[1] + r2[2] * acc[2] - G0,
+                math.cos(fwd),
+                math.sin(fwd),
+                r0[0] * acc[0] + r0[1] * acc[1] + r0[2] * acc[2],
+                r1[0] * acc[0] + r1[1] * acc[1] + r1[2] * acc[2],
+            )
+        )
         # running mean / variance over ~2 s (exponential)
         alpha = 1.0 / (2.0 * self.rate)
         if self._mean is None:
@@ -451,24 +467,31 @@ class PhonePdr:
         repeated exactly on ``SATURATION_REPEATS`` consecutive samples beyond a walking phone's
         plausible range (``PLATEAU_ACCEL`` m/s^2, ``PLATEAU_GYRO`` rad/s) is taken as a clipped plateau."""
         dt = t - self._last_t if self._last_t is not None else 1.0 / self.rate
-        flags = []
-        for k, (v, full, plausible) in enumerate(((acc, self.accel_range, PLATEAU_ACCEL), (gyr, self.gyro_range, PLATEAU_GYRO))):
-            if full is not None:
-                flags.append(max(abs(v[0]), abs(v[1]), abs(v[2])) >= SATURATION_SHARE * full)
-                continue
-            prev = self._prev_raw[k] if self._prev_raw is not None else None
-            run = self._plateau[k]
-            for i in range(3):  # per axis, as ImuBlock.saturated (streaming: from the plateau's last sample on)
-                run[i] = run[i] + 1 if prev is not None and v[i] == prev[i] and abs(v[i]) >= plausible else 0
-            flags.append(max(run) >= SATURATION_REPEATS - 1)
+        prev_raw = self._prev_raw
+        sat_acc = self._saturated(acc, self.accel_range, PLATEAU_ACCEL, prev_raw[0] if prev_raw is not None else None, self._plateau[0])
+        sat_gyr = self._saturated(gyr, self.gyro_range, PLATEAU_GYRO, prev_raw[1] if prev_raw is not None else None, self._plateau[1])
         self._prev_raw = (tuple(acc), tuple(gyr))
-        if flags[1]:
+        if sat_gyr:
             self._sat_angle += max(abs(gyr[0]), abs(gyr[1]), abs(gyr[2])) * min(max(dt, 0.0), 0.1)
         elif self.att.mag_ok:
             self._sat_angle = 0.0
-        if flags[0] or flags[1]:
+        if sat_acc or sat_gyr:
             self.stats.saturated += 1
             self._degraded_next = self._degraded_next or "saturated"
+
+    @staticmethod
+    def _saturated(v, full: float | None, plausible: float, prev, run: list[int]) -> bool:
+        """One sensor's reading at full scale (known), or ending a clipped plateau (full scale unknown):
+        ``run`` counts per axis the consecutive identical readings beyond ``plausible``."""
+        if full is not None:
+            return max(abs(v[0]), abs(v[1]), abs(v[2])) >= SATURATION_SHARE * full
+        v0, v1, v2 = abs(v[0]), abs(v[1]), abs(v[2])
+        if v0 < plausible and v1 < plausible and v2 < plausible:  # the usual sample: no plateau on any axis
+            run[0] = run[1] = run[2] = 0
+            return False
+        for i in range(3):  # per axis, as ImuBlock.saturated (streaming: from the plateau's last sample on)
+            run[i] = run[i] + 1 if prev is not None and v[i] == prev[i] and abs(v[i]) >= plausible else 0
+        return max(run) >= SATURATION_REPEATS - 1
 
     # ------------------------------------------------------------------
     def process(self, imu: ImuBlock) -> list[StepEvent]:
