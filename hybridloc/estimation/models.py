@@ -69,6 +69,9 @@ class MeasurementModel:
     kernel: RobustKernel | None = None
     #: degrees of freedom of the error state, when the state cannot tell (e.g. a nominal INS state)
     state_dof: int | None = None
+    #: when H = [0 I 0] picks this block of the state (ZUPT, position fix), the update takes the
+    #: block's rows and columns instead of multiplying by H: the same numbers, a few matrix products fewer
+    selects: slice | None = None
 
     def evaluate(self, x) -> np.ndarray:
         raise NotImplementedError

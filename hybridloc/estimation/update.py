@@ -90,17 +90,20 @@ def inv_spd_small(S: np.ndarray) -> np.ndarray:
     for 1-3 dimensions, where numpy's general inverse costs more than the rest of an update (the
     foot filter's ZUPT and ZARU run at every stance sample); numpy's for larger ones."""
     m = S.shape[0]
+    if m > 3:
+        return np.linalg.inv(S)
+    s = S.tolist()  # Python floats: the same IEEE arithmetic as numpy's scalars, without their overhead
     if m == 1:
-        return np.array([[1.0 / S[0, 0]]])
+        return np.array([[1.0 / s[0][0]]])
     if m == 2:
-        a, b, d = S[0, 0], S[0, 1], S[1, 1]
+        a, b, d = s[0][0], s[0][1], s[1][1]
         det = a * d - b * b
         if det > 0.0:
             return np.array([[d, -b], [-b, a]]) / det
     if m == 3:
-        a, b, c = S[0]
-        _, e, f = S[1]
-        i = S[2, 2]
+        a, b, c = s[0]
+        _, e, f = s[1]
+        i = s[2][2]
         A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
         det = a * A + b * B + c * C
         if det > 0.0:
@@ -135,8 +138,12 @@ def correct(
     H = model.jacobian(x)
     R = model.covariance(x)
     y = model.residual(z, z_pred)
-    PHt = P @ H.T
-    S = H @ PHt + R
+    sel = model.selects
+    # H = [0 I 0] (``selects``): P H^T is P's block columns and H P H^T its block, exactly (the products
+    # with H add zeros); otherwise the products themselves
+    PHt = P[:, sel] if sel is not None else P @ H.T
+    HPHt = PHt[sel] if sel is not None else H @ PHt
+    S = HPHt + R
     S = 0.5 * (S + S.T)
     Sinv = inv_spd_small(S)
     nis = float(y @ Sinv @ y)
@@ -154,11 +161,15 @@ def correct(
         weight = float(kernel.weight(normalised_residual(nis)))
         if weight < 1.0:
             R = R / weight
-            S = H @ PHt + R
+            S = HPHt + R
             S = 0.5 * (S + S.T)
             Sinv = inv_spd_small(S)
     K = PHt @ Sinv
-    IKH = _identity(P.shape[0]) - K @ H
+    if sel is not None:  # I - K H, K H being K in the selected columns and zeros elsewhere
+        IKH = np.array(_identity(P.shape[0]))
+        IKH[:, sel] -= K
+    else:
+        IKH = _identity(P.shape[0]) - K @ H
     P_new = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form
     dx = K @ y
     info = UpdateInfo(kind, True, y, S, nis, threshold, dx, weight)

@@ -37,6 +37,7 @@ class ZeroVelocity(MeasurementModel):
 
     dim = 3
     kind = "zupt"
+    selects = DV
 
     def __init__(self, sigma: float = 0.01):
         self.R = np.eye(3) * sigma**2
@@ -117,6 +118,7 @@ class PositionFix(MeasurementModel):
         self.dim = self.R.shape[0]
         self.H = np.zeros((self.dim, 15))
         self.H[:, : self.dim] = np.eye(self.dim)
+        self.selects = slice(0, self.dim)
 
     def evaluate(self, x):
         return x.p[: self.dim].copy()
