@@ -129,6 +129,7 @@ class AgentResult:
     map_version: int | None = None  # the newest map version announced (or held at the start)
     maps_fetched: int = 0  # new map versions fetched and handed to the map-refresh hook
     spool_dropped: dict = field(default_factory=dict)  # what a full spool dropped (Uplink.dropped): batches, steps, scans, marks, unspooled
+    fix_regions: list = field(default_factory=list)  # the 95 % ContainmentRegion the server sent with each fix of fix_log (None when not sent)
 
     @property
     def raw_fixes(self) -> list[tuple]:
@@ -220,6 +221,7 @@ class Agent:
         self.all_steps: list = []
         self.fix_lags: list = []  # how late each fix was used: newest step time - scan time, s
         self.fix_log: list = []  # (steps processed when the fix arrived, fix)
+        self.fix_regions: list = []  # the containment region sent with each fix of fix_log, or None
 
     # ------------------------------------------------------------ public API
     def add_step(self, step: StepEvent) -> None:
@@ -368,9 +370,10 @@ class Agent:
     def _handle(self, raw: bytes) -> None:
         """One server answer: a fix is fused; "no fix" is only counted."""
         try:
-            fix = C.FIX.decode(raw).fix
+            answer = C.FIX.decode(raw)
         except P.Rejected:
             return
+        fix = answer.fix
         self.n_answers += 1
         self._answers_flowing = True
         if fix is None:
@@ -378,7 +381,10 @@ class Agent:
         self._t_first = min(self._t_first, fix.t)
         self.fix_lags.append(max(self.fusion.t - fix.t, 0.0) if math.isfinite(self.fusion.t) else 0.0)
         self.fix_log.append((len(self.all_steps), fix))
-        ok, e = self.fusion.correct(fix)
+        self.fix_regions.append(answer.region)
+        # a filter that starts inside the server's containment region takes the whole answer (the
+        # particle filter: :meth:`hybridloc.fusion.ParticleFusion.correct`); the others the fix
+        ok, e = self.fusion.correct(answer if getattr(self.fusion, "takes_regions", False) else fix)
         if ok:
             self.n_accepted += 1
             self._write(e)
@@ -488,6 +494,7 @@ class Agent:
             self.map_version,
             self.maps_fetched,
             dict(self.uplink.dropped),
+            list(self.fix_regions),
         )
 
 

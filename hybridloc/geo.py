@@ -106,6 +106,89 @@ def wall_crossings(walls: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> np.ndar
     return hit.sum(axis=1)
 
 
+class WallIndex:
+    """:func:`wall_crossings` for short moves, through a grid of cells that each list the walls near them.
+
+    A move p -> q no longer than ``reach`` m lies within ``reach`` of p, so every wall it can cross
+    passes within ``reach`` of p's cell: each cell lists the walls whose bounding box, grown by
+    ``reach``, overlaps it, and a move is tested against its start cell's list only. Longer moves and
+    moves starting outside the grid go through :func:`wall_crossings` against every wall. The answer is
+    the same as :func:`wall_crossings`'s, at a cost per move of the walls near it instead of all of them
+    (a particle filter's 50,000 steps against an Indoor Location Competition floor's ~600 shop-front
+    segments: 30 million tests a step without the index).
+    """
+
+    def __init__(self, walls: np.ndarray, cell: float = 1.0, reach: float = 2.0):
+        if not (cell > 0 and reach > 0):
+            raise ValueError("WallIndex: cell and reach must be positive metres")
+        self.walls = np.asarray(walls, float).reshape(-1, 2, 2)
+        self.cell, self.reach = float(cell), float(reach)
+        m = len(self.walls)
+        if m == 0:
+            self.x0 = self.y0 = 0.0
+            self.nx = self.ny = 0
+            self.table = np.zeros((0, 0), np.int64)
+            return
+        lo = self.walls.min(axis=1) - reach  # (M, 2) each wall's box grown by reach
+        hi = self.walls.max(axis=1) + reach
+        self.x0, self.y0 = float(lo[:, 0].min()), float(lo[:, 1].min())
+        self.nx = int(np.floor((hi[:, 0].max() - self.x0) / cell)) + 1
+        self.ny = int(np.floor((hi[:, 1].max() - self.y0) / cell)) + 1
+        i0 = np.floor((lo - [self.x0, self.y0]) / cell).astype(np.int64)
+        i1 = np.floor((hi - [self.x0, self.y0]) / cell).astype(np.int64)
+        cells, owners = [], []
+        for k in range(m):
+            ix, iy = np.meshgrid(np.arange(i0[k, 0], i1[k, 0] + 1), np.arange(i0[k, 1], i1[k, 1] + 1))
+            cells.append((iy * self.nx + ix).ravel())
+            owners.append(np.full(ix.size, k))
+        c, w = np.concatenate(cells), np.concatenate(owners)
+        order = np.argsort(c, kind="stable")
+        c, w = c[order], w[order]
+        counts = np.bincount(c, minlength=self.nx * self.ny)
+        k_max = int(counts.max())
+        # (cells, k_max) wall indices, padded with m: a zero-length wall at the origin that nothing crosses
+        self.table = np.full((self.nx * self.ny, k_max), m, np.int64)
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.table[c, np.arange(len(c)) - start[c]] = w
+        self.counts = counts  # walls listed per cell
+        self._padded = np.concatenate([self.walls, np.zeros((1, 2, 2))])
+
+    def crossings(self, p0: np.ndarray, p1: np.ndarray, chunk: int = 8192) -> np.ndarray:
+        """Number of walls crossed by each move p0[i] -> p1[i] ((N, 2) each), as :func:`wall_crossings`."""
+        p0, p1 = np.asarray(p0, float).reshape(-1, 2), np.asarray(p1, float).reshape(-1, 2)
+        out = np.zeros(len(p0), int)
+        if len(self.walls) == 0 or len(p0) == 0:
+            return out
+        ix = np.floor((p0[:, 0] - self.x0) / self.cell)
+        iy = np.floor((p0[:, 1] - self.y0) / self.cell)
+        short = np.einsum("ij,ij->i", p1 - p0, p1 - p0) <= self.reach**2
+        inside = (ix >= 0) & (ix < self.nx) & (iy >= 0) & (iy < self.ny)
+        near = short & inside
+        far = ~short  # a short move outside the grid is more than reach from every wall: it crosses none
+        if far.any():
+            out[far] = wall_crossings(self.walls, p0[far], p1[far])
+        sel = np.flatnonzero(near)
+        cell = (iy[sel] * self.nx + ix[sel]).astype(np.int64)
+        k = self.counts[cell]
+        sel, cell, k = sel[k > 0], cell[k > 0], k[k > 0]  # a move from a cell with no wall near crosses none
+        order = np.argsort(k, kind="stable")  # by walls listed, so each chunk gathers only as many as it needs
+        sel, cell, k = sel[order], cell[order], k[order]
+        for a in range(0, len(sel), chunk):  # (chunk, walls, 2, 2) at a time
+            s, c = sel[a : a + chunk], cell[a : a + chunk]
+            w = self._padded[self.table[c, : int(k[a : a + chunk].max())]]
+            a_, b_ = w[:, :, 0], w[:, :, 1]
+            c_, d_ = p0[s][:, None, :], p1[s][:, None, :]
+            o1, o2 = _orient(a_, b_, c_), _orient(a_, b_, d_)
+            o3, o4 = _orient(c_, d_, a_), _orient(c_, d_, b_)
+            out[s] = ((o1 * o2 < 0) & (o3 * o4 < 0)).sum(axis=1)
+        return out
+
+
+def _orient(p, q, r):
+    """Twice the signed area of the triangle p, q, r (broadcast over leading axes; last axis x, y)."""
+    return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+
+
 #: A floor has a dominant grid when at least this share of its wall length lies within
 #: ``DOMINANT_AXIS_BAND`` of one axis (mod 90 deg).
 DOMINANT_AXIS_MIN_SHARE = 0.3

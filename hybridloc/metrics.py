@@ -270,3 +270,37 @@ def walkable_coverage(walkable, xy, radius_m: float) -> float:
     if walkable is None or walkable.is_empty or not walkable.area > 0:
         return float("nan")
     return float(min(1.0, reach.area / walkable.area))
+
+
+# ------------------------------------------------------------------ convergence from a cold start
+def time_to_within(poses, wp_t, wp_xy, radius_m: float, window_s: float, wp_floors=None) -> float:
+    """Seconds from a walk's first waypoint until its track first comes within ``radius_m`` of the
+    truth, looking ``window_s`` seconds on; inf when it does not in that time (or the walk has no
+    waypoint after the first).
+
+    ``poses``: rows (t, x, y, floor, ...) as a client writes them; the track at time t is the newest
+    row at or before t (a live client's view), so it is scored at each row's time (where it changes)
+    against the truth there: the waypoints interpolated linearly in time (the Indoor Location
+    Competition's ground truth between marks). ``wp_floors`` (one per waypoint, or None): a row on
+    another floor than the truth's is not within, however near. Rows after the last waypoint, or
+    before the first, are not scored.
+    """
+    if not (radius_m > 0 and window_s > 0):
+        raise ValueError("time_to_within: radius and window must be positive")
+    wt, wxy = np.asarray(wp_t, float), np.asarray(wp_xy, float).reshape(-1, 2)
+    if len(wt) < 2 or not poses:
+        return math.inf
+    t = np.array([p[0] for p in poses], float)
+    xy = np.array([[p[1], p[2]] for p in poses], float)
+    on = (t > wt[0]) & (t <= min(wt[0] + window_s, wt[-1]))
+    if not on.any():
+        return math.inf
+    idx = np.flatnonzero(on)
+    truth = np.column_stack([np.interp(t[idx], wt, wxy[:, 0]), np.interp(t[idx], wt, wxy[:, 1])])
+    near = np.linalg.norm(xy[idx] - truth, axis=1) < radius_m
+    if wp_floors is not None:
+        k = np.clip(np.searchsorted(wt, t[idx], side="right") - 1, 0, len(wt) - 1)  # the mark at or before each time
+        fl = [poses[i][3] if len(poses[i]) > 3 else None for i in idx]
+        near &= np.array([f is None or wp_floors[j] is None or f == wp_floors[j] for f, j in zip(fl, k)], bool)
+    hit = np.flatnonzero(near)
+    return float(t[idx[hit[0]]] - wt[0]) if hit.size else math.inf

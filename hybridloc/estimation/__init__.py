@@ -10,7 +10,7 @@
 
 from .jacobian_check import assert_jacobian, jacobian_fd
 from .models import Cauchy, Huber, LinearModel, Measurement, MeasurementModel, RobustKernel
-from .resampling import RESAMPLERS, log_normalise, multinomial, resampler, residual, stratified, systematic
+from .resampling import RESAMPLERS, bin_keys, kld_bound, kld_size, log_normalise, multinomial, resampler, residual, stratified, systematic
 from .update import ChiSquareGate, UpdateInfo, UpdateStats, chi2_threshold, correct
 
 __all__ = [
@@ -23,6 +23,9 @@ __all__ = [
     "MeasurementModel",
     "RobustKernel",
     "RESAMPLERS",
+    "bin_keys",
+    "kld_bound",
+    "kld_size",
     "log_normalise",
     "multinomial",
     "resampler",

@@ -1,9 +1,22 @@
-"""Resampling schemes of the particle filters, one signature: ``idx = scheme(w, rng)`` with ``w`` the
-normalised weights (N,) and ``idx`` (N,) the indices of the particles drawn, each particle i drawn
-E[N_i] = N w_i times on average (as nchopin/particles' ``resampling``). Schemes differ in the variance
-of N_i (Douc, Cappe & Moulines 2005): multinomial > stratified >= systematic; residual sits below
-multinomial. And log-weight helpers: a filter keeps log w and normalises with logsumexp, so a product
-of many small likelihoods never underflows to an all-zero cloud.
+"""Resampling schemes of the particle filters, one signature: ``idx = scheme(w, rng, m=None)`` with
+``w`` the normalised weights (N,) and ``idx`` (M,) the indices of the particles drawn (M = ``m``, N when
+None), each particle i drawn E[N_i] = M w_i times on average (as nchopin/particles' ``resampling``,
+``A = rs.scheme(W, M=None)``). Schemes differ in the variance of N_i (Douc, Cappe & Moulines 2005):
+multinomial > stratified >= systematic; residual sits below multinomial. And log-weight helpers: a
+filter keeps log w and normalises with logsumexp, so a product of many small likelihoods never
+underflows to an all-zero cloud.
+
+KLD-sampling (Fox 2003, "Adapting the sample size in particle filters through KLD-sampling"): how
+many particles M the cloud needs so that, with probability 1 - delta, the Kullback-Leibler divergence
+between the sample-based estimate and the true posterior (both taken over a grid of bins) stays below
+epsilon. With k the number of bins the sample occupies (Fox eq. 7, the Wilson-Hilferty approximation
+of the chi-square quantile with k - 1 degrees of freedom)::
+
+    M = (k - 1) / (2 epsilon) * {1 - 2 / (9 (k - 1)) + sqrt(2 / (9 (k - 1))) z_{1-delta}}^3
+
+Samples are drawn one at a time from the weighted cloud and the count k grows as they fall into new
+bins; drawing stops at the first M with M >= the bound of its own k (:func:`kld_size`). A concentrated
+cloud occupies few bins and gets few particles; a spread one (a cold start) many.
 """
 
 from __future__ import annotations
@@ -12,8 +25,9 @@ from collections.abc import Callable
 
 import numpy as np
 from scipy.special import logsumexp
+from scipy.stats import norm
 
-Resampler = Callable[[np.ndarray, np.random.Generator], np.ndarray]
+Resampler = Callable[..., np.ndarray]  # (w, rng, m=None) -> indices
 
 
 def log_normalise(logw: np.ndarray) -> tuple[np.ndarray, float]:
@@ -31,37 +45,79 @@ def _inverse_cdf(w: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.searchsorted(c, u)
 
 
-def systematic(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One uniform offset for N evenly spaced positions (u_k = (U + k) / N)."""
-    n = len(w)
-    return _inverse_cdf(w, (rng.random() + np.arange(n)) / n)
+def systematic(w: np.ndarray, rng: np.random.Generator, m: int | None = None) -> np.ndarray:
+    """One uniform offset for M evenly spaced positions (u_k = (U + k) / M)."""
+    m = len(w) if m is None else int(m)
+    return _inverse_cdf(w, (rng.random() + np.arange(m)) / m)
 
 
-def stratified(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One uniform per stratum [k / N, (k + 1) / N)."""
-    n = len(w)
-    return _inverse_cdf(w, (rng.random(n) + np.arange(n)) / n)
+def stratified(w: np.ndarray, rng: np.random.Generator, m: int | None = None) -> np.ndarray:
+    """One uniform per stratum [k / M, (k + 1) / M)."""
+    m = len(w) if m is None else int(m)
+    return _inverse_cdf(w, (rng.random(m) + np.arange(m)) / m)
 
 
-def multinomial(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """N independent draws (sorted positions, so the result is ordered like the others)."""
-    n = len(w)
-    return _inverse_cdf(w, np.sort(rng.random(n)))
+def multinomial(w: np.ndarray, rng: np.random.Generator, m: int | None = None) -> np.ndarray:
+    """M independent draws (sorted positions, so the result is ordered like the others)."""
+    m = len(w) if m is None else int(m)
+    return _inverse_cdf(w, np.sort(rng.random(m)))
 
 
-def residual(w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """floor(N w_i) copies of each particle, the remaining R = N - sum floor(N w_i) drawn multinomially
-    from the leftovers N w_i - floor(N w_i) (Liu & Chen 1998)."""
-    n = len(w)
-    nw = n * np.asarray(w, dtype=float)
-    copies = np.floor(nw).astype(int)
-    idx = np.repeat(np.arange(n), copies)
-    rest = n - len(idx)
+def residual(w: np.ndarray, rng: np.random.Generator, m: int | None = None) -> np.ndarray:
+    """floor(M w_i) copies of each particle, the remaining R = M - sum floor(M w_i) drawn multinomially
+    from the leftovers M w_i - floor(M w_i) (Liu & Chen 1998). M may differ from N = len(w) (KLD-sampling
+    changes the count): the copies are of the N particles."""
+    m = len(w) if m is None else int(m)
+    mw = m * np.asarray(w, dtype=float)
+    copies = np.floor(mw).astype(int)
+    idx = np.repeat(np.arange(len(w)), copies)
+    rest = m - len(idx)
     if rest > 0:
-        left = nw - copies
+        left = mw - copies
         left = left / left.sum()
         idx = np.concatenate([idx, _inverse_cdf(left, np.sort(rng.random(rest)))])
     return idx
+
+
+def kld_bound(k, epsilon: float, delta: float) -> np.ndarray:
+    """Fox 2003 eq. 7: the particles needed for k occupied bins (module docstring); 0 for k <= 1."""
+    if not (epsilon > 0 and 0 < delta < 1):
+        raise ValueError(f"KLD-sampling needs epsilon > 0 and delta in (0, 1), got {epsilon}, {delta}")
+    k = np.asarray(k, float)
+    km1 = np.maximum(k - 1.0, 1.0)
+    a = 2.0 / (9.0 * km1)
+    z = float(norm.ppf(1.0 - delta))
+    return np.where(k > 1, km1 / (2.0 * epsilon) * (1.0 - a + np.sqrt(a) * z) ** 3, 0.0)
+
+
+def kld_size(keys: np.ndarray, epsilon: float, delta: float, n_min: int = 1) -> int:
+    """The sample size KLD-sampling stops at, given the bins ``keys`` (L,) of samples in the order they
+    were drawn (independent draws): the first M >= ``n_min`` with M >= :func:`kld_bound` of k(M), the
+    bins occupied by the first M samples; L when no prefix satisfies it (draw more, or stop at the cap)."""
+    keys = np.asarray(keys)
+    n = len(keys)
+    if n == 0:
+        return 0
+    _, first = np.unique(keys, return_index=True)
+    new = np.zeros(n)
+    new[first] = 1.0
+    k = np.cumsum(new)  # bins occupied after 1, 2, ..., L samples
+    m = np.arange(1, n + 1)
+    ok = (m >= kld_bound(k, epsilon, delta)) & (m >= n_min)
+    hit = np.flatnonzero(ok)
+    return int(hit[0]) + 1 if hit.size else n
+
+
+def bin_keys(xy: np.ndarray, heading: np.ndarray, bin_xy: float, bin_heading: float) -> np.ndarray:
+    """One integer per (x, y, heading) bin of a grid of ``bin_xy`` m squares and ``bin_heading`` rad
+    sectors (KLD-sampling's bins): (N,) int64, equal for points in the same bin."""
+    ix = np.floor(np.asarray(xy[:, 0]) / bin_xy).astype(np.int64) + (1 << 20)
+    iy = np.floor(np.asarray(xy[:, 1]) / bin_xy).astype(np.int64) + (1 << 20)
+    h = np.mod(np.asarray(heading, float), 2.0 * np.pi)
+    ih = np.floor(h / bin_heading).astype(np.int64)
+    if np.any((ix < 0) | (ix >= 1 << 21) | (iy < 0) | (iy >= 1 << 21)) or bin_heading < 2.0 * np.pi / 1000:
+        raise ValueError("KLD bins: positions beyond +-2^20 bins of the origin or heading bins finer than 0.36 deg")
+    return (ix << 31) | (iy << 10) | ih
 
 
 RESAMPLERS: dict[str, Resampler] = {"systematic": systematic, "stratified": stratified, "multinomial": multinomial, "residual": residual}

@@ -17,7 +17,7 @@ from .gps import GpsDifferencer
 from .kalman import Estimate, FusionConfig, LocalFusion
 from .kourogi import KourogiConfig, KourogiFusion
 from .particle import ParticleConfig, ParticleFusion
-from .runner import run_fusion
+from .runner import run_fusion, run_fusion_smoothed
 from .walkprior import WalkPrior
 
 __all__ = [
@@ -31,4 +31,5 @@ __all__ = [
     "ParticleFusion",
     "WalkPrior",
     "run_fusion",
+    "run_fusion_smoothed",
 ]

@@ -23,10 +23,29 @@ filters answer alike; what the particles add is the map, which no Gaussian can c
 * **Resampling**: when the effective sample size 1 / sum w^2 falls below ``resample_ess`` N, with a
   pluggable scheme (``resampler``: systematic by default, or stratified, residual, multinomial, or any
   callable of :mod:`hybridloc.estimation.resampling`'s signature). Every per-particle array (position,
-  bias, scale, prior at the particle, history) is reordered together.
-* **Start**: from the first fix (or ``init``): positions drawn from the fix's Gaussian where the map
-  allows, bias and scale from their priors. After ``reinit_after`` consecutive rejected fixes the
-  track is considered lost and restarts from the fix (as LocalFusion does).
+  bias, scale, prior at the particle, ancestry) is reordered together.
+* **KLD-sampling** (Fox 2003; Woodman & Harle's filter, Harle's survey sec. VI): with
+  ``kld_epsilon`` set, the count adapts. At every resampling, draws from the weighted cloud are binned
+  over (x, y, heading) (``kld_bin_xy`` m, ``kld_bin_heading`` rad) and the count is the first M with
+  M >= Fox's bound for the k bins they occupy (:func:`hybridloc.estimation.resampling.kld_size`),
+  between ``n_min`` and ``n_max``; the M particles are then drawn by the resampler. After a step,
+  when even all the present particles' bins would need fewer than half of them, the cloud is
+  resampled to shrink. A start draws its own count the same way from the start distribution.
+* **Start**: from the first fix (or ``init``), bias and scale from their priors. ``start="gaussian"``:
+  positions drawn from the fix's Gaussian where the map allows. ``start="containment"`` (Beauregard's
+  and Woodman & Harle's start, Harle sec. VI): positions uniform inside the first fix's 95 % region
+  restricted to the walkable area - the :class:`~hybridloc.types.ContainmentRegion` the server sends
+  with the fix when :meth:`ParticleFusion.correct` is given the whole :class:`~hybridloc.types.Fix`,
+  else the fix covariance's 95 % ellipse. After ``reinit_after`` consecutive rejected fixes the track
+  is considered lost and restarts from the fix (as LocalFusion does), the same way.
+* **Ancestry** (Beauregard's backtracking, Klepal & Beauregard 2008): each step records the
+  particles' positions and, for each, the index of its parent in the step before; a resampling only
+  re-indexes the parents. Late fixes read a particle's position at the scan's time from its own
+  lineage, and :meth:`ParticleFusion.smoothed` / :meth:`ParticleFusion.backtrack` give the fixed-lag
+  smoothed track: the positions ``lag`` steps ago of the particles alive now, weighted by their present
+  weights (Kitagawa's smoother by genealogy) - a particle that died at a wall or by a fix takes its
+  whole past with it, so the surviving history is the smoothed track (:func:`~.runner.run_fusion` with
+  ``smooth_lag``).
 * **Re-anchor from the smoother** (:meth:`ParticleFusion.reanchor`, as
   :meth:`~.kalman.LocalFusion.reanchor`): the cloud is redrawn at the corrected track's latest time
   around its position and covariance (where the map allows), each particle's bias and scale shifted
@@ -43,11 +62,12 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+import shapely
 
 from ..estimation import UpdateStats, chi2_threshold, log_normalise
 from ..estimation import resampler as make_resampler
-from ..estimation.resampling import Resampler
-from ..types import AbsoluteFix, DisplacementFix, StepEvent
+from ..estimation.resampling import Resampler, bin_keys, kld_bound, kld_size
+from ..types import AbsoluteFix, ContainmentRegion, DisplacementFix, Fix, StepEvent
 from ..units import wrap_angle
 from .kalman import (
     Estimate,
@@ -119,7 +139,18 @@ class ParticleConfig:
     #: particles is redrawn around the fix (sensor resetting, Lenser & Veloso 2000), where the map
     #: allows; a fix off on open floor, however far, redraws nothing.
     reset_share: float = 0.3
-    history: int = 64  # steps of per-particle history for late fixes
+    history: int = 64  # steps of per-particle history (ancestry) for late fixes and the smoothed track
+    #: "gaussian": the start cloud drawn from the first fix's Gaussian; "containment": uniform in its
+    #: 95 % region (the server's containment region, else the covariance ellipse) on the walkable area
+    start: str = "gaussian"
+    #: KLD-sampling (module docstring): None keeps n_particles fixed; else Fox's epsilon (the bound on
+    #: the KL divergence), delta (its 1 - confidence), the bins and the count's limits
+    kld_epsilon: float | None = None
+    kld_delta: float = 0.01
+    kld_bin_xy: float = 0.5  # m
+    kld_bin_heading: float = math.radians(10.0)
+    n_min: int = 200
+    n_max: int = 50_000
     seed: int = 0
     fix_correlation: dict = field(default_factory=lambda: {"wifi": 0.5, "ble": 0.5})  # as FusionConfig.fix_correlation
     # heuristic drift elimination along the floor's grid, as FusionConfig.corridor_* (with corridor_axes).
@@ -154,6 +185,16 @@ class ParticleFusion:
         self.cfg = config or ParticleConfig()
         if self.cfg.n_particles < 10:
             raise ValueError("a particle filter needs at least 10 particles")
+        if self.cfg.start not in ("gaussian", "containment"):
+            raise ValueError(f"ParticleConfig.start must be 'gaussian' or 'containment', got {self.cfg.start!r}")
+        if self.cfg.kld_epsilon is not None:
+            kld_bound(2, self.cfg.kld_epsilon, self.cfg.kld_delta)  # checks epsilon and delta
+            if not 10 <= self.cfg.n_min <= self.cfg.n_max:
+                raise ValueError(f"KLD-sampling needs 10 <= n_min <= n_max, got {self.cfg.n_min}, {self.cfg.n_max}")
+            if not (self.cfg.kld_bin_xy > 0 and self.cfg.kld_bin_heading > 0):
+                raise ValueError("KLD-sampling bins must be positive")
+        if self.cfg.history < 2:
+            raise ValueError("ParticleConfig.history must keep at least 2 steps")
         self.prior = prior or WalkPrior({})
         self.constraint: MapConstraint = constraint if constraint is not None else WalkPriorConstraint(self.prior)
         self.resampler = make_resampler(resampler)
@@ -179,15 +220,34 @@ class ParticleFusion:
         self._gate = chi2_threshold(self.cfg.gate_probability, 2)
         self._half = chi2_threshold(0.5, 2)
         H = self.cfg.history
-        self._hist_p = np.zeros((H, n, 2))
+        # the ancestry ring (module docstring): per recorded step k (ring index k % H) the particles'
+        # positions, each one's parent index in step k - 1's arrays, and the shift a reset particle's
+        # lineage carries before it (None when none was reset)
+        self._hist_p: list[np.ndarray | None] = [None] * H
+        self._hist_a: list[np.ndarray | None] = [None] * H
+        self._hist_o: list[np.ndarray | None] = [None] * H
         self._hist_t = np.full(H, -math.inf)
         self._hist_k = 0  # number of steps recorded (ring index = k % H)
+        self._anc = np.arange(n)  # each particle's index in the newest recorded step
+        self._off: np.ndarray | None = None  # (N, 2) shift of each particle's lineage since then (resets)
+        self._region: ContainmentRegion | None = None  # the region of the fix being handled
+        self.steps_seen = 0  # steps predicted once initialised, and their particle counts
+        self.particle_steps = 0
+        self.particle_max = 0
         self._memory = StepMemory()  # the steps taken, for reanchor
         self.n_reanchored = 0
         if init is not None:
             self._start(np.asarray(init[:2], float), np.eye(2) * init[2] ** 2, None)
 
     # ------------------------------------------------------------------ state summaries
+    #: :meth:`correct` takes the server's whole answer (:class:`~hybridloc.types.Fix`, its region starts the cloud)
+    takes_regions = True
+
+    @property
+    def n_particles(self) -> int:
+        """The present number of particles (changes under KLD-sampling)."""
+        return len(self.logw)
+
     @property
     def w(self) -> np.ndarray:
         """The normalised weights, exp(log w) (read-only view of the log-weights)."""
@@ -205,18 +265,81 @@ class ParticleFusion:
         return Estimate(self.t, m, c, self.floor, kind)
 
     # ------------------------------------------------------------------ start
-    def _start(self, z: np.ndarray, R: np.ndarray, floor: str | None) -> None:
-        n = self.cfg.n_particles
+    def _start(self, z: np.ndarray, R: np.ndarray, floor: str | None, region: ContainmentRegion | None = None) -> None:
+        """A new cloud at a fix z, R (and the server's 95 % region, for ``start="containment"``)."""
         if floor is not None:
             self.floor = floor
-        p = self._draw(z, R)
-        b = self.rng.normal(self._bias0[0], self._bias0[1], n)
-        s = 1.0 + self.rng.normal(0.0, self.cfg.sigma_scale0, n)
+        cfg = self.cfg
+        if cfg.kld_epsilon is None:
+            n = cfg.n_particles
+            p = self._draw_start(z, R, region, n)
+            b = self.rng.normal(self._bias0[0], self._bias0[1], n)
+            s = 1.0 + self.rng.normal(0.0, cfg.sigma_scale0, n)
+        else:  # KLD-sampling from the start distribution: draw until the bound of the bins occupied is met
+            m = max(cfg.n_min, min(cfg.n_particles, cfg.n_max))
+            p, b, s = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
+            while True:
+                k = m - len(p)
+                p = np.concatenate([p, self._draw_start(z, R, region, k)])
+                b = np.concatenate([b, self.rng.normal(self._bias0[0], self._bias0[1], k)])
+                s = np.concatenate([s, 1.0 + self.rng.normal(0.0, cfg.sigma_scale0, k)])
+                n = kld_size(bin_keys(p, b, cfg.kld_bin_xy, cfg.kld_bin_heading), cfg.kld_epsilon, cfg.kld_delta, cfg.n_min)
+                if n < m or m >= cfg.n_max:
+                    break
+                m = min(2 * m, cfg.n_max)
+            n = min(n, cfg.n_max)
+            p, b, s = p[:n], b[:n], s[:n]
         self._place(p, b, s)
 
-    def _draw(self, z: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """N positions from N(z, R) where the map allows (a few rounds of rejection; what is left stays where it fell)."""
-        n = self.cfg.n_particles
+    def _draw_start(self, z: np.ndarray, R: np.ndarray, region: ContainmentRegion | None, n: int) -> np.ndarray:
+        """n start positions: from N(z, R) (``start="gaussian"``) or uniform in the 95 % region on the
+        walkable area (``start="containment"``; the Gaussian draw when none of it is walkable)."""
+        if self.cfg.start == "containment":
+            p = self._draw_uniform(z, R, region, n)
+            if p is not None:
+                return p
+        return self._draw(z, R, n)
+
+    def _draw_uniform(self, z: np.ndarray, R: np.ndarray, region: ContainmentRegion | None, n: int) -> np.ndarray | None:
+        """n positions uniform in ``region`` (its floor the cloud's, or unknown) or, without one, in the
+        95 % ellipse of N(z, R), where the map allows (rejection); None when a few thousand tries find
+        no allowed place in it."""
+        use_region = region is not None and region.area_m2 > 0 and (region.floor is None or self.floor is None or region.floor == self.floor)
+        chi = math.sqrt(self._gate)  # the 95 % ellipse: (p - z)' R^-1 (p - z) <= chi2_2(0.95)
+        L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
+        if use_region:
+            assert region is not None
+            area = region.area
+            shapely.prepare(area)
+            x0, y0, x1, y1 = area.bounds
+            share = max(area.area / max((x1 - x0) * (y1 - y0), 1e-9), 1e-3)
+        else:
+            share = 1.0
+        got: list[np.ndarray] = []
+        have = tried = 0
+        acc = share  # the share of candidates kept (the region's share of its box, then as measured)
+        while have < n:
+            k = int(min(max(1.2 * (n - have) / acc, 256), 2_000_000))
+            if use_region:
+                q = np.column_stack([self.rng.uniform(x0, x1, k), self.rng.uniform(y0, y1, k)])
+                q = q[shapely.contains_xy(area, q[:, 0], q[:, 1])]
+            else:  # uniform in the unit disc, mapped onto the ellipse
+                r = np.sqrt(self.rng.random(k))
+                a = self.rng.uniform(0.0, 2.0 * math.pi, k)
+                q = z + (chi * np.column_stack([r * np.cos(a), r * np.sin(a)])) @ L.T
+            q = q[self.constraint.log_density(self.floor, q) > -np.inf]
+            tried += k
+            have += len(q)
+            got.append(q)
+            if have == 0 and tried >= 20_000:
+                return None
+            acc = max(have / tried, 1e-4) if have else acc * 0.1
+        return np.concatenate(got)[:n]
+
+    def _draw(self, z: np.ndarray, R: np.ndarray, n: int | None = None) -> np.ndarray:
+        """n positions (default ``n_particles``) from N(z, R) where the map allows (a few rounds of
+        rejection; what is left stays where it fell)."""
+        n = self.cfg.n_particles if n is None else n
         L = np.linalg.cholesky(R + np.eye(2) * 1e-9)
         p = z + self.rng.standard_normal((n, 2)) @ L.T
         for _ in range(10):
@@ -231,10 +354,14 @@ class ParticleFusion:
         n = len(p)
         self.p, self.b, self.s = p, b, s
         self.logw = np.full(n, -math.log(n))
+        self._hist_t[:] = -math.inf
+        self._hist_p = [None] * self.cfg.history
+        self._hist_a = [None] * self.cfg.history
+        self._hist_o = [None] * self.cfg.history
+        self._hist_k = 0
+        self._anc, self._off = np.arange(n), None
         self._logpi = self.constraint.log_density(self.floor, self.p)
         self._weigh(self._logpi.copy())
-        self._hist_t[:] = -math.inf
-        self._hist_k = 0
         self.initialised = True
 
     def set_prior(self, prior: WalkPrior) -> None:
@@ -265,11 +392,46 @@ class ParticleFusion:
         return np.searchsorted(c, u)
 
     def _resample(self, w: np.ndarray) -> None:
-        n = len(w)
-        idx = self.resampler(w, self.rng)
+        if self.cfg.kld_epsilon is None:
+            idx = self.resampler(w, self.rng)
+        else:  # KLD-sampling: as many as the bins of independent draws from the cloud say, drawn by the resampler
+            idx = self.resampler(w, self.rng, self._kld_count(w))
+        n = len(idx)
         self.p, self.b, self.s, self._logpi = self.p[idx], self.b[idx], self.s[idx], self._logpi[idx]
-        self._hist_p = self._hist_p[:, idx]
+        self._anc = self._anc[idx]  # the history stays; only who descends from whom changes
+        if self._off is not None:
+            self._off = self._off[idx]
         self.logw = np.full(n, -math.log(n))
+
+    def _kld_count(self, w: np.ndarray) -> int:
+        """Fox's KLD-sampling count for the weighted cloud: independent draws, binned over (x, y,
+        heading bias: with the step heading every particle shares, its heading), until the draws
+        satisfy the bound of the bins they occupy (:func:`~hybridloc.estimation.resampling.kld_size`),
+        within [n_min, n_max]."""
+        cfg = self.cfg
+        assert cfg.kld_epsilon is not None
+        c = np.cumsum(w)
+        c[-1] = 1.0
+        m = max(cfg.n_min, min(len(w), cfg.n_max))
+        keys = np.zeros(0, np.int64)
+        while True:
+            idx = np.searchsorted(c, self.rng.random(m - len(keys)))
+            keys = np.concatenate([keys, bin_keys(self.p[idx], self.b[idx], cfg.kld_bin_xy, cfg.kld_bin_heading)])
+            n = kld_size(keys, cfg.kld_epsilon, cfg.kld_delta, cfg.n_min)
+            if n < m or m >= cfg.n_max:
+                return min(n, cfg.n_max)
+            m = min(2 * m, cfg.n_max)
+
+    def _kld_shrink(self) -> None:
+        """KLD-sampling between resamplings: when the bins of all the present particles would need
+        fewer than half of them, resample (to the count the bound gives)."""
+        cfg = self.cfg
+        n = len(self.logw)
+        if cfg.kld_epsilon is None or n <= 2 * cfg.n_min:
+            return
+        k = len(np.unique(bin_keys(self.p, self.b, cfg.kld_bin_xy, cfg.kld_bin_heading)))
+        if float(kld_bound(k, cfg.kld_epsilon, cfg.kld_delta)) < 0.5 * n:
+            self._resample(self.w)
 
     # ------------------------------------------------------------------ predict
     def predict(self, step: StepEvent) -> Estimate:
@@ -282,7 +444,11 @@ class ParticleFusion:
             return self.estimate("step")
         self._move(step)
         self._corridor(step)
+        self._kld_shrink()
         self._record(step.t)
+        self.steps_seen += 1
+        self.particle_steps += self.n_particles
+        self.particle_max = max(self.particle_max, self.n_particles)
         return self.estimate("step")
 
     def _move(self, step: StepEvent) -> None:
@@ -314,9 +480,12 @@ class ParticleFusion:
     def _record(self, t: float) -> None:
         """Every particle's position at time t into the history ring (for late fixes)."""
         k = self._hist_k % self.cfg.history
-        self._hist_p[k] = self.p
+        self._hist_p[k] = self.p.copy()
+        self._hist_a[k] = self._anc
+        self._hist_o[k] = self._off
         self._hist_t[k] = t
         self._hist_k += 1
+        self._anc, self._off = np.arange(len(self.p)), None
 
     # ------------------------------------------------------------------ re-anchoring from the smoother
     @property
@@ -360,7 +529,7 @@ class ParticleFusion:
             b = heading_bias + wrap_angle(b - math.atan2(float(np.sin(b).mean()), float(np.cos(b).mean())))
         if scale is not None:
             sc = np.clip(scale + (sc - sc.mean()), 0.5, 1.5)
-        self._place(self._draw(z, R), b, sc)
+        self._place(self._draw(z, R, len(b)), b, sc)  # as many as the cloud has (KLD-sampling changes the count)
         self._record(t)
         for step in since:  # the same steps, sampled again from the smoothed state
             if step.floor_change and self.floor is not None:
@@ -393,24 +562,86 @@ class ParticleFusion:
         if self._weigh(-0.5 * (y / cfg.corridor_sigma) ** 2):
             self.n_corridor += 1
 
+    def _lineage(self, depths: list[int]) -> dict[int, np.ndarray]:
+        """The present particles' positions ``d`` recorded steps back (0: the newest record), for each
+        d of ``depths`` (each < the records kept), traced through the parents and reset shifts."""
+        H = self.cfg.history
+        out: dict[int, np.ndarray] = {}
+        want = sorted(set(depths))
+        wanted = set(want)
+        if not want:
+            return out
+        idx = self._anc
+        off = self._off.copy() if self._off is not None else None
+        newest = self._hist_k - 1
+        for d in range(want[-1] + 1):
+            r = (newest - d) % H
+            if d in wanted:
+                pos = self._hist_p[r][idx]  # type: ignore[index]
+                out[d] = pos + off if off is not None else pos
+            if d == want[-1]:
+                break
+            o = self._hist_o[r]
+            if o is not None:
+                off = o[idx] if off is None else off + o[idx]
+            idx = self._hist_a[r][idx]  # type: ignore[index]
+        return out
+
     def _positions_at(self, t: float) -> np.ndarray:
-        """Each particle's position at time t (linear between recorded steps; now if t is newer)."""
+        """Each particle's position at time t (linear between recorded steps; now if t is newer),
+        from its own lineage."""
         H = self.cfg.history
         m = min(self._hist_k, H)
         if m == 0 or t >= self._hist_t[(self._hist_k - 1) % H]:
             return self.p
-        order = [(self._hist_k - m + i) % H for i in range(m)]  # oldest .. newest
-        ts = self._hist_t[order]
+        ts = np.array([self._hist_t[(self._hist_k - m + i) % H] for i in range(m)])  # oldest .. newest
         j = int(np.searchsorted(ts, t, side="right"))  # ts[j-1] <= t < ts[j]
         if j == 0:
-            return self._hist_p[order[0]]
-        a, b = order[j - 1], order[j]
+            return self._lineage([m - 1])[m - 1]
+        da, db = m - j, m - 1 - j  # depths of the records before and after t
+        got = self._lineage([da, db])
         u = (t - ts[j - 1]) / max(ts[j] - ts[j - 1], 1e-9)
-        return (1.0 - u) * self._hist_p[a] + u * self._hist_p[b]
+        return (1.0 - u) * got[da] + u * got[db]
+
+    # ------------------------------------------------------------------ smoothed track
+    def smoothed(self, lag: int) -> Estimate | None:
+        """The fixed-lag smoothed estimate ``lag`` steps back (0: the newest step): the positions then of
+        the particles alive now, weighted by their present weights (module docstring); None when fewer
+        steps are kept (``lag`` >= history, or the cloud is younger)."""
+        if lag < 0:
+            raise ValueError("the smoothing lag is a number of steps >= 0")
+        m = min(self._hist_k, self.cfg.history)
+        if not self.initialised or lag >= m:
+            return None
+        p = self._lineage([lag])[lag]
+        mu, c = self._mean_cov(p)
+        return Estimate(float(self._hist_t[(self._hist_k - 1 - lag) % self.cfg.history]), mu, c, self.floor, "smoothed")
+
+    def backtrack(self) -> list[Estimate]:
+        """Backtracking (Klepal & Beauregard): the smoothed estimates of every kept step, oldest first,
+        from the lineages of the particles alive now (what :meth:`smoothed` gives for each lag at once)."""
+        m = min(self._hist_k, self.cfg.history) if self.initialised else 0
+        got = self._lineage(list(range(m)))
+        out = []
+        for d in range(m - 1, -1, -1):
+            mu, c = self._mean_cov(got[d])
+            out.append(Estimate(float(self._hist_t[(self._hist_k - 1 - d) % self.cfg.history]), mu, c, self.floor, "smoothed"))
+        return out
 
     # ------------------------------------------------------------------ correct
-    def correct(self, fix: AbsoluteFix | DisplacementFix) -> tuple[bool, Estimate]:
-        """One gated update with a position fix or a displacement; returns (accepted, estimate)."""
+    def correct(self, fix: AbsoluteFix | DisplacementFix | Fix) -> tuple[bool, Estimate]:
+        """One gated update with a position fix or a displacement; returns (accepted, estimate). The
+        server's whole answer (:class:`~hybridloc.types.Fix`) is taken too: its fix goes through the
+        same gate, its containment region starts the cloud (``start="containment"``); a "no fix"
+        answer changes nothing (not accepted)."""
+        if isinstance(fix, Fix):
+            if fix.fix is None:
+                return False, self.estimate("no-fix")
+            self._region = fix.region
+            try:
+                return self._correct_position(fix.fix)
+            finally:
+                self._region = None
         return getattr(self, fix_handler(self, fix))(fix)
 
     def _correct_position(self, fix: AbsoluteFix) -> tuple[bool, Estimate]:
@@ -420,7 +651,7 @@ class ParticleFusion:
             raise ValueError("a fix needs a finite position and a positive-definite covariance")
         self._memory.started(fix.t)
         if not self.initialised:
-            self._start(z, R, fix.floor)
+            self._start(z, R, fix.floor, self._region)
             self.t = max(self.t, fix.t)
             return True, self.estimate("init")
         p_then = self._positions_at(fix.t)
@@ -435,7 +666,7 @@ class ParticleFusion:
             self._rejected_run += 1
             if self._rejected_run >= self.cfg.reinit_after:  # lost: the fixes agree with each other, not with us
                 self._rejected_run = 0
-                self._start(z, R, fix.floor)
+                self._start(z, R, fix.floor, self._region)
                 self.t = max(self.t, fix.t)
                 return True, self.estimate("init")
             if beyond_wall:
@@ -467,7 +698,13 @@ class ParticleFusion:
             return
         donors, q_now, logpi = donors[ok], q_now[ok], logpi[ok]
         slots = self.rng.choice(n, size=len(donors), replace=False)
-        self._hist_p[:, slots] = self._hist_p[:, donors] + (q_now - self.p[donors])[None, :, :]
+        # each slot takes its donor's lineage, shifted by where it was redrawn (the shift rides along
+        # the lineage: its history is the donor's moved by the same offset)
+        off = self._off if self._off is not None else np.zeros((n, 2))
+        off[slots] = off[donors] + (q_now - self.p[donors])
+        self._off = off
+        self._anc = self._anc.copy()
+        self._anc[slots] = self._anc[donors]
         self.b[slots], self.s[slots] = self.b[donors], self.s[donors]
         self.p[slots], self._logpi[slots] = q_now, logpi
         logw = self.logw.copy()

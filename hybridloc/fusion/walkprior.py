@@ -35,7 +35,7 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
-from ..geo import wall_crossings
+from ..geo import WallIndex
 from ..types import FloorPlan
 
 
@@ -65,6 +65,11 @@ class WalkPrior:
 
     def __init__(self, floors: dict[str, FloorPrior]):
         self.floors = floors
+        self._walls: dict[str, WallIndex] = {}  # per floor, built at its first wall test
+
+    def __setstate__(self, state: dict) -> None:  # a prior pickled before the wall index existed
+        self.__dict__.update(state)
+        self.__dict__.setdefault("_walls", {})
 
     @classmethod
     def from_points(
@@ -161,7 +166,10 @@ class WalkPrior:
         fp = self.floors.get(floor or "")
         if fp is None:
             return np.zeros(len(p), bool)
-        return wall_crossings(fp.walls, p, q) > 0
+        index = self._walls.get(fp.name)
+        if index is None:  # the walls near each 1 m cell, for moves up to 2 m (longer ones: against every wall)
+            index = self._walls[fp.name] = WallIndex(fp.walls, cell=1.0, reach=2.0)
+        return index.crossings(p, q) > 0
 
 
 def _open_doors(
