@@ -500,3 +500,106 @@ def test_particle_reanchor_keeps_to_the_map_and_a_new_prior_replaces_the_old():
     with pytest.raises(ValueError):
         cold.reanchor(0.5, [1.0, 0.0], np.full((2, 2), np.nan), "F1")  # a cold cloud needs a covariance
     assert cold.reanchor(0.5, [1.0, 0.0], np.eye(2) * 0.1, "F1").kind == "reanchor" and cold.initialised
+
+
+# ------------------------------------------------------------------ KLD-sampling, smoothing, cold start
+def test_kld_bound_is_fox_2003_and_the_sample_size_follows_the_occupied_bins():
+    from scipy.stats import chi2
+
+    from hybridloc.estimation.resampling import kld_bound, kld_size
+
+    eps, delta = 0.05, 0.01
+    for k in (10, 50, 500):
+        # Fox's eq. 7 is the Wilson-Hilferty form of chi2_{k-1, 1-delta} / (2 eps); WH is within 1 %
+        # of the exact quantile from k = 10 on
+        exact = chi2.ppf(1 - delta, k - 1) / (2 * eps)
+        assert abs(float(kld_bound(k, eps, delta)) - exact) < 0.01 * exact
+    assert float(kld_bound(1, eps, delta)) == 0.0
+    with pytest.raises(ValueError):
+        kld_bound(5, 0.0, delta)
+    # one bin: n_min is enough; every draw in a new bin: the bound is never met and all draws are used
+    assert kld_size(np.zeros(1000, int), eps, delta, n_min=50) == 50
+    assert kld_size(np.arange(1000), eps, delta, n_min=50) == 1000
+
+
+def test_kld_particle_count_shrinks_as_fixes_concentrate_the_cloud():
+    rng = np.random.default_rng(5)
+    cfg = ParticleConfig(n_particles=20_000, seed=4, kld_epsilon=0.05, n_min=200, n_max=20_000)
+    pf = ParticleFusion(None, cfg)
+    ok, _ = pf.correct(AbsoluteFix(0.0, [5.0, 5.0], np.eye(2) * 100.0, "wifi", "F1", 0.9))  # a 10 m sigma start
+    assert ok
+    n_start = pf.n_particles
+    assert cfg.n_min <= n_start <= cfg.n_max
+    true = np.array([5.0, 5.0])
+    for k in range(15):
+        for st in _walk(4, 0.0, t0=2.0 * k):
+            pf.predict(st)
+            true = true + [0.7, 0.0]
+        pf.correct(AbsoluteFix(2.0 * k + 2.0, true + rng.normal(0, 0.5, 2), np.eye(2) * 0.25, "wifi", "F1", 0.9))
+        assert cfg.n_min <= pf.n_particles <= cfg.n_max
+    # 0.5 m fixes concentrate the cloud onto far fewer (x, y, heading) bins than the 10 m start covered
+    assert pf.n_particles < n_start / 2
+    assert np.linalg.norm(pf.estimate("x").pos - true) < 2.0
+
+
+def test_smoothed_track_is_one_estimate_per_step_and_no_worse_than_the_filtered_one():
+    from hybridloc.fusion import run_fusion_smoothed
+
+    rng = np.random.default_rng(8)
+    steps = _walk(60, 0.0)
+    truth = np.array([[0.7 * (i + 1), 0.0] for i in range(60)])
+    fixes = [AbsoluteFix(steps[i].t, truth[i] + rng.normal(0, 1.5, 2), np.eye(2) * 2.25, "wifi", "F1", 0.9) for i in range(0, 60, 5)]
+    pf = ParticleFusion(None, ParticleConfig(n_particles=3000, seed=2), init=(0.0, 0.0, 0.3))
+    filtered, smoothed = run_fusion_smoothed(pf, steps, fixes, lags=(0, 10))
+    assert len(smoothed[10]) == len(smoothed[0]) == len(steps)
+    step_t = [s.t for s in steps]
+    assert [e.t for e in smoothed[10]] == step_t
+    err = {lag: np.mean([np.linalg.norm(e.pos[:2] - truth[i]) for i, e in enumerate(smoothed[lag])]) for lag in (0, 10)}
+    # later fixes can only add information about earlier steps: a 10-step lag does not hurt beyond
+    # Monte Carlo noise (a few % of the 1.5 m fix sigma)
+    assert err[10] <= err[0] + 0.1
+    with pytest.raises(ValueError):
+        run_fusion_smoothed(LocalFusion(init=(0.0, 0.0, 0.5)), steps, fixes)
+
+
+def test_time_to_within_scores_the_newest_row_against_interpolated_truth():
+    from hybridloc.metrics import time_to_within
+
+    wp_t, wp_xy = [0.0, 10.0, 20.0], [[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]]
+    # 8 m off until t = 6, then on the truth
+    poses = [(t, t + (8.0 if t < 6 else 0.0), 0.0, "F1") for t in np.arange(1.0, 11.0)]
+    assert time_to_within(poses, wp_t, wp_xy, 5.0, 30.0) == pytest.approx(6.0)
+    assert time_to_within(poses, wp_t, wp_xy, 5.0, 4.0) == math.inf  # not within in the first 4 s
+    assert time_to_within(poses, wp_t, wp_xy, 5.0, 30.0, wp_floors=["F2"] * 3) == math.inf  # wrong floor
+    with pytest.raises(ValueError):
+        time_to_within(poses, wp_t, wp_xy, 0.0, 30.0)
+
+
+def test_containment_start_draws_every_particle_inside_the_servers_region():
+    from hybridloc.types import ContainmentRegion, Fix
+
+    # an L-shaped 95 % region (two rooms), far from its fix's Gaussian mean: the start follows the region
+    area = shapely.MultiPolygon([shapely.box(0, 0, 4, 2), shapely.box(0, 2, 2, 6)])
+    region = ContainmentRegion("F1", area, 0.95)
+    fix = Fix(AbsoluteFix(0.0, [10.0, 10.0], np.eye(2) * 4.0, "wifi", "F1", 0.9), region, {"F1": 1.0})
+    pf = ParticleFusion(None, ParticleConfig(n_particles=2000, seed=6, start="containment"))
+    ok, e = pf.correct(fix)
+    assert ok and e.kind == "init"
+    assert shapely.contains_xy(area.buffer(1e-9), pf.p[:, 0], pf.p[:, 1]).all()
+    # uniform: each room holds its share of the area (8 and 8 m^2), within 5 binomial sigmas
+    in_a = float(np.mean(pf.p[:, 1] < 2.0))
+    assert abs(in_a - 0.5) < 5 * math.sqrt(0.25 / 2000)
+    # without a region, the fix's own 95 % ellipse
+    pf = ParticleFusion(None, ParticleConfig(n_particles=2000, seed=6, start="containment"))
+    f = AbsoluteFix(0.0, [10.0, 10.0], np.eye(2) * 4.0, "wifi", "F1", 0.9)
+    pf.correct(f)
+    from scipy.stats import chi2
+
+    from hybridloc.fusion.kalman import correlated_fix_cov
+
+    R = correlated_fix_cov(np.eye(2) * 4.0, f, pf.cfg.fix_correlation)  # the fix as the filter weighs it
+    d = pf.p - [10.0, 10.0]
+    d2 = np.einsum("ni,ij,nj->n", d, np.linalg.inv(R), d)
+    assert d2.max() <= chi2.ppf(0.95, 2) * (1 + 1e-9)
+    # uniform in the ellipse: the squared radius d2 / chi2 is uniform on [0, 1], mean 1/2
+    assert abs(np.mean(d2) / chi2.ppf(0.95, 2) - 0.5) < 5 * math.sqrt(1 / 12 / 2000)
