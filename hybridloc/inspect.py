@@ -68,6 +68,13 @@ def _imu_lines(s: FileSummary, imu: ImuBlock) -> None:
         s.lines.append(("mag |B|", f"median {np.median(m):.1f} uT (range {m.min():.1f}-{m.max():.1f})"))
 
 
+def _footprint_text(fp) -> str:
+    return (
+        f"{len(fp.stride)} measured (experiment {fp.experiment}), {fp.n_strides} strides walked, {fp.distance_m:.1f} m between footprints, "
+        f"end {np.hypot(*fp.pos_xy[-1]):.2f} m from the start; tiles {fp.tile_edge_m:.3f} m (ground truth)"
+    )
+
+
 def _report_lines(s: FileSummary, report: ReadReport) -> None:
     if report.notes:
         s.lines.append(("fix-ups", ", ".join(f"{k} x{n}" for k, n in sorted(report.notes.items()))))
@@ -119,16 +126,39 @@ def inspect_file(path: str | os.PathLike, fmt: str | None = None, rate_hz: float
         if tr.imu is None and not tr.scans:
             s.duration_s = float("nan")
         _report_lines(s, tr.report)
-    elif fmt in ("pyshoe", "openshoe", "csv"):
-        from .io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat
+    elif fmt == "footprints":
+        from .io.imu_files import read_footprints_mat
 
-        if fmt == "pyshoe":
+        fp = read_footprints_mat(path)
+        s.lines.append(("footprints", _footprint_text(fp)))
+        if not fp.valid:
+            s.problems.append("GCP_exist_and_correct is 0: the footprints are marked missing or wrong")
+    elif fmt in ("pyshoe", "openshoe", "csv", "sensorconnect"):
+        from .io.imu_files import footprints_beside, read_imu_csv, read_openshoe_mat, read_pyshoe_mat, read_sensorconnect_csv
+
+        if fmt == "sensorconnect":
+            rec = read_sensorconnect_csv(path)
+        elif fmt == "pyshoe":
             rec = read_pyshoe_mat(path)
         elif fmt == "openshoe":
             rec = read_openshoe_mat(path, rate_hz or 100.0)
         else:
             rec = read_imu_csv(path)
         _imu_lines(s, rec.imu)
+        if fmt == "sensorconnect":
+            fam = rec.extras["family"]
+            s.lines.append(
+                (
+                    "channels",
+                    ("scaledAccel (g -> m/s^2), scaledGyro (rad/s)" + (", scaledMag (gauss -> T)" if rec.imu.mag_body is not None else ""))
+                    if fam == "scaled"
+                    else "estCompensatedAccel (m/s^2), estAngularRate (rad/s): the sensor filter's compensated output",
+                )
+            )
+            if rec.extras["retimed"]:
+                s.lines.append(("time", "host arrival stamps in bunches: re-spaced evenly over the recording"))
+            fp = footprints_beside(path)
+            s.lines.append(("footprints", _footprint_text(fp) if fp is not None else "none beside it (no .mat of the same name)"))
         if rec.truth is not None:
             s.lines.append(("truth", f"{len(rec.truth)} positions, {rec.truth.distance_travelled:.1f} m travelled"))
         if "trial_error" in rec.extras:

@@ -12,6 +12,8 @@ DEG = math.pi / 180.0
 G0 = 9.80665
 #: Tesla per microtesla (Android reports the magnetic field in uT).
 UT_TO_T = 1e-6
+#: Tesla per gauss (MicroStrain magnetometers report gauss).
+GAUSS_TO_T = 1e-4
 #: Hertz per megahertz (Android reports WiFi frequency in MHz).
 MHZ_TO_HZ = 1e6
 #: Seconds per millisecond (Android / Indoor Location Competition timestamps are Unix ms).

@@ -67,3 +67,15 @@ def test_pdr_phone_bad_input_is_a_clear_error(tmp_path):
     r = _run("pdr", "phone", str(p), "--out", str(tmp_path / "o"), "--accel-unit", "g")
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "o" / "g" / "steps.csv").is_file()
+
+
+def test_sensorconnect_walk_through_data_inspect_and_pdr_foot(shared_data, tmp_path):
+    files = sorted((shared_data / "gait-driven-own").glob("SensorConnectData_*.csv.gz"))
+    if not files:
+        pytest.skip("gait-driven-own is absent from ../shared/data")
+    r = _run("data", "inspect", str(files[0]))
+    assert r.returncode == 0, r.stderr
+    assert "scaledAccel (g -> m/s^2)" in r.stdout and "footprints" in r.stdout
+    r = _run("pdr", "foot", str(files[0]), "--out", str(tmp_path / "out"))
+    assert r.returncode == 0, r.stderr
+    assert "strides" in r.stdout and list((tmp_path / "out").iterdir())

@@ -98,3 +98,70 @@ def test_corrupt_mat_is_a_clear_error(tmp_path):
     p.write_bytes(b"MATLAB 5.0 MAT-file" + b"\x00" * 50)
     with pytest.raises(DataFormatError):
         read_pyshoe_mat(p)
+
+
+# ------------------------------------------------------------------ SensorConnect (gait-driven set)
+_SC_HEADER = "Time," + ",".join(
+    f"inertial-1.2:{c}" for c in ("scaledAccelX", "scaledAccelY", "scaledAccelZ", "scaledGyroX", "scaledGyroY", "scaledGyroZ")
+)
+
+
+def _sc_file(tmp_path, rows, header=_SC_HEADER):
+    p = tmp_path / "SensorConnectData_1.csv"
+    p.write_text(header + "\n" + "\n".join(",".join(f"{v:.9g}" for v in r) for r in rows) + "\n")
+    return p
+
+
+def test_sensorconnect_reads_g_as_si_and_refuses_the_wrong_units(tmp_path):
+    from hybridloc.io.imu_files import read_sensorconnect_csv
+
+    n = 400
+    t = np.arange(n) / 200.0
+    rows = [[ti, 0.0, 0.0, -1.0, 0.01, 0.0, 0.0] for ti in t]  # at rest, z down: -1 g
+    rows.insert(10, [t[10], float("nan"), 0.0, -1.0, 0.0, 0.0, 0.0])  # a NaN row: counted, not read
+    rec = read_sensorconnect_csv(_sc_file(tmp_path, rows))
+    assert len(rec.imu) == n
+    assert np.allclose(np.linalg.norm(rec.imu.accel_body, axis=1), G0, rtol=1e-6)  # g -> m/s^2
+    assert np.allclose(rec.imu.gyro_body[:, 0], 0.01)  # rad/s as written
+    assert detect_format(_sc_file(tmp_path, rows)) is not None
+    # the same file already in m/s^2 under a "scaled" (g) name: refused with the reason, not scaled twice
+    rows_si = [[r[0], r[1], r[2], r[3] * G0, *r[4:]] for r in rows if np.isfinite(r[1])]
+    with pytest.raises(DataFormatError, match="in g"):
+        read_sensorconnect_csv(_sc_file(tmp_path, rows_si))
+    with pytest.raises(DataFormatError):
+        read_sensorconnect_csv(_sc_file(tmp_path, rows, header="Time,a,b,c,d,e,f"))
+
+
+def test_sensorconnect_bunched_host_stamps_are_respaced(tmp_path):
+    from hybridloc.io.imu_files import read_sensorconnect_csv
+
+    # stamps arriving in pairs every 10 ms (a 200 Hz stream read by the host): re-spaced evenly
+    t = np.repeat(np.arange(250) * 0.010, 2) + np.tile(np.arange(2) * 1e-6, 250)
+    rec = read_sensorconnect_csv(_sc_file(tmp_path, [[ti, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0] for ti in t]))
+    assert rec.extras["retimed"]
+    dt = np.diff(rec.imu.t)
+    assert np.allclose(dt, dt.mean(), rtol=1e-9) and abs(1.0 / dt.mean() - 200.0) < 2.0
+    # with a real gap (a lost second) the stamps are kept, and the reason reported
+    t_gap = np.concatenate([t, t[-1] + 1.0 + t])
+    rec = read_sensorconnect_csv(_sc_file(tmp_path, [[ti, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0] for ti in t_gap]))
+    assert not rec.extras["retimed"] and np.allclose(rec.imu.t, t_gap, rtol=0, atol=1e-8)
+    assert rec.report.counts["bunched-timestamps"] == 1
+
+
+def test_sensorconnect_real_trials_and_their_footprints(shared_data):
+    from hybridloc.io.imu_files import footprints_beside, read_sensorconnect_csv
+
+    files = sorted((shared_data / "gait-driven-own").glob("SensorConnectData_*.csv.gz"))
+    if not files:
+        pytest.skip("gait-driven-own is absent from ../shared/data")
+    rec = read_sensorconnect_csv(files[0])
+    imu = rec.imu
+    # a foot at rest reads 1 g (+-2 % for a MEMS unit's scale and bias), at a steady rate
+    still = np.linalg.norm(imu.gyro_body, axis=1) < 0.05
+    assert still.sum() > 50
+    assert abs(np.median(np.linalg.norm(imu.accel_body[still], axis=1)) - G0) < 0.02 * G0
+    assert np.all(np.diff(imu.t) > 0)
+    fp = footprints_beside(files[0])
+    assert fp is not None and fp.pos_xy.shape[1] == 2 and fp.stride[0] == 0
+    # a walk of fp.n_strides strides of 0.5-2 m each (walking to running)
+    assert 0.3 * fp.n_strides < fp.distance_m < 2.5 * fp.n_strides

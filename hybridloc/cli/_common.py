@@ -26,9 +26,13 @@ def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "
         if tr.imu is None:
             raise MissingData(f"{path}: no usable IMU data ({tr.report.summary()})")
         return tr.imu, tr.report, tr.device_model, tr.waypoints
-    from ..io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat
+    from ..io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat, read_sensorconnect_csv
 
-    if fmt == "csv":
+    if fmt == "footprints":
+        raise MissingData(f"{path}: a footprint truth file holds no IMU data (give the SensorConnect CSV beside it)")
+    if fmt == "sensorconnect":
+        rec = read_sensorconnect_csv(path)
+    elif fmt == "csv":
         rec = read_imu_csv(path, accel_unit=accel_unit)
     elif fmt == "pyshoe":
         rec = read_pyshoe_mat(path)

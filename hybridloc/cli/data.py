@@ -25,6 +25,8 @@ def register(sub) -> None:
     dsub = data.add_subparsers(dest="data_command", required=True)
     ins = dsub.add_parser("inspect", help="print what recordings hold: duration, rates, scans, APs, waypoints, gaps, problems")
     ins.add_argument("files", nargs="+", metavar="FILE")
-    ins.add_argument("--format", choices=("msft", "pyshoe", "openshoe", "csv", "ujiindoorloc"), help="skip format detection")
+    ins.add_argument(
+        "--format", choices=("msft", "pyshoe", "openshoe", "csv", "ujiindoorloc", "sensorconnect", "footprints"), help="skip format detection"
+    )
     ins.add_argument("--rate", type=float, default=None, metavar="HZ", help="sample rate for files without timestamps (OpenShoe; default 100)")
     ins.set_defaults(func=_cmd_data_inspect)

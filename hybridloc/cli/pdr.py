@@ -135,7 +135,11 @@ def register(sub) -> None:
     ft = psub.add_parser("foot", help="foot-mounted INS (ZUPT-aided error-state EKF): trajectory.csv and steps.csv per input")
     ft.add_argument("files", nargs="+", metavar="FILE")
     ft.add_argument("--out", required=True, help="output folder; writes <out>/<input-stem>/{trajectory,steps}.csv")
-    ft.add_argument("--format", choices=("csv", "pyshoe", "openshoe"), help="input format (detected by default)")
+    ft.add_argument(
+        "--format",
+        choices=("csv", "pyshoe", "openshoe", "sensorconnect"),
+        help="input format (detected by default; sensorconnect: a MicroStrain SensorConnect CSV export)",
+    )
     ft.add_argument(
         "--rate", type=float, metavar="HZ", help="sample rate for files without timestamps (OpenShoe); checked against timestamps otherwise"
     )

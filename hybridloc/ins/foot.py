@@ -117,8 +117,14 @@ def _initial_state(imu: ImuBlock, n_init: int, heading: float) -> tuple[NominalS
     return NominalState(np.zeros(3), np.zeros(3), q0, np.zeros(3), np.zeros(3)), float(np.linalg.norm(f0))
 
 
-def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.ndarray | None = None, heading0: float = 0.0) -> FootInsResult:
-    """Run the ZUPT-aided error-state EKF over a whole recording (``stance`` overrides the detector)."""
+def run_foot_ins(
+    imu: ImuBlock, config: FootInsConfig | None = None, stance: np.ndarray | None = None, heading0: float = 0.0, doubtful: np.ndarray | None = None
+) -> FootInsResult:
+    """Run the ZUPT-aided error-state EKF over a whole recording (``stance`` overrides the detector).
+
+    ``doubtful`` (N,) bool: samples whose stance is in doubt whatever the detector says: they are taken
+    as stance, and their ZUPTs go through the chi-square gate (the filter's own velocity decides), like
+    the vetted ones (module docstring)."""
     cfg = config or FootInsConfig()
     n = len(imu)
     if n < 10:
@@ -148,6 +154,8 @@ def run_foot_ins(imu: ImuBlock, config: FootInsConfig | None = None, stance: np.
             stance = detect_stance(imu, cfg.detector, cfg.detector_threshold, g)
     gentle = stance_mod.swing_level(T, rate) < stance_mod.GENTLE_SWING_LOG10 if cfg.vet else np.zeros(n, bool)
     weak &= ~gentle
+    if doubtful is not None:
+        weak = weak | np.asarray(doubtful, bool)
     stance = (np.asarray(stance, bool) | weak) & finite
     gate = gentle | weak | cfg.gate_zupt
     reinit_after = max(1, int(round(cfg.reinit_after_s * rate)))

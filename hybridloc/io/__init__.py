@@ -1,7 +1,7 @@
 """Readers and writers for real recording formats, and format detection.
 
-Formats: Indoor Location Competition traces (:mod:`.msft`), PyShoe / OpenShoe ``.mat`` and the plain
-IMU CSV (:mod:`.imu_files`), UJIIndoorLoc CSV (:mod:`.uji`); writers for trajectory CSV, GeoJSON and
+Formats: Indoor Location Competition traces (:mod:`.msft`), PyShoe / OpenShoe ``.mat``, MicroStrain
+SensorConnect CSV with the gait-driven set's footprint ``.mat``, and the plain IMU CSV (:mod:`.imu_files`), UJIIndoorLoc CSV (:mod:`.uji`); writers for trajectory CSV, GeoJSON and
 NMEA-0183 (:mod:`.writers`). The bad-input policy shared by every reader is in :mod:`.common`.
 """
 
@@ -14,7 +14,7 @@ import scipy.io
 
 from .common import DataFormatError, ReadIssue, ReadReport, open_binary, stem_of
 
-FORMATS = ("msft", "pyshoe", "openshoe", "csv", "ujiindoorloc")
+FORMATS = ("msft", "pyshoe", "openshoe", "csv", "ujiindoorloc", "sensorconnect", "footprints")
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -36,7 +36,9 @@ def detect_format(path: str | os.PathLike) -> str:
             return "pyshoe"
         if "u" in keys:
             return "openshoe"
-        raise DataFormatError(path, None, f"MATLAB file with keys {sorted(keys)}: neither PyShoe (imu, ts) nor OpenShoe (u)")
+        if {"GCP_meters", "GCP_stride_numbers"} <= keys:
+            return "footprints"
+        raise DataFormatError(path, None, f"MATLAB file with keys {sorted(keys)}: neither PyShoe (imu, ts), OpenShoe (u) nor footprints (GCP_meters)")
     try:
         with open_binary(path) as f:
             head = f.read(4096).decode("utf-8", errors="replace")
@@ -48,6 +50,10 @@ def detect_format(path: str | os.PathLike) -> str:
         return "ujiindoorloc"
     if "\tTYPE_" in head or first.startswith("#\tstartTime") or first.startswith("#\tSiteID"):
         return "msft"
+    from .imu_files import is_sensorconnect_header
+
+    if is_sensorconnect_header(first):
+        return "sensorconnect"
     data_lines = [ln for ln in lines if not ln.startswith("#")]
     if data_lines and data_lines[0].replace(" ", "").lower().startswith("t,ax,ay,az,gx,gy,gz"):
         return "csv"

@@ -1,4 +1,5 @@
-"""Foot-mounted and plain IMU recordings: PyShoe ``.mat``, OpenShoe ``.mat`` and the plain IMU CSV.
+"""Foot-mounted and plain IMU recordings: PyShoe ``.mat``, OpenShoe ``.mat``, MicroStrain SensorConnect
+CSV (with the gait-driven set's footprint ``.mat``) and the plain IMU CSV.
 
 Plain IMU CSV
 -------------
@@ -14,6 +15,23 @@ reported, or raised); samples out of time order are re-sorted and duplicates dro
 Units are checked on the whole file: an accelerometer whose median magnitude is near 1 (not 9.8)
 is in g, a gyroscope peaking above 35 rad/s (2000 deg/s, the largest MEMS range) is in deg/s; both
 raise :class:`~hybridloc.io.common.DataFormatError` naming the option that fixes it.
+
+SensorConnect CSV
+-----------------
+What LORD MicroStrain's SensorConnect exports (:func:`read_sensorconnect_csv`): a header ``Time,<node>:<channel>,...``
+(``Time`` in s), one sample per line. The unit of each channel is fixed by its MIP channel name, and the
+reader converts to SI from the name, then checks the magnitudes agree (a file whose "scaled"
+accelerometer already reads 9.8, or a gyro that peaks like deg/s, raises instead of being converted twice):
+
+* ``scaledAccelX/Y/Z``: g (x :data:`~hybridloc.units.G0`); ``scaledGyroX/Y/Z``: rad/s;
+  ``scaledMagX/Y/Z``: gauss (x 1e-4 T) - the sensor's calibrated IMU data;
+* ``estCompensatedAccelX/Y/Z``: m/s^2; ``estAngularRateX/Y/Z``: rad/s - its estimation filter's
+  bias-compensated output, each with a ``:valid`` flag (a sample flagged 0 is a problem, skipped);
+* attitude columns (``roll/pitch/yaw``, ``estRoll/...``) are the sensor's own estimate and are not used.
+
+SensorConnect stamps samples with the host's arrival time when the device's own clock is not logged:
+samples then come in bunches (intervals of 20 us beside 12 ms around a 5 ms mean). When that happens on
+a recording without gaps, the samples are re-spaced evenly over the same span (a noted fix-up).
 """
 
 from __future__ import annotations
@@ -21,12 +39,13 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import scipy.io
 
 from ..types import ImuBlock, Trajectory
-from ..units import DEG, G0, UT_TO_T
+from ..units import DEG, G0, GAUSS_TO_T, UT_TO_T
 from .common import DataFormatError, OnError, ReadReport, iter_lines, sort_unique
 
 IMU_CSV_COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz")
@@ -209,3 +228,184 @@ def read_openshoe_mat(path: str | os.PathLike, rate_hz: float = 100.0, on_error:
     u = u[good]
     check_imu_units(u[:, :3], u[:, 3:], path)
     return ImuRecording(path, ImuBlock(t, u[:, :3], u[:, 3:], None, path), None, report, {"rate_hz": rate_hz})
+
+
+# ------------------------------------------------------------------ MicroStrain SensorConnect CSV
+#: SensorConnect (MIP) channel families: name stem -> (accel stem, gyro stem, mag stem or None, accel unit
+#: factor to m/s^2, whether each channel has a ``:valid`` flag column).
+SENSORCONNECT_FAMILIES = {
+    "scaled": ("scaledAccel", "scaledGyro", "scaledMag", G0, False),
+    "estimated": ("estCompensatedAccel", "estAngularRate", None, 1.0, True),
+}
+
+#: A SensorConnect time stamp interval shorter than this share of the mean interval is a bunched
+#: (host arrival) stamp; when more than :data:`BUNCHED_SHARE` of the intervals are, the file is re-timed.
+BUNCHED_INTERVAL = 0.25
+BUNCHED_SHARE = 0.05
+
+
+def is_sensorconnect_header(line: str) -> bool:
+    cols = [c.strip() for c in line.split(",")]
+    return bool(cols) and cols[0] == "Time" and any(c.endswith((":scaledAccelX", ":estCompensatedAccelX")) for c in cols[1:])
+
+
+def _sensorconnect_columns(path: str, header: list[str]) -> tuple[str, list[int], list[int], list[int] | None, list[int], float]:
+    """(family, accel, gyro, mag or None, valid-flag column indices, accel factor) from the header."""
+    chan = {}
+    for i, c in enumerate(header):
+        name = c.split(":", 1)[1] if ":" in c else c
+        chan[name] = i
+    for fam, (acc, gyr, mag, factor, has_valid) in SENSORCONNECT_FAMILIES.items():
+        need = [f"{acc}{a}" for a in "XYZ"] + [f"{gyr}{a}" for a in "XYZ"]
+        if not all(n in chan for n in need):
+            continue
+        ia = [chan[f"{acc}{a}"] for a in "XYZ"]
+        ig = [chan[f"{gyr}{a}"] for a in "XYZ"]
+        im = [chan[f"{mag}{a}"] for a in "XYZ"] if mag and all(f"{mag}{a}" in chan for a in "XYZ") else None
+        iv = [chan[f"{n}:valid"] for n in need if f"{n}:valid" in chan] if has_valid else []
+        return fam, ia, ig, im, iv, factor
+    raise DataFormatError(
+        path,
+        1,
+        "SensorConnect header without a full accelerometer + gyroscope triple (scaledAccelX/Y/Z + scaledGyroX/Y/Z, or estCompensatedAccelX/Y/Z + estAngularRateX/Y/Z)",
+    )
+
+
+def read_sensorconnect_csv(path: str | os.PathLike, on_error: OnError = "skip") -> ImuRecording:
+    """Read a MicroStrain SensorConnect CSV export (see the module docstring): SI units from the channel
+    names, checked against the magnitudes; ``extras['family']`` says which channels were used
+    (``scaled`` or ``estimated``), ``extras['retimed']`` whether bunched stamps were re-spaced."""
+    path = str(path)
+    report = ReadReport(path, on_error)
+    header: list[str] | None = None
+    rows: list[list[float]] = []
+    for lineno, line in iter_lines(path, report):
+        s = line.strip()
+        if not s:
+            continue
+        parts = [p.strip() for p in s.split(",")]
+        if header is None:
+            if not is_sensorconnect_header(s):
+                raise DataFormatError(path, lineno, f"not a SensorConnect export: header {s[:80]!r}")
+            header = parts
+            fam, ia, ig, im, iv, factor = _sensorconnect_columns(path, header)
+            used = [0] + ia + ig + (im or [])
+            continue
+        if len(parts) != len(header):
+            report.problem(lineno, "malformed-line", f"{len(parts)} fields, expected {len(header)}")
+            continue
+        try:
+            vals = [float(parts[k]) for k in used]
+            flags = [float(parts[k]) for k in iv]
+        except ValueError:
+            report.problem(lineno, "malformed-line", "not a number")
+            continue
+        if not all(math.isfinite(v) for v in vals):
+            report.problem(lineno, "non-finite", "NaN or infinity")
+            continue
+        if any(f != 1.0 for f in flags):
+            report.problem(lineno, "invalid-sample", "a channel's valid flag is 0")
+            continue
+        rows.append(vals)
+    if header is None or len(rows) < 2:
+        raise DataFormatError(path, None, "no IMU samples")
+    a = np.asarray(rows)
+    t, (acc, gyr, mag) = sort_unique(a[:, 0], [a[:, 1:4], a[:, 4:7], a[:, 7:10] if im else np.zeros((len(a), 0))], report, "imu")
+    if len(t) < 2:
+        raise DataFormatError(path, None, "fewer than two IMU samples with distinct times")
+    med = float(np.median(np.linalg.norm(acc, axis=1)))
+    acc_name = SENSORCONNECT_FAMILIES[fam][0]
+    if factor != 1.0 and not 0.5 < med < 2.0:
+        raise DataFormatError(
+            path, None, f"{acc_name} median magnitude {med:.3g}: SensorConnect writes it in g (about 1), this file is in other units"
+        )
+    if factor == 1.0 and 0.5 < med < 2.0:
+        raise DataFormatError(
+            path, None, f"{acc_name} median magnitude {med:.3g}: SensorConnect writes it in m/s^2 (about 9.8), this file looks like g"
+        )
+    acc = acc * factor
+    check_imu_units(acc, gyr, path)
+    m = None
+    if im:
+        m = mag * GAUSS_TO_T
+        med_b = float(np.median(np.linalg.norm(m, axis=1)))
+        if not 1e-6 < med_b < 2e-4:  # the Earth's field is 25-65 uT; indoors 10-150
+            raise DataFormatError(path, None, f"scaledMag median {med_b / GAUSS_TO_T:.3g}: not gauss (the Earth's field is 0.25-0.65 gauss)")
+    t, retimed = _respace_bunched(t, report)
+    return ImuRecording(path, ImuBlock(t, acc, gyr, m, path), None, report, {"family": fam, "retimed": retimed})
+
+
+def _respace_bunched(t: np.ndarray, report: ReadReport) -> tuple[np.ndarray, bool]:
+    """Host arrival stamps (module docstring): evenly re-spaced when bunched and free of gaps."""
+    dt = np.diff(t)
+    mean = float(t[-1] - t[0]) / (len(t) - 1)
+    short = int(np.sum(dt < BUNCHED_INTERVAL * mean))
+    if short <= BUNCHED_SHARE * len(dt):
+        return t, False
+    if float(dt.max()) > 5.0 * mean:
+        report.problem(
+            None, "bunched-timestamps", f"{short} of {len(dt)} sample intervals under {BUNCHED_INTERVAL:g} of the mean, and gaps: kept as stamped"
+        )
+        return t, False
+    report.note(
+        "retimed",
+        len(t),
+        f"{short} of {len(dt)} intervals under {BUNCHED_INTERVAL:g} of the mean {mean * 1e3:.2f} ms: host arrival stamps, re-spaced evenly",
+    )
+    return t[0] + mean * np.arange(len(t)), True
+
+
+@dataclass(frozen=True, eq=False)
+class Footprints:
+    """Measured footprints of a walk (the gait-driven set's ``SensorConnectData_NN.mat``).
+
+    ``pos_xy`` (K, 2): the foot's position in metres after stride ``stride[k]`` (stride 0 = the start),
+    measured on the floor tiles (``tile_edge_m`` each); ``n_strides`` the strides walked; ``valid``
+    the file's ``GCP_exist_and_correct``; ``experiment`` its ``expID``.
+    """
+
+    path: str
+    pos_xy: np.ndarray
+    stride: np.ndarray
+    n_strides: int
+    valid: bool
+    experiment: int
+    tile_edge_m: float
+
+    @property
+    def distance_m(self) -> float:
+        return float(np.linalg.norm(np.diff(self.pos_xy, axis=0), axis=1).sum())
+
+
+FOOTPRINT_KEYS = ("GCP_meters", "GCP_stride_numbers", "numberOfStrides")
+
+
+def read_footprints_mat(path: str | os.PathLike) -> Footprints:
+    """Read a footprint truth file (:class:`Footprints`); missing keys or inconsistent sizes raise."""
+    path = str(path)
+    m = _loadmat(path)
+    missing = [k for k in FOOTPRINT_KEYS if k not in m]
+    if missing:
+        raise DataFormatError(path, None, f"missing key(s) {missing}: not a gait-driven footprint file")
+    xy = np.asarray(m["GCP_meters"], dtype=float)
+    k = np.asarray(m["GCP_stride_numbers"]).ravel().astype(int)
+    n = int(np.asarray(m["numberOfStrides"]).ravel()[0])
+    if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] != k.shape[0] or not np.all(np.isfinite(xy)):
+        raise DataFormatError(path, None, f"GCP_meters {xy.shape} does not match GCP_stride_numbers {k.shape}, or holds NaN")
+    if len(k) < 2 or k[0] != 0 or np.any(np.diff(k) <= 0) or k[-1] > n:
+        raise DataFormatError(path, None, f"GCP_stride_numbers must rise from 0 (the start) to at most numberOfStrides={n}")
+    valid = bool(np.asarray(m.get("GCP_exist_and_correct", [[1]])).ravel()[0])
+    exp = int(np.asarray(m.get("expID", [[-1]])).ravel()[0])
+    edge = float(np.asarray(m.get("tile_edge_length", [[float("nan")]])).ravel()[0])
+    return Footprints(path, xy - xy[0], k, n, valid, exp, edge)
+
+
+def footprints_beside(path: str | os.PathLike) -> Footprints | None:
+    """The footprint file beside a SensorConnect CSV (``X.csv[.gz]`` -> ``X.mat``), None when absent."""
+    p = Path(path)
+    name = p.name
+    for ext in (".gz", ".csv"):
+        if name.lower().endswith(ext):
+            name = name[: -len(ext)]
+    mat = p.with_name(name + ".mat")
+    return read_footprints_mat(mat) if mat.is_file() else None
