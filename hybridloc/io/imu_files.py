@@ -84,6 +84,24 @@ class ImuRecording:
         return self.imu.rate_hz
 
 
+def _numeric_row(parts: list[str], n_fields: int, cols, extra, lineno: int, report: ReadReport) -> tuple[list[float], list[float]] | None:
+    """One CSV record's numbers: (the values of ``cols``, those of ``extra``), or None with the problem
+    counted (wrong field count, a field that is no number, a NaN or infinite value in ``cols``)."""
+    if len(parts) != n_fields:
+        report.problem(lineno, "malformed-line", f"{len(parts)} fields, expected {n_fields}")
+        return None
+    try:
+        vals = [float(parts[k]) for k in cols]
+        more = [float(parts[k]) for k in extra]
+    except ValueError:
+        report.problem(lineno, "malformed-line", "not a number")
+        return None
+    if not all(math.isfinite(v) for v in vals):
+        report.problem(lineno, "non-finite", "NaN or infinity")
+        return None
+    return vals, more
+
+
 def read_imu_csv(path: str | os.PathLike, accel_unit: str = "m/s^2", mag_unit: str = "T", on_error: OnError = "skip") -> ImuRecording:
     """Read the plain IMU CSV (see module docstring)."""
     path = str(path)
@@ -104,18 +122,9 @@ def read_imu_csv(path: str | os.PathLike, accel_unit: str = "m/s^2", mag_unit: s
             if tuple(header[:7]) != IMU_CSV_COLUMNS or header[7:] not in ([], list(IMU_CSV_MAG_COLUMNS)):
                 raise DataFormatError(path, lineno, f"header must be {','.join(IMU_CSV_COLUMNS)}[,mx,my,mz], got {s[:80]!r}")
             continue
-        if len(parts) != len(header):
-            report.problem(lineno, "malformed-line", f"{len(parts)} fields, expected {len(header)}")
-            continue
-        try:
-            vals = [float(p) for p in parts]
-        except ValueError:
-            report.problem(lineno, "malformed-line", "not a number")
-            continue
-        if not all(math.isfinite(v) for v in vals):
-            report.problem(lineno, "non-finite", "NaN or infinity")
-            continue
-        rows.append(vals)
+        got = _numeric_row(parts, len(header), range(len(header)), (), lineno, report)
+        if got is not None:
+            rows.append(got[0])
     if header is None or len(rows) < 2:
         raise DataFormatError(path, None, "no IMU samples")
     a = np.asarray(rows)
@@ -291,18 +300,10 @@ def read_sensorconnect_csv(path: str | os.PathLike, on_error: OnError = "skip") 
             fam, ia, ig, im, iv, factor = _sensorconnect_columns(path, header)
             used = [0] + ia + ig + (im or [])
             continue
-        if len(parts) != len(header):
-            report.problem(lineno, "malformed-line", f"{len(parts)} fields, expected {len(header)}")
+        got = _numeric_row(parts, len(header), used, iv, lineno, report)
+        if got is None:
             continue
-        try:
-            vals = [float(parts[k]) for k in used]
-            flags = [float(parts[k]) for k in iv]
-        except ValueError:
-            report.problem(lineno, "malformed-line", "not a number")
-            continue
-        if not all(math.isfinite(v) for v in vals):
-            report.problem(lineno, "non-finite", "NaN or infinity")
-            continue
+        vals, flags = got
         if any(f != 1.0 for f in flags):
             report.problem(lineno, "invalid-sample", "a channel's valid flag is 0")
             continue
