@@ -108,6 +108,21 @@ def kld_size(keys: np.ndarray, epsilon: float, delta: float, n_min: int = 1) -> 
     return int(hit[0]) + 1 if hit.size else n
 
 
+def kld_grow(draw: Callable[[int], np.ndarray], m0: int, epsilon: float, delta: float, n_min: int, n_max: int) -> int:
+    """KLD-sampling's sample size, drawn in doubling batches: ``draw(k)`` draws k more samples (the
+    caller keeps them) and returns their bins; from ``m0`` samples on, the count doubles until
+    :func:`kld_size` stops inside what was drawn, or ``n_max`` is reached. Returns the size, <= n_max
+    (the caller keeps that many of its samples, in draw order)."""
+    m = m0
+    keys = np.zeros(0, np.int64)
+    while True:
+        keys = np.concatenate([keys, draw(m - len(keys))])
+        n = kld_size(keys, epsilon, delta, n_min)
+        if n < m or m >= n_max:
+            return min(n, n_max)
+        m = min(2 * m, n_max)
+
+
 def bin_keys(xy: np.ndarray, heading: np.ndarray, bin_xy: float, bin_heading: float) -> np.ndarray:
     """One integer per (x, y, heading) bin of a grid of ``bin_xy`` m squares and ``bin_heading`` rad
     sectors (KLD-sampling's bins): (N,) int64, equal for points in the same bin."""

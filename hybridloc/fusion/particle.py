@@ -66,7 +66,7 @@ import shapely
 
 from ..estimation import UpdateStats, chi2_threshold, log_normalise
 from ..estimation import resampler as make_resampler
-from ..estimation.resampling import Resampler, bin_keys, kld_bound, kld_size
+from ..estimation.resampling import Resampler, bin_keys, kld_bound, kld_grow
 from ..types import AbsoluteFix, ContainmentRegion, DisplacementFix, Fix, StepEvent
 from ..units import wrap_angle
 from .kalman import (
@@ -276,19 +276,17 @@ class ParticleFusion:
             b = self.rng.normal(self._bias0[0], self._bias0[1], n)
             s = 1.0 + self.rng.normal(0.0, cfg.sigma_scale0, n)
         else:  # KLD-sampling from the start distribution: draw until the bound of the bins occupied is met
-            m = max(cfg.n_min, min(cfg.n_particles, cfg.n_max))
-            p, b, s = np.zeros((0, 2)), np.zeros(0), np.zeros(0)
-            while True:
-                k = m - len(p)
-                p = np.concatenate([p, self._draw_start(z, R, region, k)])
-                b = np.concatenate([b, self.rng.normal(self._bias0[0], self._bias0[1], k)])
-                s = np.concatenate([s, 1.0 + self.rng.normal(0.0, cfg.sigma_scale0, k)])
-                n = kld_size(bin_keys(p, b, cfg.kld_bin_xy, cfg.kld_bin_heading), cfg.kld_epsilon, cfg.kld_delta, cfg.n_min)
-                if n < m or m >= cfg.n_max:
-                    break
-                m = min(2 * m, cfg.n_max)
-            n = min(n, cfg.n_max)
-            p, b, s = p[:n], b[:n], s[:n]
+            drawn: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+            def draw(k: int) -> np.ndarray:
+                pk = self._draw_start(z, R, region, k)
+                bk = self.rng.normal(self._bias0[0], self._bias0[1], k)
+                drawn.append((pk, bk, 1.0 + self.rng.normal(0.0, cfg.sigma_scale0, k)))
+                return bin_keys(pk, bk, cfg.kld_bin_xy, cfg.kld_bin_heading)
+
+            m0 = max(cfg.n_min, min(cfg.n_particles, cfg.n_max))
+            n = kld_grow(draw, m0, cfg.kld_epsilon, cfg.kld_delta, cfg.n_min, cfg.n_max)
+            p, b, s = (np.concatenate(part)[:n] for part in zip(*drawn))
         self._place(p, b, s)
 
     def _draw_start(self, z: np.ndarray, R: np.ndarray, region: ContainmentRegion | None, n: int) -> np.ndarray:
@@ -412,15 +410,12 @@ class ParticleFusion:
         assert cfg.kld_epsilon is not None
         c = np.cumsum(w)
         c[-1] = 1.0
-        m = max(cfg.n_min, min(len(w), cfg.n_max))
-        keys = np.zeros(0, np.int64)
-        while True:
-            idx = np.searchsorted(c, self.rng.random(m - len(keys)))
-            keys = np.concatenate([keys, bin_keys(self.p[idx], self.b[idx], cfg.kld_bin_xy, cfg.kld_bin_heading)])
-            n = kld_size(keys, cfg.kld_epsilon, cfg.kld_delta, cfg.n_min)
-            if n < m or m >= cfg.n_max:
-                return min(n, cfg.n_max)
-            m = min(2 * m, cfg.n_max)
+
+        def draw(k: int) -> np.ndarray:
+            idx = np.searchsorted(c, self.rng.random(k))
+            return bin_keys(self.p[idx], self.b[idx], cfg.kld_bin_xy, cfg.kld_bin_heading)
+
+        return kld_grow(draw, max(cfg.n_min, min(len(w), cfg.n_max)), cfg.kld_epsilon, cfg.kld_delta, cfg.n_min, cfg.n_max)
 
     def _kld_shrink(self) -> None:
         """KLD-sampling between resamplings: when the bins of all the present particles would need
