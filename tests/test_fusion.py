@@ -363,6 +363,22 @@ def test_a_cloud_behind_a_wall_is_redrawn_around_fixes_beyond_it():
             assert ok
         ends.append(e.pos[1])
     assert ends[0] < 5.0 < 5.5 < ends[1]
+    # the same under KLD-sampling, walking: a fix's resampling resizes the cloud before the redraw, which
+    # must take its donors' positions then from the resized cloud (it once indexed the old one: an
+    # IndexError whenever the cloud grew, a wrong shift whenever it was reordered)
+    for seed in range(3):
+        kld = ParticleConfig(n_particles=200, reset_share=0.3, kld_epsilon=0.05, n_min=100, seed=seed)
+        pf = ParticleFusion(prior, kld, init=(10.0, 2.5, 0.3), floor="F1")
+        counts, t = set(), 0.0
+        for k in range(30):  # standing steps with a wide heading spread: the cloud diffuses, the fixes pull north
+            t += 0.5
+            pf.predict(StepEvent(t, 0.0, 0.0, 0.3, math.radians(40), 0.0, math.radians(1)))
+            if k % 3 == 2:
+                pf.correct(AbsoluteFix(t, [10.0, 7.5], np.eye(2) * 4.0, "rfid", "F1", 1.0))
+            counts.add(pf.n_particles)
+            assert len(pf.p) == len(pf.logw) == len(pf.b) == len(pf.s)
+        assert len(counts) > 1  # KLD-sampling did resize the cloud
+        assert pf.estimate("end").pos[1] > 5.0  # and the redraws took it across the wall
 
 
 # ---------------------------------------------------------------------------------------------- re-anchoring

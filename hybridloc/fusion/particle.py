@@ -669,9 +669,10 @@ class ParticleFusion:
             return False, self.estimate("fix-rejected")
         self._rejected_run = 0
         self.stats.accepted["position"] += 1
+        lineage = self._anc
         self._weigh(self._log_likelihood(z, p_then, R))
-        if beyond_wall:
-            self._reset_around(z, R, p_then)
+        if beyond_wall:  # the positions then of the particles now: a resampling in _weigh reorders (under KLD resizes) the cloud
+            self._reset_around(z, R, p_then if self._anc is lineage else self._positions_at(fix.t))
         self.t = max(self.t, fix.t)
         self.floor = floor_after_fix(self.floor, fix, self.cfg.floor_switch)
         return True, self.estimate("fix")
