@@ -457,7 +457,9 @@ def _rel(x: float, ref: float) -> str:
     return f"{abs(r):.0f}% {'below' if r < 0 else 'above'}"
 
 
-def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0) -> dict:
+def run_fusion_eval(
+    site_dir: str, out: Path, replay_every: int = 4, every: int = 1, workers: int = 4, speed: float = 20.0, kld_epsilons=None
+) -> dict:
     """``hybridloc eval fusion``: surveys build the map; every ``replay_every``-th trace is a phone client.
     Prints its report and returns the headline figures (the JSON line's: ``cold_mean_m``, ``wifi_mean_m``...).
 
@@ -595,6 +597,7 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
                 + ", ".join(f"{k} {np.nanmean(E[k][m]):.2f} m" for k in (names[0], names[1], names[2], names[4]))
             )
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
+    cold = _cold_start_report(results, prior, axes, KLD_EPSILONS if kld_epsilons is None else kld_epsilons)
     keys = (
         "pdr_mean_m",
         "wifi_mean_m",
@@ -616,7 +619,147 @@ def run_fusion_eval(site_dir: str, out: Path, replay_every: int = 4, every: int 
         waypoints=summ[names[2]].n,
         clients=len(results),
     )
+    head.update(cold)
     return head
+
+
+class _Timed:
+    """A step filter's ``predict`` / ``correct`` timed (wall seconds, summed) and its particle count
+    read after every step: what ``eval fusion`` prints as particles used and time per step."""
+
+    def __init__(self, filt):
+        self.filt, self.seconds, self.counts = filt, 0.0, []
+
+    @property
+    def initialised(self) -> bool:
+        return self.filt.initialised
+
+    def predict(self, step):
+        t = time.perf_counter()
+        e = self.filt.predict(step)
+        self.seconds += time.perf_counter() - t
+        if self.filt.initialised:
+            self.counts.append(self.filt.n_particles)
+        return e
+
+    def correct(self, fix):
+        t = time.perf_counter()
+        out = self.filt.correct(fix)
+        self.seconds += time.perf_counter() - t
+        return out
+
+
+#: The cold-start goal (Woodman and Harle; issue 24 point 4): within this error ...
+COLD_RADIUS_M = 5.0
+#: ... within this many seconds of the walk's first mark, on this share of walks, with at most N_MAX particles
+COLD_WINDOW_S = 30.0
+COLD_SHARE = 0.9
+COLD_N_MAX = 50_000
+#: Fox's epsilon for KLD-sampling, the candidates ``eval fusion`` chooses from (leave one floor out)
+KLD_EPSILONS = (0.05, 0.15, 0.4)
+
+
+def _cold_walks(results, prior, axes, cfg) -> list[dict]:
+    """Each client's steps and fixes, in the order they reached it, through the particle filter with
+    the map under ``cfg``: per walk its floor, seconds to within COLD_RADIUS_M (inf: not within
+    COLD_WINDOW_S), particles used (mean and most over its steps) and filter seconds per step."""
+    from .fusion import ParticleFusion
+    from .metrics import time_to_within
+
+    out = []
+    for tr, r in results:
+        wp = tr.waypoints
+        filt = _Timed(ParticleFusion(prior, config=cfg, corridor_axes=axes))
+        est = run_fusion(filt, r.step_events, [f for _, f in r.fix_log], [a for a, _ in r.fix_log])
+        poses = [(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in est]
+        floors = [wp.floor_of(k) for k in range(len(wp.t))]
+        out.append(
+            {
+                "floor": wp.floor_of(0) or "",
+                "ttw": time_to_within(poses, wp.t, wp.pos_enu, COLD_RADIUS_M, COLD_WINDOW_S, floors),
+                "n_mean": float(np.mean(filt.counts)) if filt.counts else float("nan"),
+                "n_max": max(filt.counts, default=0),
+                "s_per_step": filt.seconds / max(len(r.step_events), 1),
+                "short": (wp.t[-1] - wp.t[0]) < COLD_WINDOW_S if len(wp.t) else True,
+            }
+        )
+    return out
+
+
+def _cold_share(walks: list[dict]) -> float:
+    return float(np.mean([np.isfinite(w["ttw"]) for w in walks])) if walks else float("nan")
+
+
+def _cold_start_report(results, prior, axes, epsilons=KLD_EPSILONS) -> dict:
+    """The particle filter from a cold start: KLD-sampling (Fox 2003) started uniform in the first
+    fix's 95 % region (containment start), scored by how soon each walk's track comes within 5 m of
+    the truth (:func:`hybridloc.metrics.time_to_within`) - against the fixed-count, Gaussian-start
+    filter above on the same walks. Fox's epsilon is chosen leave one floor out: for each floor, the
+    epsilon with the largest share within 5 m on the other floors (fewest particles on a tie) is
+    scored on that floor; the fitted figure (the best epsilon on all floors) is printed beside it.
+    Prints per floor: walks, share within 5 m in 30 s, median seconds to it, particles used (mean,
+    most), milliseconds per step. Returns the JSON line's ``cold_*`` keys."""
+    from .fusion import ParticleConfig
+
+    eps = tuple(float(e) for e in epsilons)
+    runs = {e: _cold_walks(results, prior, axes, ParticleConfig(kld_epsilon=e, start="containment", n_max=COLD_N_MAX)) for e in eps}
+    plain = _cold_walks(results, prior, axes, ParticleConfig())
+    floors = sorted({w["floor"] for w in plain})
+
+    def key(walks):  # larger share first, then fewer particles
+        return (_cold_share(walks), -float(np.nanmean([w["n_mean"] for w in walks])) if walks else 0.0)
+
+    held: list[dict] = []
+    chosen: dict[str, float] = {}
+    for f in floors:
+        train = {e: [w for w in runs[e] if w["floor"] != f] for e in eps}
+        best = max(eps, key=lambda e: key(train[e])) if len(floors) > 1 else eps[0]
+        chosen[f] = best
+        held += [w for w in runs[best] if w["floor"] == f]
+    fitted_eps = max(eps, key=lambda e: key(runs[e]))
+    print(
+        f"  cold start, particle filter + map (KLD-sampling, start uniform in the first fix's 95 % region, <= {COLD_N_MAX:,} particles); "
+        f"goal: within {COLD_RADIUS_M:g} m of the truth within {COLD_WINDOW_S:g} s on >= {100 * COLD_SHARE:.0f} % of walks, every floor"
+    )
+    print(
+        "    Fox's epsilon per held-out floor (chosen on the other floors from "
+        + ", ".join(f"{e:g}" for e in eps)
+        + "): "
+        + ", ".join(f"{f} {chosen[f]:g}" for f in floors)
+    )
+
+    def row(label, walks):
+        t = np.array([w["ttw"] for w in walks], float)
+        fin = t[np.isfinite(t)]
+        nm = np.array([w["n_mean"] for w in walks], float)
+        print(
+            f"    {label:<44} {len(walks):4d} walks ({sum(w['short'] for w in walks)} shorter than {COLD_WINDOW_S:g} s): "
+            f"within {COLD_RADIUS_M:g} m in {COLD_WINDOW_S:g} s {100 * _cold_share(walks):5.1f} %, median {np.median(fin) if fin.size else float('nan'):4.1f} s; "
+            f"particles mean {np.nanmean(nm) if nm.size else float('nan'):7.0f}, most {max((w['n_max'] for w in walks), default=0):6d}; "
+            f"{1e3 * np.mean([w['s_per_step'] for w in walks]) if walks else float('nan'):6.2f} ms per step"
+        )
+
+    for f in floors:
+        row(f"{f}, held out (KLD, containment start)", [w for w in held if w["floor"] == f])
+        row(f"{f}, fixed {ParticleConfig().n_particles} particles, Gaussian start", [w for w in plain if w["floor"] == f])
+    row("all floors, held out", held)
+    row(f"all floors, fitted (epsilon {fitted_eps:g} on every floor)", runs[fitted_eps])
+    row("all floors, fixed-count Gaussian start", plain)
+    per_floor = {f: _cold_share([w for w in held if w["floor"] == f]) for f in floors}
+    nm_held = [w["n_mean"] for w in held]
+    sp_held = [w["s_per_step"] for w in held]
+    plain_sp = float(np.mean([w["s_per_step"] for w in plain])) if plain else float("nan")
+    if held and plain_sp > 0:
+        print(f"    time per step, held out against the fixed-count filter: x{np.mean(sp_held) / plain_sp:.2f}")
+    return {
+        "cold_within_5m_30s_pct": 100 * _cold_share(held),
+        "cold_within_5m_30s_worst_floor_pct": 100 * min(per_floor.values()) if per_floor else float("nan"),
+        "cold_within_5m_30s_fitted_pct": 100 * _cold_share(runs[fitted_eps]),
+        "cold_within_5m_30s_fixed_pct": 100 * _cold_share(plain),
+        "cold_particles_mean": float(np.nanmean(nm_held)) if nm_held else float("nan"),
+        "cold_particles_max": max((w["n_max"] for w in held), default=0),
+        "cold_ms_per_step": 1e3 * float(np.mean(sp_held)) if sp_held else float("nan"),
+    }
 
 
 def _routes_walked_by_surveys(traces: list, survey: list) -> set[str]:

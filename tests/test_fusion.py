@@ -619,3 +619,47 @@ def test_containment_start_draws_every_particle_inside_the_servers_region():
     assert d2.max() <= chi2.ppf(0.95, 2) * (1 + 1e-9)
     # uniform in the ellipse: the squared radius d2 / chi2 is uniform on [0, 1], mean 1/2
     assert abs(np.mean(d2) / chi2.ppf(0.95, 2) - 0.5) < 5 * math.sqrt(1 / 12 / 2000)
+
+
+def test_cold_start_report_scores_each_walk_held_out_by_floor(capsys):
+    """``eval fusion``'s cold-start figure on walks whose fixes scatter 1 m about the truth: the KLD
+    particle filter, started uniform in the first fix's 95 % region, is within 5 m at the first fix (a
+    5-sigma miss is not expected in 6 walks), on every floor; Fox's epsilon is chosen from the
+    candidates on the other floors; the particle count stays within the goal's 50,000."""
+    from types import SimpleNamespace
+
+    from hybridloc.demo import COLD_N_MAX, _cold_start_report
+    from hybridloc.types import Waypoints
+
+    rng = np.random.default_rng(3)
+    results = []
+    for k in range(6):
+        floor = "F1" if k % 2 else "F2"
+        steps = _walk(80, 0.0, t0=float(k))  # 40 s along +x at 1.4 m/s
+        wt = np.array([float(k), k + 20.0, k + 40.0])
+        wxy = np.array([[0.0, 0.0], [28.0, 0.0], [56.0, 0.0]])
+        fixes = []
+        for i in range(3, 80, 4):  # a fix every 2 s, reaching the client one step later
+            truth = np.array([0.7 * (i + 1), 0.0])
+            fixes.append((i + 1, AbsoluteFix(steps[i].t, truth + rng.normal(0.0, 1.0, 2), np.eye(2) * 1.0, "wifi", floor, 1.0)))
+        tr = SimpleNamespace(waypoints=Waypoints(wt, wxy, floor))
+        results.append((tr, SimpleNamespace(step_events=steps, fix_log=fixes)))
+    head = _cold_start_report(results, None, None, (0.1, 0.4))
+    out = capsys.readouterr().out
+    assert head["cold_within_5m_30s_pct"] == 100.0 and head["cold_within_5m_30s_worst_floor_pct"] == 100.0
+    assert head["cold_within_5m_30s_fixed_pct"] == 100.0
+    assert 0 < head["cold_particles_max"] <= COLD_N_MAX and head["cold_ms_per_step"] > 0
+    assert "F1, held out" in out and "F2, held out" in out and "Fox's epsilon per held-out floor" in out
+
+
+def test_eval_fusion_refuses_an_epsilon_outside_0_1(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-m", "hybridloc.cli", "eval", "fusion", str(tmp_path), "--kld-epsilons", "0.1,2"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode != 0 and "--kld-epsilons takes numbers between 0 and 1" in r.stderr

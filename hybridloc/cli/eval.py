@@ -405,7 +405,10 @@ def sim_realism_headline(res) -> dict:
 def _cmd_eval_fusion(args: argparse.Namespace) -> int:
     from ..demo import run_fusion_eval
 
-    print_headline(run_fusion_eval(args.dir, Path(args.out), args.replay_every, args.every))
+    eps = tuple(float(e) for e in args.kld_epsilons.split(",") if e.strip())
+    if not eps or not all(0.0 < e < 1.0 for e in eps):
+        raise SystemExit("hybridloc eval fusion: --kld-epsilons takes numbers between 0 and 1, e.g. 0.05,0.15,0.4")
+    print_headline(run_fusion_eval(args.dir, Path(args.out), args.replay_every, args.every, kld_epsilons=eps))
     return 0
 
 
@@ -482,6 +485,11 @@ def register(sub) -> None:
     efu.add_argument("--out", default="out/eval-fusion")
     efu.add_argument("--replay-every", type=int, default=4, help="every N-th trace is a phone client, the rest are surveys (default 4)")
     efu.add_argument("--every", type=int, default=1, help="use every N-th trace of the site")
+    efu.add_argument(
+        "--kld-epsilons",
+        default="0.05,0.15,0.4",  # hybridloc.demo.KLD_EPSILONS (the CLI imports no numerics up front)
+        help="candidates for Fox's epsilon of the cold-start particle filter, chosen leave one floor out (default %(default)s)",
+    )
     efu.set_defaults(func=_cmd_eval_fusion)
 
     esl = esub.add_parser("slam", help="crowd SLAM: corrected crowd walks, loops, and test clients with survey-only, crowd and all-marks maps")
