@@ -79,3 +79,21 @@ def test_sensorconnect_walk_through_data_inspect_and_pdr_foot(shared_data, tmp_p
     r = _run("pdr", "foot", str(files[0]), "--out", str(tmp_path / "out"))
     assert r.returncode == 0, r.stderr
     assert "strides" in r.stdout and list((tmp_path / "out").iterdir())
+
+
+@pytest.mark.shared_data
+def test_eval_pdr_phone_holds_each_floor_out(ilc_site1):
+    """On site1's three floors, every floor is scored with the yaw pull chosen on the other two and
+    lengths fitted there, beside the plain baseline held out alike; the held-out figures are in the
+    JSON line, and a walker's heading-change error stays inside what a phone PDR can have (the marks
+    alone turn by a median 6 deg on straight walks: under 3 deg held out would be a leak)."""
+    import json
+
+    r = _run("eval", "pdr-phone", str(ilc_site1), "--every", "15", "--k-mags", "0.03,0.1")
+    assert r.returncode == 0, r.stderr
+    assert "held out by floor (3 floors)" in r.stdout
+    for f in ("F1", "F2", "F3"):
+        assert f"  {f}: heading-change median" in r.stdout
+    head = json.loads(r.stdout.splitlines()[-1])
+    assert 3.0 < head["turn_error_held_out_by_floor_deg"] < 30.0 and 0 < head["segment_length_held_out_by_floor_median_pct"] < 50
+    assert {"turn_error_plain_held_out_deg", "segment_length_plain_held_out_median_pct", "floors_length_below_plain"} <= set(head)

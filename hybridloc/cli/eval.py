@@ -108,6 +108,44 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
         + " %"
     )
     wp = summarize_errors(main_m.wp_err)
+    held: dict = {}
+    k_mags = tuple(float(k) for k in args.k_mags.split(",") if k.strip())
+    floors_seen = {r.floor for r in runs}
+    if len(floors_seen) > 1 and k_mags:
+        from ..pdr.evaluate import floor_held_out
+
+        fh = floor_held_out(paths, cfg, runs, args.model, k_mags)
+        print(
+            f"held out by floor ({len(fh.floors)} floors): the magnetometer's yaw pull k_mag chosen on the other floors from "
+            + ", ".join(f"{k:g}" for k in k_mags)
+            + " ("
+            + ", ".join(f"{f} {fh.chosen[f]:g}" for f in fh.floors)
+            + f"), lengths ({args.model}) fitted on the other floors; plain baseline (our peak steps, Weinberg lengths, Android's "
+            f"rotation vector, {fh.plain_traces} traces) held out alike"
+        )
+        for f in fh.floors:
+            print(
+                f"  {f}: heading-change median {fh.turn_med[f]:5.1f} deg (plain {fh.plain_turn_med[f]:5.1f}), segment length median "
+                f"{fh.length_med[f]:5.1f}% (plain {fh.plain_length_med[f]:5.1f}%)"
+            )
+        print(
+            f"  all floors, held out: heading-change median {fh.turn_held_out:.1f} deg, segment length median {fh.length_held_out:.1f}%; "
+            f"fitted (k_mag {fh.fitted_k_mag:g} on every floor): {fh.turn_fitted:.1f} deg, {fh.length_fitted:.1f}%; plain {fh.plain_turn:.1f} deg, "
+            f"{fh.plain_length:.1f}% (ratio ours/plain {fh.turn_held_out / fh.plain_turn:.2f} heading, {fh.length_held_out / fh.plain_length:.2f} length)"
+        )
+        below = sum(fh.length_med[f] < fh.plain_length_med[f] for f in fh.floors)
+        print(
+            f"  goal: heading-change <= 10 deg held out by floor; segment length median below the plain baseline's on every floor ({below} of {len(fh.floors)})"
+        )
+        held = {
+            "turn_error_held_out_by_floor_deg": fh.turn_held_out,
+            "turn_error_fitted_deg": fh.turn_fitted,
+            "turn_error_plain_held_out_deg": fh.plain_turn,
+            "segment_length_held_out_by_floor_median_pct": fh.length_held_out,
+            "segment_length_plain_held_out_median_pct": fh.plain_length,
+            "floors_length_below_plain": below,
+            "turn_error_worst_floor_deg": max(fh.turn_med.values()),
+        }
     print_headline(
         {
             "segment_length_median_pct": 100 * np.median(main_m.length_rel_err),
@@ -118,6 +156,7 @@ def _cmd_eval_pdr_phone(args: argparse.Namespace) -> int:
             "length_error_ratio_to_constant": np.median(main_m.length_rel_err) / base,
             "steps": main_m.n_steps,
             "walked_m": main_m.walked_m,
+            **held,
         }
     )
     return 0
@@ -452,6 +491,11 @@ def register(sub) -> None:
     ep.add_argument("--model", choices=LENGTH_MODELS, default="height")
     ep.add_argument("--detector", choices=("peak", "autocorr"), default="peak")
     ep.add_argument("--every", type=int, default=1, help="use every N-th trace (default all)")
+    ep.add_argument(
+        "--k-mags",
+        default="0,0.01,0.03,0.1",  # hybridloc.pdr.evaluate.K_MAG_CANDIDATES
+        help="candidates for the magnetometer's yaw pull, chosen leave one floor out ('' skips the held-out-by-floor part; default %(default)s)",
+    )
     ep.set_defaults(func=_cmd_eval_pdr_phone)
 
     ef = esub.add_parser("pdr-foot", help="foot INS against PyShoe VICON ground truth (ARMSE, return-to-start)")

@@ -46,6 +46,9 @@ class TraceRun:
     #: per step, the phone's forward heading from Android's own fused attitude (TYPE_ROTATION_VECTOR),
     #: circular mean over the step; None when the recording has no rotation vector
     android_heading: np.ndarray | None = None
+    #: the walk's floor (Indoor Location Competition traces: one per trace; "" when unknown), the group
+    #: of :func:`floor_held_out`
+    floor: str = ""
 
 
 def android_step_headings(steps: list[StepEvent], rv_t: np.ndarray, rv_quat_wxyz: np.ndarray) -> np.ndarray:
@@ -135,7 +138,8 @@ def collect_runs(paths: list[Path], config: PhonePdrConfig) -> tuple[list[TraceR
         if tr.imu is None or len(tr.waypoints) < 2:
             skipped.append(f"{Path(p).name}: no IMU or fewer than 2 waypoints")
             continue
-        runs.append(trace_run(Path(p).name, tr.imu, tr.waypoints.t, tr.waypoints.pos_enu, config, tr.rotation_vector))
+        run = trace_run(Path(p).name, tr.imu, tr.waypoints.t, tr.waypoints.pos_enu, config, tr.rotation_vector)
+        runs.append(dataclasses.replace(run, floor=tr.waypoints.floor or ""))
     return runs, skipped
 
 
@@ -332,3 +336,98 @@ def offset_recovery(
                 if h is not None:
                     out[rule][a].append(abs(wrap_angle(h - h0)))
     return {r: {a: np.array(v) for a, v in d.items()} for r, d in out.items()}
+
+
+#: the magnetometer's yaw pull (AttitudeConfig.k_mag) candidates :func:`floor_held_out` chooses from
+K_MAG_CANDIDATES = (0.0, 0.01, 0.03, 0.1)
+
+
+@dataclass
+class FloorHeldOut:
+    """:func:`floor_held_out`'s result: per floor, the setting chosen on the other floors and the
+    scores there; pooled over floors, held out and fitted (the one setting best on every floor)."""
+
+    floors: list[str]
+    chosen: dict[str, float]  # floor -> k_mag chosen without it
+    turn_med: dict[str, float]  # floor -> heading-change error median, deg (held out)
+    length_med: dict[str, float]  # floor -> segment length error median, % (held out)
+    plain_turn_med: dict[str, float]  # the plain baseline (peak steps, Weinberg, Android's yaw), same floors
+    plain_length_med: dict[str, float]
+    turn_held_out: float  # pooled over every floor's held-out errors, deg
+    length_held_out: float  # %
+    plain_turn: float
+    plain_length: float
+    fitted_k_mag: float
+    turn_fitted: float  # the fitted setting, lengths still fitted on the other floors
+    length_fitted: float
+    plain_traces: int  # traces with Android's rotation vector (the baseline's heading)
+
+
+def _floor_scores(runs: list[TraceRun], model_name: str, heading: str = "ours") -> dict[str, tuple[list[float], list[float]]]:
+    """Per floor: (segment length errors, turn errors in deg) of its walks, the length model fitted on
+    the walks of the other floors only."""
+    out = {}
+    for f in sorted({r.floor for r in runs}):
+        train = [r for r in runs if r.floor != f]
+        model = fit_model(train if train else runs, model_name)
+        le, te, _ = score([r for r in runs if r.floor == f], model, heading=heading)
+        out[f] = (le, te)
+    return out
+
+
+def floor_held_out(
+    paths: list[Path],
+    config: PhonePdrConfig,
+    runs: list[TraceRun],
+    model_name: str = "height",
+    k_mags: tuple[float, ...] = K_MAG_CANDIDATES,
+) -> FloorHeldOut:
+    """Phone PDR held out by floor (issue 24 points 1 and 3): for each floor, the magnetometer's yaw
+    pull k_mag is chosen from ``k_mags`` by the pooled heading-change median of the OTHER floors (each
+    of them scored with lengths fitted without it), and that floor is scored with it, its lengths
+    fitted on the other floors. The plain baseline (peak steps, Weinberg lengths, Android's rotation
+    vector for the heading) is held out the same way. ``runs``: the walks under ``config`` (reused for
+    its k_mag); every other candidate runs the PDR again."""
+    by_k: dict[float, list[TraceRun]] = {}
+    for k in k_mags:
+        if math.isclose(k, config.attitude.k_mag):
+            by_k[k] = runs
+        else:
+            cfg = dataclasses.replace(config, attitude=dataclasses.replace(config.attitude, k_mag=k))
+            by_k[k] = collect_runs(paths, cfg)[0]
+    floors = sorted({r.floor for r in runs})
+    scores = {k: _floor_scores(rk, model_name) for k, rk in by_k.items()}
+
+    def pooled_turn(k: float, fl) -> float:
+        vals = [e for f in fl for e in scores[k][f][1]]
+        return float(np.median(vals)) if vals else math.inf
+
+    chosen: dict[str, float] = {}
+    for f in floors:
+        others = [g for g in floors if g != f] or floors
+        chosen[f] = min(k_mags, key=lambda k: pooled_turn(k, others))
+    fitted = min(k_mags, key=lambda k: pooled_turn(k, floors))
+    andr = [r for r in runs if r.android_heading is not None]
+    plain = _floor_scores(andr, "weinberg", heading="android") if andr else {}
+
+    def med(v, scale=1.0) -> float:
+        return scale * float(np.median(v)) if len(v) else float("nan")
+
+    held_len = [e for f in floors for e in scores[chosen[f]][f][0]]
+    held_turn = [e for f in floors for e in scores[chosen[f]][f][1]]
+    return FloorHeldOut(
+        floors=floors,
+        chosen=chosen,
+        turn_med={f: med(scores[chosen[f]][f][1]) for f in floors},
+        length_med={f: med(scores[chosen[f]][f][0], 100.0) for f in floors},
+        plain_turn_med={f: med(plain[f][1]) if f in plain else float("nan") for f in floors},
+        plain_length_med={f: med(plain[f][0], 100.0) if f in plain else float("nan") for f in floors},
+        turn_held_out=med(held_turn),
+        length_held_out=med(held_len, 100.0),
+        plain_turn=med([e for v in plain.values() for e in v[1]]),
+        plain_length=med([e for v in plain.values() for e in v[0]], 100.0),
+        fitted_k_mag=fitted,
+        turn_fitted=pooled_turn(fitted, floors),
+        length_fitted=med([e for f in floors for e in scores[fitted][f][0]], 100.0),
+        plain_traces=len(andr),
+    )
