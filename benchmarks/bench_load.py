@@ -41,6 +41,7 @@ is not: tests/test_server_faults.py covers it.)
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import tempfile
 import threading
@@ -555,6 +556,14 @@ def main(argv: list[str] | None = None) -> dict:
             f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
             f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
         )
+        cpu = r["batch_encode_ms"] + r["batch_decode_ms"] + r["batch_store_ms"]
+        print(
+            f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
+            f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
+            f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
+            f"its index: {r['batch_schema_steps_ms']:.2f}). These alone, on 2 cores with nothing else, bound the "
+            f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
+        )
     print(json.dumps(r))
     return r
 
@@ -578,6 +587,7 @@ def ceiling(db: str, n_batches: int) -> dict:
             url_ingest = url_raw = db
         r = ingest_run(url_ingest, 2, n_batches, n_steps=1000, n_scans=100)
         raw = raw_insert_rate(url_raw)
+        costs = batch_costs(str(tmp / "costs.db") if db == "sqlite" else (pg.database("costs") if pg is not None else db))
     finally:
         if pg is not None:
             pg.stop()
@@ -588,6 +598,78 @@ def ceiling(db: str, n_batches: int) -> dict:
         "ceiling_lossless": bool(r["lossless"]),
         "raw_rows_per_s": round(raw, 1),
         "ceiling_ratio": round(steps_per_s / raw, 4),
+        **costs,
+    }
+
+
+def batch_costs(db_url: str, n: int = 20) -> dict:
+    """Where a large batch's time goes, in this process, on the ceiling's own batches (1,000 steps +
+    100 scans of 30 readings): the client's encoding, the server's decoding (the typed fast path that
+    takes such a batch, and the general path beside it) and storing (groups of 4, as the ingest loop
+    groups them), each in ms per batch; a batch's 1,000 step rows by the raw executemany for scale."""
+    from benchmarks.bench_server import raw_insert_rate
+    from hybridloc.server.store import Store
+    from hybridloc.types import RfScan, StepEvent
+    from hybridloc.wire import codecs as C
+    from hybridloc.wire.messages import Batch
+
+    def batch(k: int) -> Batch:
+        steps = tuple(StepEvent(100.0 * k + 0.1 * i, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(1000))
+        scans = tuple(RfScan(100.0 * k + float(i), "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(100))
+        return Batch("bench", "costs", k + 1, "", steps, scans)
+
+    records = [batch(k) for k in range(n)]
+    # what lived before (the records, the ceiling run's leftovers) is frozen out of the collector's
+    # scans, so each path's time is its own allocations', not the age of the process
+    gc.collect()
+    gc.freeze()
+    for fn in (C.BATCH.decode, C.BATCH.decode_general):  # warm both paths (allocator, caches) before timing
+        fn(C.BATCH.encode(batch(n)), "bench", "costs")
+    t0 = time.perf_counter()
+    payloads = [C.BATCH.encode(b) for b in records]
+    t1 = time.perf_counter()
+
+    def best_of_two(fn) -> tuple[float, list]:  # seconds for all n (the faster of two runs: a shared machine's pauses), the batches
+        times, got = [], []
+        for _ in range(2):
+            t = time.perf_counter()
+            got = [fn(p, "bench", "costs") for p in payloads]
+            times.append(time.perf_counter() - t)
+        return min(times), got
+
+    fast_s, decoded = best_of_two(C.BATCH.decode)
+    general_s, _ = best_of_two(C.BATCH.decode_general)
+    store = Store(db_url)
+    try:
+        t4 = time.perf_counter()
+        for i in range(0, n, 4):
+            store.persist(decoded[i : i + 4])
+        t5 = time.perf_counter()
+    finally:
+        store.close()
+        gc.unfreeze()
+    per = lambda a, b: round(1e3 * (b - a) / n, 2)  # noqa: E731
+    schema_ms = float("nan")
+    if "://" not in db_url:  # the same 1,000 step rows by a plain sqlite3 executemany into the store's own step table (its index, its 13 columns)
+        import sqlite3
+
+        from hybridloc.server.store import _step_insert_sql
+
+        rows = [(1, "costs", 1e6 + 0.1 * i, 0.7, 0.1, 0.05, 0.1, 0.01, 0.02, 0.0, 0.0, 0, "") for i in range(1000 * n)]
+        con = sqlite3.connect(db_url)
+        con.execute("PRAGMA synchronous=NORMAL")
+        t6 = time.perf_counter()
+        with con:
+            con.executemany(_step_insert_sql("qmark"), rows)
+        schema_ms = per(t6, time.perf_counter())
+        con.close()
+    return {
+        "batch_schema_steps_ms": schema_ms,
+        "batch_encode_ms": per(t0, t1),
+        "batch_decode_ms": per(0.0, fast_s),
+        "batch_decode_general_ms": per(0.0, general_s),
+        "batch_store_ms": per(t4, t5),
+        "batch_raw_steps_ms": round(1e3 * 1000 / raw_insert_rate(db_url, rows=20_000), 2),
     }
 
 

@@ -324,6 +324,19 @@ class RfScan:
         object.__setattr__(self, "frequency_hz", MappingProxyType({str(k): float(v) for k, v in dict(self.frequency_hz).items()}))
         object.__setattr__(self, "age_s", MappingProxyType({str(k): float(v) for k, v in dict(self.age_s).items()}))
 
+    @classmethod
+    def _checked_already(cls, t: float, technology: Technology, rssi: dict, frequency_hz: dict, age_s: dict, device_model: str) -> RfScan:
+        """A scan whose fields already pass :meth:`__post_init__`'s checks (t finite, ids str, readings
+        float and in range, a Technology): the wire decoder's fast path, which checks a whole batch's
+        readings as one array (and is tested to give the same scans)."""
+        obj = object.__new__(cls)
+        for name, v in (
+            ("t", t), ("technology", technology), ("rssi_dbm", MappingProxyType(dict(rssi))), ("frequency_hz", MappingProxyType(dict(frequency_hz))),
+            ("age_s", MappingProxyType(dict(age_s))), ("device_model", device_model),
+        ):  # fmt: skip
+            object.__setattr__(obj, name, v)
+        return obj
+
     def __len__(self) -> int:
         return len(self.rssi_dbm)
 

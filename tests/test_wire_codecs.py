@@ -891,3 +891,105 @@ def test_fast_step_decoding_gives_the_checked_steps(s):
     """A step dict read by the fast path equals the checked path's step (values and their types), and
     one the fast path declines gets the checked path's reason."""
     assert _outcome(C._step_from, s) == _outcome(C._step_checked, s)
+
+
+# ---------------------------------------------------------------------------------------------- the batch's typed fast path
+_any_value = (
+    st.floats(allow_nan=False, allow_infinity=False, width=64)
+    | st.floats(min_value=-400, max_value=400)
+    | st.integers(min_value=-(2**70), max_value=2**70)
+    | st.booleans()
+    | st.none()
+    | st.text(max_size=70)
+    | st.lists(st.integers(), max_size=2)
+    | st.dictionaries(st.text(max_size=3), st.floats(-150, 10), max_size=2)
+)
+
+
+@st.composite
+def _batch_dicts(draw):
+    """A plain batch as a client sends it (steps at a walker's pace, scans and marks in time order), then
+    up to three changes anywhere: a field replaced by anything or removed, an item moved, a time pushed
+    past a limit - the fast path's edges, and the general path's every reason."""
+    n_steps, n_scans, n_marks = draw(st.integers(0, 6)), draw(st.integers(0, 3)), draw(st.integers(0, 2))
+    t0 = draw(st.floats(0, 1e6))
+    steps = [
+        {"t": t0 + 0.5 * i, "length": draw(st.floats(0, 1.5)), "heading": draw(st.floats(-7, 7)), "sigma_length": 0.05, "sigma_heading": 0.1}
+        for i in range(n_steps)
+    ]
+    for s in steps:
+        if draw(st.booleans()):
+            s.update(heading_change=draw(st.floats(-3.5, 3.5)), sigma_heading_change=0.02)
+    scans = [
+        {
+            "t": t0 + 1.0 * i,
+            "tech": draw(st.sampled_from(["wifi", "ble"])),
+            "rssi": {f"ap{j}": draw(st.floats(-100, -20)) for j in range(draw(st.integers(1, 4)))},
+        }
+        for i in range(n_scans)
+    ]
+    for sc in scans:
+        if draw(st.booleans()):
+            sc["freq"] = {k: 2.412e9 for k in sc["rssi"]}
+        if draw(st.booleans()):
+            sc["age"] = {k: draw(st.floats(0, 5)) for k in sc["rssi"]}
+    marks = [{"t": t0 + 2.0 * i, "x": draw(st.floats(-50, 50)), "y": 1.0, "floor": "F1"} for i in range(n_marks)]
+    msg = {
+        "schema": P.BATCH_SCHEMA,
+        "site": "s1",
+        "device": "d1",
+        "seq": draw(st.integers(1, 5)),
+        "device_model": "m",
+        "sent_at": 1.0,
+        "steps": steps,
+        "scans": scans,
+        "marks": marks,
+    }
+    for _ in range(draw(st.integers(0, 3))):
+        where = draw(st.sampled_from(["top", "steps", "scans", "marks"]))
+        items = msg.get(where) if where != "top" else None
+        listed = isinstance(items, list) and items and all(isinstance(x, dict) for x in items)
+        target = draw(st.sampled_from(items)) if listed else msg
+        key = draw(st.sampled_from(sorted(set(target) | {"heading_change", "floor_change", "degraded", "end_of_walk", "freq", "age", "extra"})))
+        action = draw(st.sampled_from(["replace", "remove", "far", "swap"]))
+        if action == "remove":
+            target.pop(key, None)
+        elif action == "far" and isinstance(target.get(key), (int, float)) and not isinstance(target.get(key), bool):
+            target[key] = target[key] + draw(st.sampled_from([-1e12, -400.0, 400.0, 1e12]))
+        elif action == "swap" and listed and len(items) > 1:
+            items.reverse()
+        else:
+            target[key] = draw(_any_value)
+    return msg
+
+
+def _batch_outcome(fn, payload: bytes):
+    try:
+        b = fn(payload, "s1", "d1")
+    except P.Rejected as rej:
+        return ("rejected", rej.reason)
+    scans = [(s.t, s.technology, dict(s.rssi_dbm), dict(s.frequency_hz), dict(s.age_s), s.device_model, type(s.t)) for s in b.scans]
+    steps = [(s, [(k, type(getattr(s, k))) for k in _STEP_KEYS]) for s in b.steps]
+    return (b.site, b.device, b.seq, b.device_model, b.sent_at, b.end_of_walk, b.refused, steps, scans, list(b.marks))
+
+
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_batch_dicts())
+def test_the_typed_fast_path_decodes_batches_as_the_general_path_does(msg):
+    """Whatever a batch holds, the decoder (typed fast path first) gives the general path's batch -
+    values, their types, what limits.screen refused - or its reason for refusing it."""
+    payload = json.dumps(msg).encode()
+    assert _batch_outcome(C.BATCH.decode, payload) == _batch_outcome(C.BATCH.decode_general, payload)
+
+
+def test_the_fast_path_takes_plain_batches():
+    """A client's own batch is decoded by the typed path (the point of it), a batch with anything to
+    refuse or count by the general one."""
+    b = Batch(
+        "s1", "d1", 3, "m", tuple(StepEvent(0.5 * i, 0.7, 0.1, 0.05, 0.1, 0.01, 0.02) for i in range(1, 50)),
+        (RfScan(1.0, "wifi", {"ap1": -50.0, "ap2": -60.5}, {"ap1": 2.4e9}, {"ap2": 1.0}),), (SurveyMark(2.0, 1.0, 2.0, "F1"),),
+    )  # fmt: skip
+    payload = C.BATCH.encode(b)
+    assert C._batch_fast(payload, "s1", "d1") is not None
+    too_long = payload.replace(b'"length":0.7', b'"length":7.0', 1)
+    assert C._batch_fast(too_long, "s1", "d1") is None and C.BATCH.decode(too_long, "s1", "d1").refused == (("step-too-long", 1),)
