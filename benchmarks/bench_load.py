@@ -561,7 +561,7 @@ def main(argv: list[str] | None = None) -> dict:
             f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
             f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
             f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
-            f"its index: {r['batch_schema_steps_ms']:.2f}). These alone, on 2 cores with nothing else, bound the "
+            f"its index: {'-' if r['batch_schema_steps_ms'] is None else format(r['batch_schema_steps_ms'], '.2f')}). These alone, on 2 cores with nothing else, bound the "
             f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
         )
     print(json.dumps(r))
@@ -649,7 +649,7 @@ def batch_costs(db_url: str, n: int = 20) -> dict:
         store.close()
         gc.unfreeze()
     per = lambda a, b: round(1e3 * (b - a) / n, 2)  # noqa: E731
-    schema_ms = float("nan")
+    schema_ms: float | None = None  # (null in the JSON line: measured on SQLite only)
     if "://" not in db_url:  # the same 1,000 step rows by a plain sqlite3 executemany into the store's own step table (its index, its 13 columns)
         import sqlite3
 

@@ -598,6 +598,7 @@ def run_fusion_eval(
             )
     print("  goal: fused mean <= 3 m, floor >= 97 %, fused >= 30 % below WiFi-only and below PDR-only")
     cold = _cold_start_report(results, prior, axes, KLD_EPSILONS if kld_epsilons is None else kld_epsilons)
+    cold.update(_kalman_settings_held_out(results, axes))
     keys = (
         "pdr_mean_m",
         "wifi_mean_m",
@@ -657,6 +658,56 @@ COLD_SHARE = 0.9
 COLD_N_MAX = 50_000
 #: Fox's epsilon for KLD-sampling, the candidates ``eval fusion`` chooses from (leave one floor out)
 KLD_EPSILONS = (0.05, 0.15, 0.4)
+
+
+#: The Kalman filter's settings fitted on ILC site1 (FusionConfig's comments) that ``eval fusion`` holds
+#: out by floor: the successive WiFi fixes' error correlation and the corridor heading's sigma (deg)
+KALMAN_GRID = {"fix_correlation": (0.0, 0.25, 0.5, 0.75), "corridor_sigma_deg": (5.0, 10.0, 20.0)}
+
+
+def _kalman_settings_held_out(results, axes) -> dict:
+    """The live Kalman filter's tuned settings (:data:`KALMAN_GRID`) chosen leave one floor out: each
+    client's steps and fixes, in the order they reached it, replayed cold through every candidate; for
+    each floor the candidate with the lowest mean error at the other floors' waypoints is scored on
+    it. Prints the held-out mean beside the fitted one (the candidate best on every floor) and the
+    default's; returns the JSON line's ``kalman_cold_*`` keys."""
+    from itertools import product
+
+    from .fusion import FusionConfig, LocalFusion
+
+    cands = list(product(KALMAN_GRID["fix_correlation"], KALMAN_GRID["corridor_sigma_deg"]))
+    floor_of = [tr.waypoints.floor_of(0) or "" for tr, _ in results]
+    floors = sorted(set(floor_of))
+    errs: dict[tuple, dict[str, list]] = {}
+    for rho, sig in cands:
+        cfg = FusionConfig(fix_correlation={"wifi": rho, "ble": rho}, corridor_sigma=math.radians(sig))
+        per: dict[str, list] = {f: [] for f in floors}
+        for (tr, r), f in zip(results, floor_of):
+            per[f] += _fused_errors(_replay(LocalFusion(cfg, corridor_axes=axes), r), tr.waypoints.t, tr.waypoints.pos_enu).tolist()
+        errs[(rho, sig)] = per
+
+    def mean_on(c, fl) -> float:
+        v = [e for f in fl for e in errs[c][f]]
+        return float(np.nanmean(v)) if np.isfinite(v).any() else math.inf
+
+    chosen = {f: min(cands, key=lambda c: mean_on(c, [g for g in floors if g != f] or floors)) for f in floors}
+    held = [e for f in floors for e in errs[chosen[f]][f]]
+    fitted = min(cands, key=lambda c: mean_on(c, floors))
+    d = FusionConfig()
+    default = (d.fix_correlation["wifi"], round(math.degrees(d.corridor_sigma), 6))
+    print(
+        "  the live Kalman filter's fitted settings held out by floor (cold replays; fix error correlation x corridor heading sigma, "
+        + " x ".join("/".join(f"{v:g}" for v in vals) for vals in KALMAN_GRID.values())
+        + " deg): chosen on the other floors "
+        + ", ".join(f"{f} {chosen[f][0]:g}/{chosen[f][1]:g}" for f in floors)
+        + f"; held out {np.nanmean(held):.2f} m, fitted ({fitted[0]:g}/{fitted[1]:g} on every floor) {mean_on(fitted, floors):.2f} m, "
+        f"the default ({default[0]:g}/{default[1]:g}) {mean_on(default, floors) if default in errs else float('nan'):.2f} m"
+    )
+    return {
+        "kalman_cold_held_out_mean_m": float(np.nanmean(held)),
+        "kalman_cold_fitted_mean_m": mean_on(fitted, floors),
+        "kalman_cold_default_mean_m": mean_on(default, floors) if default in errs else float("nan"),
+    }
 
 
 def _cold_walks(results, prior, axes, cfg) -> list[dict]:

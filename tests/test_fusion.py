@@ -650,6 +650,12 @@ def test_cold_start_report_scores_each_walk_held_out_by_floor(capsys):
     assert head["cold_within_5m_30s_fixed_pct"] == 100.0
     assert 0 < head["cold_particles_max"] <= COLD_N_MAX and head["cold_ms_per_step"] > 0
     assert "F1, held out" in out and "F2, held out" in out and "Fox's epsilon per held-out floor" in out
+    # the Kalman filter's settings, held out by floor on the same walks: fixes 1 m off, so every
+    # candidate's mean error stays near the fixes' own (a 2-D mean radial error of 1.25 m), far under 3 m
+    from hybridloc.demo import _kalman_settings_held_out
+
+    k = _kalman_settings_held_out(results, None)
+    assert 0.0 < k["kalman_cold_held_out_mean_m"] < 3.0 and 0.0 < k["kalman_cold_fitted_mean_m"] <= k["kalman_cold_default_mean_m"] < 3.0
 
 
 def test_eval_fusion_refuses_an_epsilon_outside_0_1(tmp_path):
