@@ -328,3 +328,13 @@ def test_gait_walk_counts_strides_as_walked(shared_data):
     assert r.footprint_err_m is not None and len(r.footprint_err_m) == 24
     assert r.final_pct < 5.0
     assert evaluate_gait_walk(p, FootInsConfig()).n_detected > 24
+
+
+def test_simulated_closed_loop_returns_to_its_start():
+    """A simulated closed loop (1 min, industrial-grade foot IMU at 200 Hz, default detector): the INS
+    ends within 2 % of the path of the true end. Ojeda reports 0.6-0.9 % with a sensor of this class,
+    Godha 1.2 %; a single short loop is allowed twice that."""
+    from hybridloc.ins.evaluate import simulated_loop_errors
+
+    err = simulated_loop_errors(1, minutes=1.0, seed=100)
+    assert 0.0 < err[0] < 2.0
