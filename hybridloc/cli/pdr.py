@@ -145,7 +145,10 @@ def register(sub) -> None:
     )
     ft.add_argument("--accel-unit", choices=("m/s^2", "g"), default="m/s^2", help="accelerometer unit of a plain IMU CSV")
     ft.add_argument(
-        "--detector", choices=("adaptive", "shoe", "ared", "amvd", "mbgtd"), default="adaptive", help="stance detector (default adaptive SHOE)"
+        "--detector",
+        choices=("adaptive", "robust", "shoe", "ared", "amvd", "mbgtd"),
+        default="adaptive",
+        help="stance detector (default adaptive SHOE; robust: its ZUPTs, strides cut at one stance per step, for a sensor that dips mid-swing)",
     )
     ft.add_argument("--threshold", type=float, help="the detector's threshold in its units (see hybridloc.ins.stance)")
     ft.add_argument(

@@ -38,6 +38,7 @@ class TrialResult:
     stance_fraction: float
     opt_labels_2d: float = float("nan")  # our forward filter on the authors' per-trial-optimal SHOE stance labels
     forward_2d: float = float("nan")  # the forward filter alone (no stride smoothing), like the authors' figure
+    end_pct: float = float("nan")  # the aligned track's end against the true end, % of distance (loops: the return error net of the truth's own gap)
 
 
 def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> TrialResult:
@@ -55,6 +56,7 @@ def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> Tri
     if np.linalg.norm(gt[-1, :2] - gt[0, :2]) <= LOOP_CLOSE_M:
         loop = return_to_start_error(res.pos_enu).e_p
     dist = float(np.linalg.norm(np.diff(gt[:, :2], axis=0), axis=1).sum())
+    end_pct = 100.0 * float(np.linalg.norm(est[-1, :2] - gt[-1, :2])) / dist
     te = rec.extras.get("trial_error")
     opt = float("nan")
     labels = rec.extras.get("zv_shoe_opt")
@@ -78,4 +80,170 @@ def evaluate_trial(path: str | Path, config: FootInsConfig | None = None) -> Tri
         float(res.stance.mean()),
         opt,
         fwd,
+        end_pct,
     )
+
+
+# ---------------------------------------------------------------- gait-driven set: stride by stride
+#: The estimate's heading is aligned on the first footprint at least this far (m) from the start.
+GAIT_ALIGN_M = 2.0
+#: A gait-driven walk "closes" when its true end is within this share of its path from its start:
+#: there the return error hardly depends on the heading alignment (a heading error d moves the end
+#: by at most d * 2 % of the path: 0.2 % at 0.1 rad).
+GAIT_CLOSE_FRACTION = 0.02
+
+
+@dataclass
+class GaitResult:
+    name: str
+    n_walked: int  # numberOfStrides
+    n_detected: int  # strides called (footprints - 1)
+    footprint_err_m: np.ndarray | None  # (K,) per truth footprint after the start, when the count is exact
+    final_err_m: float  # last footprint against the true end, m
+    distance_m: float  # true path (footprint to footprint), m
+    closes: bool  # true end within GAIT_CLOSE_FRACTION of the path from the start
+
+    @property
+    def final_pct(self) -> float:
+        return 100.0 * self.final_err_m / self.distance_m
+
+
+def align_footprints(est_xy: np.ndarray, true_xy: np.ndarray, dist: float = GAIT_ALIGN_M) -> np.ndarray:
+    """Shift the estimated footprints (K, 2) to start at the true start, and rotate them about it so
+    that the first footprint at least ``dist`` m from the start points the same way as the truth's
+    first footprint that far out (no stride correspondence needed: counts may differ)."""
+    e = np.asarray(est_xy, float) - est_xy[0]
+    g = np.asarray(true_xy, float) - true_xy[0]
+
+    def bearing(p: np.ndarray) -> float:
+        d = np.hypot(p[:, 0], p[:, 1])
+        far = np.flatnonzero(d >= dist)
+        k = int(far[0]) if far.size else len(p) - 1
+        return float(np.arctan2(p[k, 1], p[k, 0]))
+
+    ang = bearing(g) - bearing(e)
+    c, s = np.cos(ang), np.sin(ang)
+    return e @ np.array([[c, s], [-s, c]]) + true_xy[0]
+
+
+def evaluate_gait_walk(path: str | Path, config: FootInsConfig | None = None) -> GaitResult:
+    """One gait-driven walk (SensorConnect CSV with its footprint .mat beside it), stride by stride."""
+    from ..io.imu_files import footprints_beside, read_sensorconnect_csv
+    from .foot import stance_points
+
+    fp = footprints_beside(path)
+    if fp is None:
+        raise ValueError(f"{path}: no footprint .mat beside it")
+    rec = read_sensorconnect_csv(path)
+    res = run_foot_ins(rec.imu, config)
+    pts = stance_points(res)
+    if len(pts) < 2:
+        raise ValueError(f"{path}: fewer than two stances detected")
+    est = align_footprints(res.pos_enu[pts, :2], fp.pos_xy)
+    n_det = len(pts) - 1
+    err = None
+    if n_det == fp.n_strides:
+        err = np.linalg.norm(est[fp.stride] - fp.pos_xy, axis=1)[1:]
+    if fp.stride[-1] != fp.n_strides:
+        raise ValueError(f"{path}: the last footprint is not after the last stride")
+    final = float(np.linalg.norm(est[-1] - fp.pos_xy[-1]))
+    closes = bool(np.linalg.norm(fp.pos_xy[-1] - fp.pos_xy[0]) <= GAIT_CLOSE_FRACTION * fp.distance_m)
+    name = Path(path).name.split(".")[0]
+    return GaitResult(name, fp.n_strides, n_det, err, final, fp.distance_m, closes)
+
+
+def gait_walks(folder: str | Path) -> list[Path]:
+    """The gait-driven walks of ``folder`` that have both an IMU CSV and a footprint .mat."""
+    out = []
+    for p in sorted(Path(folder).glob("*.csv*")):
+        stem = p.name.split(".")[0]
+        if (p.parent / f"{stem}.mat").is_file():
+            out.append(p)
+    return out
+
+
+@dataclass
+class GaitSummary:
+    walks: int
+    count_exact: int  # walks whose strides were counted exactly as walked
+    count_abs_err_mean: float  # mean |called - walked| strides
+    footprint_median_m: float  # per-stride footprint error, median over the exactly counted walks' strides
+    footprint_p90_m: float
+    final_median_pct: float  # last footprint against the true end, % of the true path
+    final_max_pct: float
+    return_median_pct: float  # the same on the walks whose truth closes (GAIT_CLOSE_FRACTION)
+    return_max_pct: float
+    closing: int
+
+
+def summarize_gait(rs: list[GaitResult]) -> GaitSummary:
+    fe = [r.footprint_err_m for r in rs if r.footprint_err_m is not None]
+    fe = np.concatenate(fe) if fe else np.array([np.nan])
+    fin = np.array([r.final_pct for r in rs])
+    ret = np.array([r.final_pct for r in rs if r.closes] or [np.nan])
+    return GaitSummary(
+        len(rs),
+        sum(r.n_detected == r.n_walked for r in rs),
+        float(np.mean([abs(r.n_detected - r.n_walked) for r in rs])),
+        float(np.median(fe)),
+        float(np.percentile(fe, 90)),
+        float(np.median(fin)),
+        float(fin.max()),
+        float(np.median(ret)),
+        float(np.max(ret)),
+        sum(r.closes for r in rs),
+    )
+
+
+# ---------------------------------------------------------------- cross-validation
+def pyshoe_group(path: str | Path) -> str:
+    """A PyShoe trial's group: its recording day (``2017-11-22-11-22-03`` -> ``2017-11-22``). The
+    trials of one day share a session (walker, shoe, motion types), so a day held out is a session
+    the setting has not seen."""
+    return Path(path).stem[:10]
+
+
+def leave_one_group_out(scores: np.ndarray, groups: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Per item, the candidate chosen on the other groups' mean score (lower is better), and the
+    item's score at it. ``scores`` (n_items, n_candidates). Returns (chosen index (n,), held-out (n,))."""
+    scores = np.asarray(scores, float)
+    g = np.asarray(groups)
+    chosen = np.zeros(len(g), int)
+    for grp in np.unique(g):
+        out = g == grp
+        chosen[out] = int(np.argmin(scores[~out].mean(axis=0)))
+    return chosen, scores[np.arange(len(g)), chosen]
+
+
+def pyshoe_armse_grid(paths: list[Path], configs: list[FootInsConfig]) -> np.ndarray:
+    """2-D ARMSE (the smoothed track, as `pdr foot` writes it) of each trial under each config, (n, c)."""
+    out = np.zeros((len(paths), len(configs)))
+    for i, p in enumerate(paths):
+        rec = read_pyshoe_mat(p)
+        for j, c in enumerate(configs):
+            out[i, j] = pyshoe_armse(*pyshoe_align(run_foot_ins(rec.imu, c).pos_enu, rec.truth.pos_enu), 2)
+    return out
+
+
+# ---------------------------------------------------------------- simulated closed loops
+def simulated_loop_errors(n: int, minutes: float = 1.5, seed: int = 100, config: FootInsConfig | None = None) -> np.ndarray:
+    """Return error (% of path) of ``n`` simulated closed-loop foot walks (:mod:`hybridloc.sim`:
+    a walker through a generated 3-floor building who returns to the start, the right foot's IMU at
+    200 Hz, industrial grade, the 3DM-GX3-25 class). The INS starts at the true heading; the error is
+    its end against the true end (the start, to the simulator's last stride), over the true path."""
+    from ..sim.building import generate_world
+    from ..sim.imu import foot_imu
+    from ..sim.walker import simulate_walk
+
+    world = generate_world(np.random.default_rng(5), 3, 5)
+    out = np.zeros(n)
+    for k in range(n):
+        rng = np.random.default_rng(seed + k)
+        walk = simulate_walk(world, rng, minutes, close_loop=True)
+        imu, truth = foot_imu(walk, rng)
+        res = run_foot_ins(imu, config, heading0=walk.steps[0].heading)
+        d_est = res.pos_enu[-1, :2] - res.pos_enu[0, :2]
+        d_true = truth.pos[-1, :2] - truth.pos[0, :2]
+        path = float(np.linalg.norm(np.diff(truth.pos[:, :2], axis=0), axis=1).sum())
+        out[k] = 100.0 * float(np.linalg.norm(d_est - d_true)) / path
+    return out
