@@ -268,3 +268,23 @@ def test_route_groups_and_folds_hold_a_repeated_route_together():
     assert len({g[0], g[2], g[3], g[5], g[6]}) == 5
     f = route_folds(traces, 3, np.random.default_rng(0))
     assert f[0] == f[1] and f[3] == f[4] and set(f) == {0, 1, 2}
+
+
+def test_hierarchical_vote_building_then_floor_then_position():
+    """Synthetic neighbour lists with known answers: the building vote overrides a nearer stray
+    neighbour, the floor is voted inside that building, the position averages that floor only."""
+    from hybridloc.radio.hierarchy import VoteSettings, hierarchical_vote, offset_free
+
+    building = np.array([0, 1, 1, 1, 1])
+    floor = np.array([0, 2, 2, 3, 2])
+    pos = np.array([[100.0, 0.0], [0.0, 0.0], [2.0, 0.0], [50.0, 0.0], [4.0, 0.0]])
+    D = np.array([[0.1, 0.2, 0.2, 0.2, 0.2]])
+    I = np.array([[0, 1, 2, 3, 4]])
+    bb, ff, P = hierarchical_vote(D, I, building, floor, pos, VoteSettings(k=3, k_floor=4, k_building=5))
+    assert bb[0] == 1 and ff[0] == 2
+    np.testing.assert_allclose(P[0], [2.0, 0.0], atol=1e-9)  # equal weights: the mean of 0, 2, 4
+    # a constant phone offset vanishes in the offset-free readings
+    X = np.array([[-50.0, -70.0, -110.0], [-40.0, -60.0, -110.0]])
+    Y = offset_free(X)
+    np.testing.assert_allclose(Y[0], Y[1], atol=1e-9)
+    assert Y[0, 2] == -110.0

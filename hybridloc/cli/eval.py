@@ -427,6 +427,25 @@ def print_fingerprint(res) -> None:
             print(f"  {title}:")
             _print_uji({name: r[name][subset] for name, _ in UJI_METHODS}, "    ")
         print("  (goal on the standard split: building 100 %, floor >= 95 %, mean <= 6 m; plain 3-NN about 9.1 m there)")
+        ph = res.uji_phone
+        if ph is not None:
+            print(
+                f"UJIIndoorLoc {res.uji}: cross-validation grouped by phone ({ph['n_phones']} phones in {ph['folds']} folds; settings chosen by leave-one-phone-out inside each fold)"
+            )
+            for i, (rep, v, fitted, held) in enumerate(ph["chosen"]):
+                print(f"  fold {i}: chose {rep}, {v}: penalised {fitted:.2f} m fitted (inner CV), {held:.2f} m held out")
+            for subset, mask in (("all scans", None), (f"scans inside the map ({100 * ph['covered'].mean():.0f} %)", ph["covered"])):
+                print(f"  {subset}:")
+                sm = {name: ph[name].summary(mask) for name in ("ours", "plain")}
+                for name, label in (("ours", "building/floor/position kNN (CV-chosen)"), ("plain", "plain 3-NN, Euclidean, raw dBm")):
+                    x = sm[name]
+                    print(
+                        f"    {label:<40} building hit {x['building_hit_pct']:.2f}%  floor hit {x['floor_hit_pct']:.2f}%  "
+                        f"mean {x['mean_m']:.2f} m on the right floor  penalised {x['penalised_m']:.2f} m (n={x['n']})"
+                    )
+                print(
+                    f"    ratio ours/plain: mean {sm['ours']['mean_m'] / sm['plain']['mean_m']:.2f}, penalised {sm['ours']['penalised_m'] / sm['plain']['penalised_m']:.2f}"
+                )
     if res.ilc:
         print(f"Indoor Location Competition {res.ilc}: {res.n_ilc_traces} traces as surveys, {res.folds}-fold leave-traces-out, WiFi only, per scan")
         for m in res.ilc_methods:
@@ -460,6 +479,15 @@ def fingerprint_headline(res) -> dict:
     if res.uji_cv is not None:
         v = res.uji_cv["ours"]["all"]
         out.update(uji_cv_mean_m=np.nanmean(v["errors"]), uji_cv_floor_hit_pct=100 * v["floor"])
+    if res.uji_phone is not None:
+        x = res.uji_phone["ours"].summary()
+        out.update(
+            uji_phone_cv_mean_m=x["mean_m"],
+            uji_phone_cv_building_hit_pct=x["building_hit_pct"],
+            uji_phone_cv_floor_hit_pct=x["floor_hit_pct"],
+            uji_phone_cv_penalised_m=x["penalised_m"],
+            uji_phone_cv_plain_mean_m=res.uji_phone["plain"].summary()["mean_m"],
+        )
     for m, key in zip(res.ilc_methods, ("ilc_knn", "ilc_prob")):
         s = m.score
         out[f"{key}_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
