@@ -521,6 +521,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--drop-fraction", type=float, default=0.2, help="share of the Zenoh sessions a clients-drop fault closes")
     ap.add_argument("--no-ceiling", action="store_true", help="skip the large-batch ceiling and the raw insert rate")
     ap.add_argument("--ceiling-batches", type=int, default=40, help="batches of 1,000 steps + 100 scans per device for the ceiling")
+    ap.add_argument("--ceiling-only", action="store_true", help="only the large-batch ceiling and the raw insert rate (no live load)")
     args = ap.parse_args(argv)
     if args.clients < 1 or args.minutes <= 0:
         ap.error("--clients must be >= 1 and --minutes > 0")
@@ -534,6 +535,13 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error("a fault's SECOND must fall inside the run (< --minutes x 60)")
     if any(k == "db-outage" for k, _, _ in faults) and args.db != "postgres":
         ap.error("a db-outage fault needs --db postgres (the benchmark pauses its own PostgreSQL server)")
+    if args.ceiling_only and (args.no_ceiling or faults):
+        ap.error("--ceiling-only runs no live load: it takes neither --no-ceiling nor --fault")
+    if args.ceiling_only:
+        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True}
+        _print_ceiling(r, args.db, args.ceiling_batches)
+        print(json.dumps(r))
+        return r
     r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed, args.fixed_resend, faults, args.drop_fraction)
     held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
     print(
@@ -549,23 +557,28 @@ def main(argv: list[str] | None = None) -> dict:
             f"first ack {f['first_ack_s']} s after it ended, every batch sent before its end acknowledged after {f['caught_up_s']} s"
         )
     if not args.no_ceiling:
-        r.update(ceiling(args.db, args.ceiling_batches))
-        print(
-            f"ceiling on {r['db']}: {r['ceiling_steps_per_s']:,.0f} steps/s + {r['ceiling_scans_per_s']:,.0f} scans/s stored end to end "
-            f"(2 devices, batches of 1,000 steps + 100 scans through Zenoh, decoding, validation and the database, "
-            f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
-            f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
-        )
-        cpu = r["batch_encode_ms"] + r["batch_decode_ms"] + r["batch_store_ms"]
-        print(
-            f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
-            f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
-            f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
-            f"its index: {'-' if r['batch_schema_steps_ms'] is None else format(r['batch_schema_steps_ms'], '.2f')}). These alone, on 2 cores with nothing else, bound the "
-            f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
-        )
+        _print_ceiling(r, args.db, args.ceiling_batches)
     print(json.dumps(r))
     return r
+
+
+def _print_ceiling(r: dict, db: str, n_batches: int) -> None:
+    """Run :func:`ceiling` into ``r`` and print its two lines."""
+    r.update(ceiling(db, n_batches))
+    print(
+        f"ceiling on {r['db']}: {r['ceiling_steps_per_s']:,.0f} steps/s + {r['ceiling_scans_per_s']:,.0f} scans/s stored end to end "
+        f"(2 devices, batches of 1,000 steps + 100 scans through Zenoh, decoding, validation and the database, "
+        f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
+        f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
+    )
+    cpu = r["batch_encode_ms"] + r["batch_decode_ms"] + r["batch_store_ms"]
+    print(
+        f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
+        f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
+        f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
+        f"its index: {'-' if r['batch_schema_steps_ms'] is None else format(r['batch_schema_steps_ms'], '.2f')}). These alone, on 2 cores with nothing else, bound the "
+        f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
+    )
 
 
 def ceiling(db: str, n_batches: int) -> dict:
