@@ -33,7 +33,7 @@ from benchmarks import headline
 from hybridloc.wire.zconfig import free_port
 
 
-def _client(ep: str, device: str, n_batches: int, spool: str, q, n_steps: int = 100, n_scans: int = 10) -> None:
+def _client(ep: str, device: str, n_batches: int, spool: str, q, n_steps: int = 100, n_scans: int = 10, step_columns_from: int | None = None) -> None:
     import zenoh
 
     from hybridloc.clients.uplink import Uplink
@@ -46,7 +46,7 @@ def _client(ep: str, device: str, n_batches: int, spool: str, q, n_steps: int = 
     steps = [StepEvent(float(i) * 0.1, 0.7, 0.01 * i, 0.05, 0.1, 0.01, 0.02) for i in range(n_steps)]
     scans = [RfScan(float(i) * span / n_scans, "wifi", {f"ap{j:03d}": -50.0 - j for j in range(30)}) for i in range(n_scans)]
     with zenoh.open(client_config(ep)) as s:
-        up = Uplink(s, "bench", device, spool, resend_after=5.0)
+        up = Uplink(s, "bench", device, spool, resend_after=5.0, step_columns_from=step_columns_from)
         up.wait_connected(20)
         t0 = time.perf_counter()
         for k in range(n_batches):
@@ -82,7 +82,9 @@ def _serve(ep: str, db: str, *extra: str) -> subprocess.Popen:
     return p
 
 
-def ingest_run(db_url: str, n_clients: int, n_batches: int, n_steps: int = 100, n_scans: int = 10) -> dict:
+def ingest_run(db_url: str, n_clients: int, n_batches: int, n_steps: int = 100, n_scans: int = 10, step_columns_from: int | None = None) -> dict:
+    """``n_clients`` client processes sending ``n_batches`` batches each to a server on ``db_url``; batches of at
+    least ``step_columns_from`` steps with their steps in the columnar form (None: today's rows)."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     server = _serve(ep, db_url)
     ctx = mp.get_context("spawn")
@@ -90,7 +92,7 @@ def ingest_run(db_url: str, n_clients: int, n_batches: int, n_steps: int = 100, 
     tmp = tempfile.mkdtemp()
     try:
         procs = [
-            ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q, n_steps, n_scans))
+            ctx.Process(target=_client, args=(ep, f"dev{i:03d}", n_batches, os.path.join(tmp, f"s{i}"), q, n_steps, n_scans, step_columns_from))
             for i in range(n_clients)
         ]
         for p in procs:
