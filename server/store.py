@@ -385,11 +385,14 @@ class Store:
         """A stored walk with its data: every step field, every scan's RSSI, ages and frequencies, the
         survey marks, each sorted by time (ties in arrival order). KeyError for an unknown id.
 
-        Records are selected by the walk's device and time span (``ix_step_device_t``,
-        ``ix_scan_device_t``, ``ix_survey_mark_device_t``) and kept when their batch is the walk's
-        (``ix_batch_walk_id``). SQLite's plan: SEARCH step USING INDEX ix_step_device_t (device_id=?
-        AND t>? AND t<?), SEARCH batch USING COVERING INDEX ix_batch_walk_id (walk_id=? AND rowid=?),
-        no sort (the index is in (t, id) order). So the records themselves need no ``walk_id``.
+        Scans and marks are selected by the walk's device and time span (``ix_scan_device_t``,
+        ``ix_survey_mark_device_t``) and kept when their batch is the walk's (``ix_batch_walk_id``).
+        SQLite's plan: SEARCH scan USING INDEX ix_scan_device_t (device_id=? AND t>? AND t<?), SEARCH
+        batch USING COVERING INDEX ix_batch_walk_id (walk_id=? AND rowid=?), no sort (the index is in
+        (t, id) order). Steps, the table ingest writes most, have no such index (it cost as much as the
+        rows at ingest: migration 0004) and are read through the walk's batches: SEARCH batch USING
+        COVERING INDEX ix_batch_walk_id (walk_id=?), SEARCH step USING INDEX ix_step_batch_id
+        (batch_id=?), then a sort of the walk's steps by time. So the records themselves need no ``walk_id``.
         """
         with Session(self.engine) as s:
             w = s.get(m.Walk, walk_id)

@@ -356,12 +356,13 @@ class _WireStepColumns(msgspec.Struct, forbid_unknown_fields=True):
     heading: list[float]
     sigma_length: list[float]
     sigma_heading: list[float]
-    heading_change: list[float | None] | None = None
-    sigma_heading_change: list[float | None] | None = None
-    height_change: list[float] | None = None
-    sigma_height_change: list[float] | None = None
-    floor_change: list[int] | None = None
-    degraded: list[str] | None = None
+    # left out: UNSET (a null column is refused by the general path, so it fails here)
+    heading_change: list[float | None] | msgspec.UnsetType = msgspec.UNSET
+    sigma_heading_change: list[float | None] | msgspec.UnsetType = msgspec.UNSET
+    height_change: list[float] | msgspec.UnsetType = msgspec.UNSET
+    sigma_height_change: list[float] | msgspec.UnsetType = msgspec.UNSET
+    floor_change: list[int] | msgspec.UnsetType = msgspec.UNSET
+    degraded: list[str] | msgspec.UnsetType = msgspec.UNSET
 
 
 class _WireScan(msgspec.Struct):
@@ -458,12 +459,12 @@ def _columns_of(steps: list[_WireStep] | _WireStepColumns | None) -> _StepColumn
     n = len(steps.t)
     opt = (steps.heading_change, steps.sigma_heading_change, steps.height_change, steps.sigma_height_change, steps.floor_change, steps.degraded)
     if any(len(c) != n for c in (steps.length, steps.heading, steps.sigma_length, steps.sigma_heading)) or any(
-        c is not None and len(c) != n for c in opt
+        c is not msgspec.UNSET and len(c) != n for c in opt
     ):
         return None
     fill = (None, None, 0.0, 0.0, 0, "")
     return (steps.t, steps.length, steps.heading, steps.sigma_length, steps.sigma_heading) + tuple(  # type: ignore[return-value]
-        [f] * n if c is None else c for c, f in zip(opt, fill)
+        [f] * n if c is msgspec.UNSET else c for c, f in zip(opt, fill)
     )
 
 
