@@ -652,11 +652,12 @@ def batch_costs(db_url: str, n: int = 20, step_form: str = "columns") -> dict:
     gc.collect()
     gc.freeze()
     columns = step_form == "columns"
+    encode = (lambda b: C.BATCH.encode(b, step_columns=True)) if columns else C.BATCH.encode
     for fn in (C.BATCH.decode, C.BATCH.decode_general):  # warm both paths (allocator, caches) before timing
-        for cols in {columns, False}:
-            fn(C.BATCH.encode(batch(n), step_columns=cols), "bench", "costs")
+        for enc in {encode, C.BATCH.encode}:
+            fn(enc(batch(n)), "bench", "costs")
     t0 = time.perf_counter()
-    payloads = [C.BATCH.encode(b, step_columns=columns) for b in records]
+    payloads = [encode(b) for b in records]
     t1 = time.perf_counter()
     row_payloads = [C.BATCH.encode(b) for b in records]
     t_rows = time.perf_counter() - t1
