@@ -19,6 +19,10 @@ Validation lives in the decoders, and only there: a refused payload raises
 :class:`~.protocol.Rejected` with a stable, countable reason (listed in docs/protocol.md); nothing else
 escapes a decoder, whatever the bytes. Encoders trust their records.
 
+A batch's steps may also travel in a columnar form (a list per field, ``BATCH.encode(b, step_columns=True)``,
+docs/protocol.md "Step columns"), which the decoder reads as the rows it stands for, through the same
+checks; decoded steps are held as :class:`~.messages.StepColumns` (made into records only when read).
+
 The bytes are the ones hybridloc has always sent, so old clients and spooled batches keep working:
 JSON in UTF-8, a batch and a track with compact separators (``","``, ``":"``), every other message
 with ``json.dumps``' defaults (``", "``, ``": "``), keys in the order below. Optional keys are left out
