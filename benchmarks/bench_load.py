@@ -521,6 +521,13 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--drop-fraction", type=float, default=0.2, help="share of the Zenoh sessions a clients-drop fault closes")
     ap.add_argument("--no-ceiling", action="store_true", help="skip the large-batch ceiling and the raw insert rate")
     ap.add_argument("--ceiling-batches", type=int, default=40, help="batches of 1,000 steps + 100 scans per device for the ceiling")
+    ap.add_argument("--ceiling-only", action="store_true", help="only the large-batch ceiling and the raw insert rate (no live load)")
+    ap.add_argument(
+        "--ceiling-steps",
+        choices=("columns", "rows"),
+        default="columns",
+        help="the ceiling's clients send steps in the columnar form (default, as the client agent sends large batches) or as rows",
+    )
     args = ap.parse_args(argv)
     if args.clients < 1 or args.minutes <= 0:
         ap.error("--clients must be >= 1 and --minutes > 0")
@@ -534,6 +541,13 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error("a fault's SECOND must fall inside the run (< --minutes x 60)")
     if any(k == "db-outage" for k, _, _ in faults) and args.db != "postgres":
         ap.error("a db-outage fault needs --db postgres (the benchmark pauses its own PostgreSQL server)")
+    if args.ceiling_only and (args.no_ceiling or faults):
+        ap.error("--ceiling-only runs no live load: it takes neither --no-ceiling nor --fault")
+    if args.ceiling_only:
+        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True}
+        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps)
+        print(json.dumps(r))
+        return r
     r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed, args.fixed_resend, faults, args.drop_fraction)
     held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
     print(
@@ -549,28 +563,40 @@ def main(argv: list[str] | None = None) -> dict:
             f"first ack {f['first_ack_s']} s after it ended, every batch sent before its end acknowledged after {f['caught_up_s']} s"
         )
     if not args.no_ceiling:
-        r.update(ceiling(args.db, args.ceiling_batches))
-        print(
-            f"ceiling on {r['db']}: {r['ceiling_steps_per_s']:,.0f} steps/s + {r['ceiling_scans_per_s']:,.0f} scans/s stored end to end "
-            f"(2 devices, batches of 1,000 steps + 100 scans through Zenoh, decoding, validation and the database, "
-            f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
-            f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
-        )
-        cpu = r["batch_encode_ms"] + r["batch_decode_ms"] + r["batch_store_ms"]
-        print(
-            f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
-            f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
-            f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
-            f"its index: {'-' if r['batch_schema_steps_ms'] is None else format(r['batch_schema_steps_ms'], '.2f')}). These alone, on 2 cores with nothing else, bound the "
-            f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
-        )
+        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps)
     print(json.dumps(r))
     return r
 
 
-def ceiling(db: str, n_batches: int) -> dict:
+def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str) -> None:
+    """Run :func:`ceiling` into ``r`` and print its lines."""
+    r.update(ceiling(db, n_batches, step_form))
+    print(
+        f"ceiling on {r['db']}: {r['ceiling_steps_per_s']:,.0f} steps/s + {r['ceiling_scans_per_s']:,.0f} scans/s stored end to end "
+        f"(2 devices, batches of 1,000 steps as {step_form} + 100 scans through Zenoh, decoding, validation and the database, "
+        f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
+        f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
+    )
+    cpu = r["batch_encode_ms"] + r["batch_decode_ms"] + r["batch_store_ms"]
+    print(
+        f"  where a batch's time goes (in one process, ms per batch of 1,000 steps + 100 scans): client encode {r['batch_encode_ms']:.1f}, "
+        f"server decode {r['batch_decode_ms']:.1f} (the general path {r['batch_decode_general_ms']:.1f}), store {r['batch_store_ms']:.1f}; "
+        f"its 1,000 step rows by the raw executemany {r['batch_raw_steps_ms']:.2f} (into the store's own step table, 13 columns and "
+        f"its index: {'-' if r['batch_schema_steps_ms'] is None else format(r['batch_schema_steps_ms'], '.2f')}). These alone, on 2 cores with nothing else, bound the "
+        f"ratio at about {2 * r['batch_raw_steps_ms'] / cpu:.0%} (the server's share alone at {r['batch_raw_steps_ms'] / (r['batch_decode_ms'] + r['batch_store_ms']):.0%})"
+    )
+    if r.get("batch_encode_rows_ms") is not None:
+        print(
+            f"  the same batches with today's step rows: client encode {r['batch_encode_rows_ms']:.1f}, "
+            f"server decode {r['batch_decode_rows_ms']:.1f} ms per batch"
+        )
+
+
+def ceiling(db: str, n_batches: int, step_form: str = "columns") -> dict:
     """Ingest with large batches (1,000 steps + 100 scans) from 2 client processes, end to end, next to
-    the raw insert rate of the same kind of database on this machine (each on a fresh database)."""
+    the raw insert rate of the same kind of database on this machine (each on a fresh database).
+    ``step_form``: the clients send the steps in the columnar form (``columns``, what the client agent
+    sends for large batches) or as today's rows (``rows``)."""
     from benchmarks.bench_server import ingest_run, raw_insert_rate
 
     tmp = Path(tempfile.mkdtemp(prefix="hybridloc-ceiling-"))
@@ -585,9 +611,9 @@ def ceiling(db: str, n_batches: int) -> dict:
             url_ingest, url_raw = pg.database("ceiling"), pg.database("raw")
         else:
             url_ingest = url_raw = db
-        r = ingest_run(url_ingest, 2, n_batches, n_steps=1000, n_scans=100)
+        r = ingest_run(url_ingest, 2, n_batches, n_steps=1000, n_scans=100, step_columns_from=1 if step_form == "columns" else None)
         raw = raw_insert_rate(url_raw)
-        costs = batch_costs(str(tmp / "costs.db") if db == "sqlite" else (pg.database("costs") if pg is not None else db))
+        costs = batch_costs(str(tmp / "costs.db") if db == "sqlite" else (pg.database("costs") if pg is not None else db), step_form=step_form)
     finally:
         if pg is not None:
             pg.stop()
@@ -598,15 +624,17 @@ def ceiling(db: str, n_batches: int) -> dict:
         "ceiling_lossless": bool(r["lossless"]),
         "raw_rows_per_s": round(raw, 1),
         "ceiling_ratio": round(steps_per_s / raw, 4),
+        "ceiling_step_form": step_form,
         **costs,
     }
 
 
-def batch_costs(db_url: str, n: int = 20) -> dict:
+def batch_costs(db_url: str, n: int = 20, step_form: str = "columns") -> dict:
     """Where a large batch's time goes, in this process, on the ceiling's own batches (1,000 steps +
-    100 scans of 30 readings): the client's encoding, the server's decoding (the typed fast path that
-    takes such a batch, and the general path beside it) and storing (groups of 4, as the ingest loop
-    groups them), each in ms per batch; a batch's 1,000 step rows by the raw executemany for scale."""
+    100 scans of 30 readings) in its step form: the client's encoding, the server's decoding (the typed
+    fast path that takes such a batch, and the general path beside it) and storing (groups of 4, as the
+    ingest loop groups them), each in ms per batch; the same for today's rows beside them when the form
+    is ``columns`` (``*_rows_ms``); a batch's 1,000 step rows by the raw executemany for scale."""
     from benchmarks.bench_server import raw_insert_rate
     from hybridloc.server.store import Store
     from hybridloc.types import RfScan, StepEvent
@@ -623,13 +651,20 @@ def batch_costs(db_url: str, n: int = 20) -> dict:
     # scans, so each path's time is its own allocations', not the age of the process
     gc.collect()
     gc.freeze()
+    columns = step_form == "columns"
+    encode = (lambda b: C.BATCH.encode(b, step_columns=True)) if columns else C.BATCH.encode
     for fn in (C.BATCH.decode, C.BATCH.decode_general):  # warm both paths (allocator, caches) before timing
-        fn(C.BATCH.encode(batch(n)), "bench", "costs")
+        for enc in {encode, C.BATCH.encode}:
+            fn(enc(batch(n)), "bench", "costs")
     t0 = time.perf_counter()
-    payloads = [C.BATCH.encode(b) for b in records]
+    payloads = [encode(b) for b in records]
     t1 = time.perf_counter()
+    row_payloads = [C.BATCH.encode(b) for b in records]
+    t_rows = time.perf_counter() - t1
 
-    def best_of_two(fn) -> tuple[float, list]:  # seconds for all n (the faster of two runs: a shared machine's pauses), the batches
+    def best_of_two(
+        fn, payloads=payloads
+    ) -> tuple[float, list]:  # seconds for all n (the faster of two runs: a shared machine's pauses), the batches
         times, got = [], []
         for _ in range(2):
             t = time.perf_counter()
@@ -639,6 +674,7 @@ def batch_costs(db_url: str, n: int = 20) -> dict:
 
     fast_s, decoded = best_of_two(C.BATCH.decode)
     general_s, _ = best_of_two(C.BATCH.decode_general)
+    rows_s = best_of_two(C.BATCH.decode, row_payloads)[0] if columns else None
     store = Store(db_url)
     try:
         t4 = time.perf_counter()
@@ -665,7 +701,10 @@ def batch_costs(db_url: str, n: int = 20) -> dict:
         con.close()
     return {
         "batch_schema_steps_ms": schema_ms,
+        "batch_step_form": step_form,
         "batch_encode_ms": per(t0, t1),
+        "batch_encode_rows_ms": per(0.0, t_rows) if columns else None,
+        "batch_decode_rows_ms": per(0.0, rows_s) if rows_s is not None else None,
         "batch_decode_ms": per(0.0, fast_s),
         "batch_decode_general_ms": per(0.0, general_s),
         "batch_store_ms": per(t4, t5),

@@ -45,6 +45,11 @@ from hybridloc.wire.messages import MapInfo, MapVersion, Track
 
 from .uplink import Uplink
 
+#: An agent's batches of at least this many steps go with their steps in the columnar form (Uplink's
+#: ``step_columns_from``): a long batch period or a backlog (a bulk upload of a recording), never the
+#: live batch of a second's steps, whose bytes stay today's
+STEP_COLUMNS_FROM = 256
+
 
 def open_client(endpoint: str, security=None, log=None) -> zenoh.Session:
     """A client-mode Zenoh session to a server endpoint (scouting off; see hybridloc.wire.zconfig).
@@ -155,7 +160,8 @@ class Agent:
     in :meth:`drain_fixes`; ``map_refresh(payload, info)`` (optional) is called on the agent's thread
     with each new map version's file (npz bytes) and its :class:`~hybridloc.wire.messages.MapInfo`,
     e.g. :func:`walk_prior_refresh` for the particle filter; ``map_version`` is the version the agent
-    holds at the start (None: none or unknown).
+    holds at the start (None: none or unknown). ``step_columns_from``: batches of at least this many
+    steps go in the columnar form (:data:`STEP_COLUMNS_FROM`; None: never), which servers before it refuse.
     """
 
     def __init__(
@@ -174,10 +180,11 @@ class Agent:
         map_version: int | None = None,
         map_timeout: float = 10.0,
         max_spool_bytes: int | None = None,
+        step_columns_from: int | None = STEP_COLUMNS_FROM,
     ):
         self.session = session
         self.site, self.device = site, device
-        self.uplink = Uplink(session, site, device, spool, device_model, max_spool_bytes=max_spool_bytes)
+        self.uplink = Uplink(session, site, device, spool, device_model, max_spool_bytes=max_spool_bytes, step_columns_from=step_columns_from)
         # any filter with the predict/correct step API (hybridloc.fusion); by default LocalFusion, our Kalman filter
         self.fusion = fusion if fusion is not None else LocalFusion(init=init, floor=floor)
         self.pose = pose

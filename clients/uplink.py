@@ -53,8 +53,13 @@ class Uplink:
         device_model: str = "",
         resend_after: float = 2.0,
         max_spool_bytes: int | None = None,
+        step_columns_from: int | None = None,
     ):
         self.session = session
+        #: batches of at least this many steps are sent with their steps in the columnar form (docs/protocol.md,
+        #: "Step columns": a fraction of the encoding and decoding time, read by servers since it exists and
+        #: refused by older ones); None: never, today's bytes
+        self.step_columns_from = step_columns_from
         self.site, self.device = P.check_id(site, "site"), P.check_id(device, "device")
         self.device_model = device_model
         self.spool = Path(spool_dir)
@@ -106,7 +111,9 @@ class Uplink:
         with self._lock:
             seq = self.next_seq
             self.next_seq += 1
-            payload = C.BATCH.encode(Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time(), end_of_walk))
+            columns = self.step_columns_from is not None and len(steps) >= self.step_columns_from
+            batch = Batch(self.site, self.device, seq, self.device_model, steps, scans, marks, time.time(), end_of_walk)
+            payload = C.BATCH.encode(batch, step_columns=columns)
             if len(payload) > P.MAX_BATCH_BYTES:
                 raise ValueError(f"batch of {len(payload)} bytes exceeds the protocol limit {P.MAX_BATCH_BYTES}: send smaller batches")
             self._spool(seq, payload)

@@ -277,6 +277,10 @@ class Technology(str, enum.Enum):
     RFID = "rfid"
 
 
+#: A read-only empty mapping (a scan's missing frequencies or ages)
+_EMPTY: Mapping[str, float] = MappingProxyType({})
+
+
 @dataclass(frozen=True, eq=False)
 class RfScan:
     """One radio scan: what a receiver heard at one moment.
@@ -330,11 +334,13 @@ class RfScan:
         float and in range, a Technology): the wire decoder's fast path, which checks a whole batch's
         readings as one array (and is tested to give the same scans)."""
         obj = object.__new__(cls)
-        for name, v in (
-            ("t", t), ("technology", technology), ("rssi_dbm", MappingProxyType(dict(rssi))), ("frequency_hz", MappingProxyType(dict(frequency_hz))),
-            ("age_s", MappingProxyType(dict(age_s))), ("device_model", device_model),
-        ):  # fmt: skip
-            object.__setattr__(obj, name, v)
+        # one update of the instance dict (six frozen-dataclass setattrs were most of a batch's scan decoding);
+        # the empty mappings share one read-only view
+        obj.__dict__.update(
+            t=t, technology=technology, rssi_dbm=MappingProxyType(dict(rssi)),
+            frequency_hz=MappingProxyType(dict(frequency_hz)) if frequency_hz else _EMPTY,
+            age_s=MappingProxyType(dict(age_s)) if age_s else _EMPTY, device_model=device_model,
+        )  # fmt: skip
         return obj
 
     def __len__(self) -> int:

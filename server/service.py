@@ -23,6 +23,7 @@ batches, which clients resend.
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -471,6 +472,9 @@ def serve_forever(server: Server, beside=None) -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     with server:
+        # what the process loaded to start (modules, the radio maps) is left out of the collector's scans:
+        # ingest allocates thousands of objects a batch, and each full collection walked all of it again
+        gc.freeze()
         print(f"hybridloc server listening on {server.endpoint} (router mode)", flush=True)
         extra = beside(server) if beside is not None else None
         try:

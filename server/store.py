@@ -19,10 +19,12 @@ through these, never through raw rows.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import math
 from collections import Counter
 from collections.abc import Collection
 from dataclasses import dataclass
+from itertools import repeat
 from typing import cast
 
 from sqlalchemy import CursorResult, Table, func, insert, select, update
@@ -30,7 +32,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from hybridloc.types import RfScan, StepEvent, SurveyMark, Walk, WalkEnd
-from hybridloc.wire.messages import Batch
+from hybridloc.wire.codecs import step_times
+from hybridloc.wire.messages import Batch, StepColumns
 
 from . import db as m
 from .migrate import upgrade
@@ -191,49 +194,39 @@ class Store:
     def _insert_records(s: Session, stored: list[tuple[int, Batch]]) -> None:
         """The steps, scans and marks of the batches ``stored`` as (batch row id, batch): an executemany each.
 
-        The steps, a thousand rows a large batch, go to the driver's executemany as plain tuples (the
-        ORM's bulk INSERT built a parameter dict per row, most of a large batch's storing time); the
-        scans (a JSON column, which SQLAlchemy serialises) and marks through Core."""
-        steps = [
-            (
-                bid,
-                b.device,
-                st.t,
-                st.length,
-                st.heading,
-                st.sigma_length,
-                st.sigma_heading,
-                st.heading_change,
-                st.sigma_heading_change,
-                st.height_change,
-                st.sigma_height_change,
-                st.floor_change,
-                st.degraded,
-            )
-            for bid, b in stored
-            for st in b.steps
-        ]
+        The steps, a thousand rows a large batch, and the scans go to the driver's executemany as plain
+        tuples (the ORM's bulk INSERT built a parameter dict per row, and Core's a parameter dict and a
+        JSON bind per scan: most of a large batch's storing time); a decoded batch's steps are read from
+        their columns (:class:`~hybridloc.wire.messages.StepColumns`), never made into records. A scan's
+        readings are the JSON text SQLAlchemy's JSON type writes (``json.dumps``), so the rows are the
+        ones it stored before. The marks, few, through Core."""
+        steps: list[tuple] = []
+        for bid, b in stored:
+            if isinstance(b.steps, StepColumns):
+                steps += zip(repeat(bid), repeat(b.device), *b.steps.columns)
+            else:
+                steps += [
+                    (
+                        bid, b.device, st.t, st.length, st.heading, st.sigma_length, st.sigma_heading, st.heading_change,
+                        st.sigma_heading_change, st.height_change, st.sigma_height_change, st.floor_change, st.degraded,
+                    )
+                    for st in b.steps
+                ]  # fmt: skip
+        paramstyle = s.get_bind().dialect.paramstyle
+        conn = s.connection()
         if steps:
-            s.connection().exec_driver_sql(_step_insert_sql(s.get_bind().dialect.paramstyle), steps)
+            conn.exec_driver_sql(_insert_sql("step", _STEP_COLUMNS, paramstyle), steps)
+        dumps = json.dumps
         scans = [
-            {
-                "batch_id": bid,
-                "device_id": b.device,
-                "t": sc.t,
-                "technology": sc.technology.value,
-                "readings": {
-                    "rssi": dict(sc.rssi_dbm),
-                    **({"freq": dict(sc.frequency_hz)} if sc.frequency_hz else {}),
-                    **({"age": dict(sc.age_s)} if sc.age_s else {}),
-                },
-            }
+            (bid, b.device, sc.t, sc.technology.value, dumps(_readings(sc)))
             for bid, b in stored
             for sc in b.scans
-        ]
+        ]  # fmt: skip
+        if scans:
+            conn.exec_driver_sql(_insert_sql("scan", _SCAN_COLUMNS, paramstyle), scans)
         marks = [{"batch_id": bid, "device_id": b.device, "t": mk.t, "x": mk.x, "y": mk.y, "floor": mk.floor} for bid, b in stored for mk in b.marks]
-        for table, params in ((cast(Table, m.Scan.__table__), scans), (cast(Table, m.SurveyMark.__table__), marks)):
-            if params:
-                s.execute(insert(table), params)
+        if marks:
+            s.execute(insert(cast(Table, m.SurveyMark.__table__)), marks)
 
     @staticmethod
     def _join_walk(
@@ -243,7 +236,7 @@ class Store:
         docstring); None for a batch of nothing with no open walk. New walks are added to ``s`` (their
         ids come with the next flush); the floors their marks name are listed in ``floors_named``."""
         w = open_walks[b.device]
-        times = [r.t for r in b.steps] + [r.t for r in b.scans] + [r.t for r in b.marks]
+        times = step_times(b.steps) + [r.t for r in b.scans] + [r.t for r in b.marks]
         if times:
             lo, hi = min(times), max(times)
             if w is None or _span_gap(w, lo, hi) > WALK_IDLE_GAP_S:
@@ -392,11 +385,14 @@ class Store:
         """A stored walk with its data: every step field, every scan's RSSI, ages and frequencies, the
         survey marks, each sorted by time (ties in arrival order). KeyError for an unknown id.
 
-        Records are selected by the walk's device and time span (``ix_step_device_t``,
-        ``ix_scan_device_t``, ``ix_survey_mark_device_t``) and kept when their batch is the walk's
-        (``ix_batch_walk_id``). SQLite's plan: SEARCH step USING INDEX ix_step_device_t (device_id=?
-        AND t>? AND t<?), SEARCH batch USING COVERING INDEX ix_batch_walk_id (walk_id=? AND rowid=?),
-        no sort (the index is in (t, id) order). So the records themselves need no ``walk_id``.
+        Scans and marks are selected by the walk's device and time span (``ix_scan_device_t``,
+        ``ix_survey_mark_device_t``) and kept when their batch is the walk's (``ix_batch_walk_id``).
+        SQLite's plan: SEARCH scan USING INDEX ix_scan_device_t (device_id=? AND t>? AND t<?), SEARCH
+        batch USING COVERING INDEX ix_batch_walk_id (walk_id=? AND rowid=?), no sort (the index is in
+        (t, id) order). Steps, the table ingest writes most, have no such index (it cost as much as the
+        rows at ingest: migration 0004) and are read through the walk's batches: SEARCH batch USING
+        COVERING INDEX ix_batch_walk_id (walk_id=?), SEARCH step USING INDEX ix_step_batch_id
+        (batch_id=?), then a sort of the walk's steps by time. So the records themselves need no ``walk_id``.
         """
         with Session(self.engine) as s:
             w = s.get(m.Walk, walk_id)
@@ -579,11 +575,30 @@ _STEP_COLUMNS = (
 )
 
 
-def _step_insert_sql(paramstyle: str) -> str:
-    """INSERT INTO step (...) VALUES (...) in the driver's positional style (sqlite3 ``qmark``,
+#: The scan table's columns as :meth:`Store._insert_records` writes them (``readings``: JSON text)
+_SCAN_COLUMNS = ("batch_id", "device_id", "t", "technology", "readings")
+
+
+def _insert_sql(table: str, columns: tuple[str, ...], paramstyle: str) -> str:
+    """INSERT INTO table (...) VALUES (...) in the driver's positional style (sqlite3 ``qmark``,
     psycopg ``format``/``pyformat``)."""
     mark = "?" if paramstyle == "qmark" else "%s"
-    return f"INSERT INTO step ({', '.join(_STEP_COLUMNS)}) VALUES ({', '.join([mark] * len(_STEP_COLUMNS))})"
+    return f"INSERT INTO {table} ({', '.join(columns)}) VALUES ({', '.join([mark] * len(columns))})"
+
+
+def _step_insert_sql(paramstyle: str) -> str:
+    """INSERT INTO step (...) VALUES (...) in the driver's positional style."""
+    return _insert_sql("step", _STEP_COLUMNS, paramstyle)
+
+
+def _readings(sc: RfScan) -> dict:
+    """A scan's ``readings`` column: {"rssi": ..., "freq": ... when known, "age": ... when known}."""
+    d: dict = {"rssi": dict(sc.rssi_dbm)}
+    if sc.frequency_hz:
+        d["freq"] = dict(sc.frequency_hz)
+    if sc.age_s:
+        d["age"] = dict(sc.age_s)
+    return d
 
 
 #: Largest IN list in one statement (SQLite allows 32,766 bound parameters since 3.32, PostgreSQL 65,535).

@@ -19,6 +19,17 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
+    assert r["ceiling_step_form"] == "columns" and r["batch_encode_rows_ms"] is not None
+
+
+def test_ceiling_only_with_step_rows(capsys):
+    """``--ceiling-only`` runs no live load; ``--ceiling-steps rows`` sends today's rows, every batch stored."""
+    r = bench_load.main(["--ceiling-only", "--ceiling-batches", "1", "--ceiling-steps", "rows"])
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == r
+    assert r["ceiling_only"] and "steps_sent" not in r
+    assert r["ceiling_lossless"] and r["ceiling_step_form"] == "rows" and r["batch_encode_rows_ms"] is None
+    with pytest.raises(SystemExit):
+        bench_load.main(["--ceiling-only", "--no-ceiling"])
 
 
 @pytest.mark.slow  # about a minute; `make bench` runs bench_load with these faults at 300 clients

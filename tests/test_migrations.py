@@ -18,7 +18,7 @@ from hybridloc.wire.codecs import BATCH, step_to_dict
 
 T0 = 1.6e9
 NOW = dt.datetime(2024, 5, 1, 12, 0, tzinfo=dt.UTC)
-HEAD = "0003_slam"
+HEAD = "0004_step_batch_index"
 STEP_0001 = ["id", "batch_id", "device_id", "t", "length", "heading", "sigma_length", "sigma_heading", "heading_change", "floor_change"]
 
 
@@ -231,4 +231,46 @@ def test_0003_slam_up_down_up_keeps_maps(db_url):
     assert _dump_0001(eng) == before
     upgrade(eng)
     assert current_revision(eng) == HEAD
+    eng.dispose()
+
+
+def test_0004_step_batch_index_up_down_up(db_url):
+    """0004 (steps indexed by batch, not by device and time) on a filled 0003 database: the indexes change,
+    no row does, every walk reads back the same; downgrade to 0003 restores ix_step_device_t."""
+    db = db_url
+    eng = m.make_engine(db)
+    upgrade(eng, "0001_initial")
+    _fill_0001(eng)
+    upgrade(eng, "0003_slam")
+
+    def read(st: Store) -> list:
+        out = []
+        for w in st.walks("s1"):
+            wk = st.read_walk(w.walk_id)
+            scans = [(x.t, x.technology, dict(x.rssi_dbm), dict(x.frequency_hz), dict(x.age_s)) for x in wk.scans]
+            out.append((w, wk.steps, scans, wk.marks, wk.floors, wk.end))
+        return out
+
+    st = Store(db, migrate=False)
+    walks = read(st)
+    st.close()
+    assert sum(len(w[1]) for w in walks) == 23
+    before = _dump_0001(eng)
+
+    def step_indexes() -> set[str]:
+        return {i["name"] for i in inspect(eng).get_indexes("step")}
+
+    assert "ix_step_device_t" in step_indexes() and "ix_step_batch_id" not in step_indexes()
+    upgrade(eng, "0004_step_batch_index")
+    assert current_revision(eng) == HEAD
+    assert "ix_step_batch_id" in step_indexes() and "ix_step_device_t" not in step_indexes()
+    assert _dump_0001(eng) == before
+    st = Store(db)
+    assert read(st) == walks
+    st.close()
+    downgrade(eng, "0003_slam")
+    assert "ix_step_device_t" in step_indexes() and "ix_step_batch_id" not in step_indexes()
+    assert _dump_0001(eng) == before
+    upgrade(eng)
+    assert current_revision(eng) == HEAD and "ix_step_batch_id" in step_indexes()
     eng.dispose()

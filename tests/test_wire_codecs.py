@@ -31,7 +31,7 @@ from hybridloc.types import (
 from hybridloc.wire import codecs as C
 from hybridloc.wire import limits as L
 from hybridloc.wire import protocol as P
-from hybridloc.wire.messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
+from hybridloc.wire.messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, StepColumns, Track
 
 # derandomize: a fixed sequence of examples (seeded), the same on every run and machine; no example database in the tree
 SETTINGS = settings(derandomize=True, deadline=None, max_examples=60, database=None, suppress_health_check=[HealthCheck.too_slow])
@@ -993,3 +993,125 @@ def test_the_fast_path_takes_plain_batches():
     assert C._batch_fast(payload, "s1", "d1") is not None
     too_long = payload.replace(b'"length":0.7', b'"length":7.0', 1)
     assert C._batch_fast(too_long, "s1", "d1") is None and C.BATCH.decode(too_long, "s1", "d1").refused == (("step-too-long", 1),)
+
+
+# ---------------------------------------------------------------------------------------------- the columnar form of a batch's steps
+#: what a step field left out reads as (the required fields have none: their absence is refused)
+_ABSENT = {"heading_change": None, "sigma_heading_change": None, "height_change": 0.0, "sigma_height_change": 0.0, "floor_change": 0, "degraded": ""}
+
+
+def _columns(rows: list) -> tuple[dict, bool]:
+    """The columnar form of step rows as sent: a column per key any row has, a row without the key given
+    what its absence reads as (None for a required or unknown key); and whether that form says exactly
+    what the rows said (no required or unknown key was missing anywhere)."""
+    names = list(dict.fromkeys(k for r in rows for k in r))
+    exact = all(k in r or k in _ABSENT for r in rows for k in names)
+    return {k: [r.get(k, _ABSENT.get(k)) for r in rows] for k in names}, exact
+
+
+def _rows(columns: dict) -> list:
+    """Step i of a columnar form: each column's i-th value under the column's name (docs/protocol.md)."""
+    return [dict(zip(columns, values)) for values in zip(*columns.values())]
+
+
+@st.composite
+def _columnar_batch_dicts(draw):
+    """A batch of :func:`_batch_dicts` (a client's, then up to three changes anywhere) with its steps in
+    the columnar form, then maybe one change of the columns themselves: one left out, one that is not a
+    list, one cut short, an unknown one, a value replaced by anything."""
+    msg = draw(_batch_dicts())
+    if not (isinstance(msg.get("steps"), list) and all(isinstance(s, dict) for s in msg["steps"])):
+        return msg, None, False
+    rows = msg["steps"]
+    cols, exact = _columns(rows)
+    col_msg = dict(msg, steps=cols)
+    change = draw(st.sampled_from(["none", "none", "drop", "not-list", "short", "unknown", "value"]))
+    names = sorted(cols)
+    if change != "none" and names:
+        exact = False
+        k = draw(st.sampled_from(names))
+        if change == "drop":
+            del cols[k]
+        elif change == "not-list":
+            cols[k] = draw(_any_value.filter(lambda v: not isinstance(v, list)))
+        elif change == "short" and cols[k]:
+            cols[k] = cols[k][:-1]
+        elif change == "unknown":
+            cols["extra"] = [draw(_any_value) for _ in cols[k]]
+        elif change == "value" and cols[k]:
+            cols[k][draw(st.integers(0, len(cols[k]) - 1))] = draw(_any_value)
+    return col_msg, rows, exact
+
+
+@settings(max_examples=1500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_columnar_batch_dicts())
+@example(({"schema": P.BATCH_SCHEMA, "site": "s1", "device": "d1", "seq": 1, "steps": {"t": [1.0, 2.0], "length": [0.7, 7.0], "heading": [0.1, 0.1],
+           "sigma_length": [0.05, 0.05], "sigma_heading": [0.1, 0.1]}}, None, False))  # fmt: skip
+def test_columnar_steps_decode_as_their_rows(case):
+    """A batch with its steps as columns decodes (typed path first) as the general path decodes it, and,
+    when its columns are whole (lists of one length), as the same batch with step i made of each column's
+    i-th value: the same steps, the same rejection reason, the same items refused and counted by limit;
+    when the columns say exactly what the original rows said, as those rows."""
+    msg, rows, exact = case
+    payload = json.dumps(msg).encode()
+    got = _batch_outcome(C.BATCH.decode, payload)
+    assert got == _batch_outcome(C.BATCH.decode_general, payload)
+    cols = msg.get("steps")
+    if isinstance(cols, dict) and all(isinstance(c, list) for c in cols.values()) and len({len(c) for c in cols.values()}) <= 1:
+        as_rows = json.dumps(dict(msg, steps=_rows(cols))).encode()
+        assert got == _batch_outcome(C.BATCH.decode_general, as_rows) == _batch_outcome(C.BATCH.decode, as_rows)
+    if exact:
+        assert got == _batch_outcome(C.BATCH.decode, json.dumps(dict(msg, steps=rows)).encode())
+
+
+def test_columnar_steps_refusals():
+    """Columns that are not lists are malformed-json, columns of unequal lengths bad-value; a value beyond
+    a limit is left out and counted as in rows; the columnar batch is the typed path's when plain."""
+    b = Batch("s1", "d1", 3, "m", tuple(StepEvent(0.5 * i, 0.7, 0.1, 0.05, 0.1, 0.01, 0.02) for i in range(1, 50)))
+    payload = C.BATCH.encode(b, step_columns=True)
+    assert C._batch_fast(payload, "s1", "d1") is not None
+    msg = json.loads(payload)
+    for cols, reason in (
+        (dict(msg["steps"], length=0.7), "malformed-json"),
+        (dict(msg["steps"], length=msg["steps"]["length"][:-1]), "bad-value"),
+        ({k: v for k, v in msg["steps"].items() if k != "t"}, "malformed-json"),
+        (dict(msg["steps"], t=[None] * 49), "bad-value"),
+    ):
+        with pytest.raises(P.Rejected) as e:
+            C.BATCH.decode(json.dumps(dict(msg, steps=cols)).encode(), "s1", "d1")
+        assert e.value.reason == reason, (cols.keys(), e.value)
+    too_long = dict(msg["steps"], length=[7.0] + msg["steps"]["length"][1:])
+    got = C.BATCH.decode(json.dumps(dict(msg, steps=too_long)).encode(), "s1", "d1")
+    assert got.refused == (("step-too-long", 1),) and len(got.steps) == 48
+
+
+@SETTINGS
+@given(batches())
+def test_both_step_forms_decode_to_the_same_batch(b):
+    """A batch encoded with its steps as columns decodes as the same batch encoded with rows (today's
+    bytes): the optional fields travel by the same rules."""
+    rows, cols = C.BATCH.encode(b), C.BATCH.encode(b, step_columns=True)
+    assert _batch_outcome(C.BATCH.decode, cols) == _batch_outcome(C.BATCH.decode, rows)
+    assert C.BATCH.decode(cols).steps == C.BATCH.decode(rows).steps
+
+
+def test_step_columns_hold_the_steps_without_making_them():
+    """The decoder's StepColumns: a sequence equal to the steps' tuple, indexable, sliceable."""
+    steps = tuple(
+        StepEvent(
+            0.5 * i,
+            0.7,
+            3.0 * i,
+            0.05,
+            0.1,
+            *((None, None) if i % 2 else (0.01, 0.02)),
+            *((0.1, 0.01) if i % 3 else (0.0, 0.0)),
+            i % 2,
+            "gap" * (i % 2),
+        )
+        for i in range(1, 9)
+    )
+    got = C.BATCH.decode(C.BATCH.encode(Batch("s1", "d1", 1, "", steps), step_columns=True)).steps
+    assert isinstance(got, StepColumns) and len(got) == 8
+    assert got == steps and steps == got and tuple(got) == steps and got[3] == steps[3] and got[-1] == steps[-1] and got[2:5] == steps[2:5]
+    assert got != steps[:-1] and C.step_times(got) == [s.t for s in steps]

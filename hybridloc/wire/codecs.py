@@ -19,6 +19,10 @@ Validation lives in the decoders, and only there: a refused payload raises
 :class:`~.protocol.Rejected` with a stable, countable reason (listed in docs/protocol.md); nothing else
 escapes a decoder, whatever the bytes. Encoders trust their records.
 
+A batch's steps may also travel in a columnar form (a list per field, ``BATCH.encode(b, step_columns=True)``,
+docs/protocol.md "Step columns"), which the decoder reads as the rows it stands for, through the same
+checks; decoded steps are held as :class:`~.messages.StepColumns` (made into records only when read).
+
 The bytes are the ones hybridloc has always sent, so old clients and spooled batches keep working:
 JSON in UTF-8, a batch and a track with compact separators (``","``, ``":"``), every other message
 with ``json.dumps``' defaults (``", "``, ``": "``), keys in the order below. Optional keys are left out
@@ -33,9 +37,10 @@ are cut at 32 characters.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any, Generic, TypeVar
 
 import msgspec
@@ -56,7 +61,7 @@ from ..types import (
 )
 from ..units import wrap_angle
 from . import limits
-from .messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, Track
+from .messages import MAP_SOURCES, Ack, Batch, LocateRequest, MapInfo, MapVersion, Progress, Status, StepColumns, Track
 from .protocol import (
     ACK_SCHEMA,
     BATCH_SCHEMA,
@@ -204,6 +209,26 @@ def step_to_dict(s: StepEvent) -> dict:
     return d
 
 
+def step_columns_of(steps) -> dict[str, list]:
+    """Steps in the columnar form: a list per field, a step per index; the optional fields' columns only
+    when a step sets them, and each value as :func:`step_to_dict` sends it (a ``sigma_heading_change``
+    only with a ``heading_change``, a ``sigma_height_change`` only with a non-zero ``height_change``), so
+    that both forms decode to the same steps."""
+    cols: dict[str, list] = {f: [getattr(s, f) for s in steps] for f in ("t", "length", "heading", "sigma_length", "sigma_heading")}
+    hc = [s.heading_change for s in steps]
+    if any(x is not None for x in hc):
+        cols["heading_change"] = hc
+        cols["sigma_heading_change"] = [None if s.heading_change is None else s.sigma_heading_change for s in steps]
+    if any(s.height_change for s in steps):
+        cols["height_change"] = [s.height_change if s.height_change else 0.0 for s in steps]
+        cols["sigma_height_change"] = [s.sigma_height_change if s.height_change else 0.0 for s in steps]
+    if any(s.floor_change for s in steps):
+        cols["floor_change"] = [s.floor_change for s in steps]
+    if any(s.degraded for s in steps):
+        cols["degraded"] = [s.degraded for s in steps]
+    return cols
+
+
 def _step_from(s: dict) -> StepEvent:
     """A step as sent; plain well-formed steps (every number a float, in range) take the fast path,
     anything else the checked one, which names the reason. Both give the same steps (tested)."""
@@ -326,6 +351,24 @@ class _WireStep(msgspec.Struct):
     degraded: str = ""
 
 
+class _WireStepColumns(msgspec.Struct, forbid_unknown_fields=True):
+    """A batch's steps in the columnar form (a column the general path would read differently, such as
+    an unknown one, makes the typed decoding fail: the general path decides)."""
+
+    t: list[float]
+    length: list[float]
+    heading: list[float]
+    sigma_length: list[float]
+    sigma_heading: list[float]
+    # left out: UNSET (a null column is refused by the general path, so it fails here)
+    heading_change: list[float | None] | msgspec.UnsetType = msgspec.UNSET
+    sigma_heading_change: list[float | None] | msgspec.UnsetType = msgspec.UNSET
+    height_change: list[float] | msgspec.UnsetType = msgspec.UNSET
+    sigma_height_change: list[float] | msgspec.UnsetType = msgspec.UNSET
+    floor_change: list[int] | msgspec.UnsetType = msgspec.UNSET
+    degraded: list[str] | msgspec.UnsetType = msgspec.UNSET
+
+
 class _WireScan(msgspec.Struct):
     t: float
     rssi: dict[str, float]
@@ -348,13 +391,14 @@ class _WireBatch(msgspec.Struct):
     seq: int
     device_model: str | None = ""
     sent_at: float | None = None
-    steps: list[_WireStep] | None = None
+    steps: list[_WireStep] | _WireStepColumns | None = None
     scans: list[_WireScan] | None = None
     marks: list[_WireMark] | None = None
     end_of_walk: bool = False
 
 
 _BATCH_DECODER = msgspec.json.Decoder(_WireBatch)
+_COLUMNAR_ENCODER = msgspec.json.Encoder()
 _TECHS = {t.value: t for t in Technology}
 
 
@@ -366,8 +410,11 @@ def _batch_fast(payload, site: str | None, device: str | None) -> Batch | None:
         m = _BATCH_DECODER.decode(payload)
     except (msgspec.DecodeError, RecursionError):  # ValidationError is a DecodeError
         return None
-    steps_in, scans_in, marks_in = m.steps or [], m.scans or [], m.marks or []
-    if m.schema != BATCH_SCHEMA or m.seq < 1 or len(steps_in) + len(scans_in) + len(marks_in) > MAX_BATCH_ITEMS:
+    scans_in, marks_in = m.scans or [], m.marks or []
+    cols = _columns_of(m.steps)
+    if cols is None:
+        return None
+    if m.schema != BATCH_SCHEMA or m.seq < 1 or len(cols[0]) + len(scans_in) + len(marks_in) > MAX_BATCH_ITEMS:
         return None
     model = m.device_model or ""
     if len(model) > 64:
@@ -381,79 +428,88 @@ def _batch_fast(payload, site: str | None, device: str | None) -> Batch | None:
     sent_at = m.sent_at or 0.0
     if not math.isfinite(sent_at):
         return None
-    steps = _steps_fast(steps_in)
+    steps = _steps_fast(*cols)
     scans = _scans_fast(scans_in, model)
     marks = _marks_fast(marks_in)
     if steps is None or scans is None or marks is None:
         return None
-    times = [x.t for x in steps] + [x.t for x in scans] + [x.t for x in marks]
+    times = step_times(steps) + [x.t for x in scans] + [x.t for x in marks]
     if times and not max(times) <= min(times) + limits.MAX_BATCH_SPAN_S:
         return None  # limits.screen would cut the batch to its largest window (the same comparison as limits._largest_window's)
     return Batch(b_site, b_device, m.seq, model, steps, scans, marks, sent_at, m.end_of_walk, ())
+
+
+def step_times(steps: Sequence[StepEvent]) -> list[float]:
+    """The steps' times (read from the column of :class:`~.messages.StepColumns`, without making the steps)."""
+    return list(steps.columns[0]) if isinstance(steps, StepColumns) else [x.t for x in steps]
 
 
 def _non_decreasing(t: np.ndarray) -> bool:
     return bool(t.size < 2 or (np.diff(t) >= 0.0).all())
 
 
-def _steps_fast(steps_in: list[_WireStep]) -> tuple[StepEvent, ...] | None:
-    """The steps, when each is within :mod:`.limits` and in time at the rate they allow (so that
-    limits.screen would keep every one), values as the general path gives them; else None."""
-    if not steps_in:
+#: A step's fields in :class:`~hybridloc.types.StepEvent`'s order: the columns of the columnar form
+STEP_FIELDS = tuple(f.name for f in dataclasses.fields(StepEvent))
+_StepColumns = tuple[list, list, list, list, list, list, list, list, list, list, list]
+
+
+def _columns_of(steps: list[_WireStep] | _WireStepColumns | None) -> _StepColumns | None:
+    """A batch's typed steps, rows or columns, as the 11 columns of :data:`STEP_FIELDS` (absent optional
+    ones filled as an absent field reads: None, 0.0, 0, ""); None when the columns differ in length."""
+    if steps is None:
+        return ([], [], [], [], [], [], [], [], [], [], [])
+    if isinstance(steps, list):
+        return tuple([getattr(s, f) for s in steps] for f in STEP_FIELDS)  # type: ignore[return-value]
+    n = len(steps.t)
+    opt = (steps.heading_change, steps.sigma_heading_change, steps.height_change, steps.sigma_height_change, steps.floor_change, steps.degraded)
+    if any(len(c) != n for c in (steps.length, steps.heading, steps.sigma_length, steps.sigma_heading)) or any(
+        c is not msgspec.UNSET and len(c) != n for c in opt
+    ):
+        return None
+    fill = (None, None, 0.0, 0.0, 0, "")
+    return (steps.t, steps.length, steps.heading, steps.sigma_length, steps.sigma_heading) + tuple(  # type: ignore[return-value]
+        [f] * n if c is msgspec.UNSET else c for c, f in zip(opt, fill)
+    )
+
+
+def _steps_fast(
+    t: list, ln: list, hd: list, sl: list, sh: list, hc: list, shc: list, dh: list, sdh: list, fc: list, dg: list
+) -> Sequence[StepEvent] | None:
+    """The steps of these columns, when each is within :mod:`.limits` and in time at the rate they allow
+    (so that limits.screen would keep every one), values as the general path gives them; else None."""
+    if not t:
         return ()
-    A = np.array([(s.t, s.length, s.heading, s.sigma_length, s.sigma_heading, s.height_change, s.sigma_height_change) for s in steps_in], float)
-    hc = [s.heading_change for s in steps_in]
-    shc = [s.sigma_heading_change for s in steps_in]
-    fc = [s.floor_change for s in steps_in]
-    has_hc = np.array([x is not None for x in hc])
-    has_shc = np.array([x is not None for x in shc])
+    A = np.array([t, ln, hd, sl, sh, dh, sdh], float)
+    has_hc = [x is not None for x in hc]
     H = np.array([x if x is not None else 0.0 for x in hc], float)
     SH = np.array([x if x is not None else 0.0 for x in shc], float)
-    t, ln, hd, sl, sh, dh, sdh = A.T
+    at, aln, ahd, asl, ash, adh, asdh = A
     ok = (
         np.isfinite(A).all()
         and np.isfinite(H).all()
         and np.isfinite(SH).all()
-        and (ln >= 0.0).all() and (sl >= 0.0).all() and (sh >= 0.0).all() and (sdh >= 0.0).all() and (SH[has_shc] >= 0.0).all()
+        and (aln >= 0.0).all() and (asl >= 0.0).all() and (ash >= 0.0).all() and (asdh >= 0.0).all() and (SH >= 0.0).all()
         # limits.screen's per-step reasons: units, length, turn, climb
-        and (np.abs(t) < limits.MAX_ABS_TIME_S).all()
-        and (np.abs(hd) <= limits.MAX_ANGLE_RAD).all() and (sh <= limits.MAX_ANGLE_RAD).all() and (np.abs(SH) <= limits.MAX_ANGLE_RAD).all()
-        and (ln <= limits.MAX_STEP_LENGTH_M).all()
+        and (np.abs(at) < limits.MAX_ABS_TIME_S).all()
+        and (np.abs(ahd) <= limits.MAX_ANGLE_RAD).all() and (ash <= limits.MAX_ANGLE_RAD).all() and (np.abs(SH) <= limits.MAX_ANGLE_RAD).all()
+        and (aln <= limits.MAX_STEP_LENGTH_M).all()
         and (np.abs(H) <= limits.MAX_HEADING_CHANGE_RAD).all()
-        and (np.abs(dh) <= limits.MAX_HEIGHT_CHANGE_M).all()
-        and all(-limits.MAX_FLOOR_CHANGE <= f <= limits.MAX_FLOOR_CHANGE for f in fc)
-        and all(len(s.degraded) <= 32 for s in steps_in)
+        and (np.abs(adh) <= limits.MAX_HEIGHT_CHANGE_M).all()
+        and -limits.MAX_FLOOR_CHANGE <= min(fc) and max(fc) <= limits.MAX_FLOOR_CHANGE
+        and max(map(len, dg)) <= 32
     )  # fmt: skip
     if not ok:
         return None
     # in time order, each step after the previous by at least the shortest step interval and at most the top speed
-    dt = np.diff(t)
-    if not ((dt >= limits.MIN_STEP_INTERVAL_S).all() and (ln[1:] <= limits.MAX_STEP_SPEED_M_S * dt).all()):
+    dt = np.diff(at)
+    if not ((dt >= limits.MIN_STEP_INTERVAL_S).all() and (aln[1:] <= limits.MAX_STEP_SPEED_M_S * dt).all()):
         return None
-    heading = wrap_angle(hd).tolist()  # np.mod: Python's float % bit for bit (units.wrap_angle)
-    change = wrap_angle(H).tolist()
-    cols = A.tolist()
-    out = []
-    for i, s in enumerate(steps_in):
-        r = cols[i]
-        out.append(
-            StepEvent._checked_already(
-                {
-                    "t": r[0],
-                    "length": r[1],
-                    "heading": heading[i],
-                    "sigma_length": r[3],
-                    "sigma_heading": r[4],
-                    "heading_change": change[i] if has_hc[i] else None,
-                    "sigma_heading_change": shc[i],
-                    "height_change": r[5],
-                    "sigma_height_change": r[6],
-                    "floor_change": fc[i],
-                    "degraded": s.degraded,
-                }
-            )  # fmt: skip
-        )
-    return tuple(out)
+    heading = wrap_angle(ahd).tolist()  # np.mod: Python's float % bit for bit (units.wrap_angle)
+    change = [c if h else None for c, h in zip(wrap_angle(H).tolist(), has_hc)]
+    # the columns as Python floats (msgspec gives ints where the JSON had them only for int columns)
+    t, ln, sl, sh, dh, sdh = (A[k].tolist() for k in (0, 1, 3, 4, 5, 6))
+    # held as columns: the server stores them as such, never making a thousand StepEvents per batch
+    return StepColumns([t, ln, heading, sl, sh, change, list(shc), dh, sdh, list(fc), list(dg)])
 
 
 def _scans_fast(scans_in: list[_WireScan], model: str) -> tuple[RfScan, ...] | None:
@@ -517,15 +573,20 @@ class Codec(Generic[R]):
 class BatchCodec(Codec[Batch]):
     schema = BATCH_SCHEMA
 
-    def encode(self, b: Batch) -> bytes:
+    def encode(self, b: Batch, step_columns: bool = False) -> bytes:
+        """Today's bytes; ``step_columns``: the steps in the columnar form (docs/protocol.md, "Step
+        columns"), which servers before it refuse (``malformed-json``): for large batches to a server
+        that reads it. Both forms decode to the same batch."""
         msg = {
             "schema": BATCH_SCHEMA, "site": b.site, "device": b.device, "seq": int(b.seq), "device_model": b.device_model, "sent_at": b.sent_at,
-            "steps": [step_to_dict(s) for s in b.steps],
+            "steps": step_columns_of(b.steps) if step_columns else [step_to_dict(s) for s in b.steps],
             "scans": [scan_to_dict(s) for s in b.scans],
             "marks": [{"t": m.t, "x": m.x, "y": m.y, "floor": m.floor} for m in b.marks],
         }  # fmt: skip
         if b.end_of_walk:  # optional: absent means false, so batches of older clients read the same
             msg["end_of_walk"] = True
+        if step_columns:  # a new form, so new bytes: msgspec's (shortest round-trip floats, as json's), several times faster
+            return _COLUMNAR_ENCODER.encode(msg)
         return _dumps(msg, compact=True)
 
     def decode(self, payload: bytes, site: str | None = None, device: str | None = None) -> Batch:
@@ -542,7 +603,7 @@ class BatchCodec(Codec[Batch]):
         seq = msg.get("seq")
         if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1:
             raise Rejected("bad-seq", repr(seq))
-        steps_in, scans_in, marks_in = msg.get("steps") or [], msg.get("scans") or [], msg.get("marks") or []
+        steps_in, scans_in, marks_in = _step_rows(msg.get("steps") or []), msg.get("scans") or [], msg.get("marks") or []
         if not all(isinstance(x, list) for x in (steps_in, scans_in, marks_in)):
             raise Rejected("malformed-json", "steps, scans and marks must be lists")
         if len(steps_in) + len(scans_in) + len(marks_in) > MAX_BATCH_ITEMS:
@@ -566,6 +627,22 @@ class BatchCodec(Codec[Batch]):
         sent = [(float(s["heading"]), None if s.get("heading_change") is None else float(s["heading_change"])) for s in steps_in]
         steps, scans, marks, refused = limits.screen(steps, scans, marks, sent)
         return Batch(b_site, b_device, seq, model, steps, scans, marks, sent_at, end, tuple(sorted(refused.items())))
+
+
+def _step_rows(steps: Any) -> Any:
+    """The steps of a batch as rows: the list as sent, or the columnar form's rows (step i holds each
+    column's i-th value, under the column's name), so that both forms are read by the same code;
+    anything else as it is (the caller refuses it). Columns that are not lists are ``malformed-json``,
+    columns of unequal lengths ``bad-value``."""
+    if not isinstance(steps, dict):
+        return steps
+    if not all(isinstance(c, list) for c in steps.values()):
+        raise Rejected("malformed-json", "step columns must be lists")
+    lengths = {len(c) for c in steps.values()}
+    if len(lengths) > 1:
+        raise Rejected("bad-value", f"step columns of unequal lengths {sorted(lengths)}")
+    names = list(steps)
+    return [dict(zip(names, values)) for values in zip(*steps.values())]
 
 
 class AckCodec(Codec[Ack]):

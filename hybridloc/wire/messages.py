@@ -10,11 +10,55 @@ live in :mod:`hybridloc.types`; :mod:`.codecs` turns all of them into bytes and 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 from ..types import CorrectedTrack, RfScan, StepEvent, SurveyMark
+
+
+class StepColumns(Sequence[StepEvent]):
+    """Steps held as columns: a list per :class:`~hybridloc.types.StepEvent` field, in its order, a step
+    per index, values already checked and as the records hold them (headings wrapped ...). Each step is
+    made when asked for, so a decoded batch of a thousand steps is stored without making a thousand
+    records (the server reads :attr:`columns`); it equals any sequence of the same steps."""
+
+    __slots__ = ("columns",)
+
+    def __init__(self, columns: Sequence[list]):
+        if len(columns) != len(_STEP_FIELDS) or len({len(c) for c in columns}) > 1:
+            raise ValueError(f"StepColumns: {len(_STEP_FIELDS)} columns of one length expected")
+        self.columns: tuple[list, ...] = tuple(columns)
+
+    def __len__(self) -> int:
+        return len(self.columns[0])
+
+    @overload
+    def __getitem__(self, i: int) -> StepEvent: ...
+    @overload
+    def __getitem__(self, i: slice) -> tuple[StepEvent, ...]: ...
+    def __getitem__(self, i: int | slice) -> StepEvent | tuple[StepEvent, ...]:
+        if isinstance(i, slice):
+            return tuple(self)[i]
+        return StepEvent._checked_already(dict(zip(_STEP_FIELDS, (c[i] for c in self.columns))))
+
+    def __iter__(self) -> Iterator[StepEvent]:
+        new = StepEvent._checked_already
+        return (new(dict(zip(_STEP_FIELDS, r))) for r in zip(*self.columns))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Sequence) or isinstance(other, (str, bytes)):
+            return NotImplemented
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other))
+
+    def __hash__(self) -> int:
+        return hash(tuple(self))
+
+    def __repr__(self) -> str:
+        return f"StepColumns({len(self)} steps)"
+
+
+_STEP_FIELDS = tuple(f.name for f in dataclasses.fields(StepEvent))
 
 
 @dataclass(frozen=True, eq=False)
@@ -31,6 +75,7 @@ class Batch:
     device_model : str
         Phone or IMU model; empty when unknown. Every scan of a decoded batch carries it too.
     steps, scans, marks : tuples of StepEvent, RfScan, SurveyMark
+        (the decoder may give the steps as :class:`StepColumns`, a sequence that equals the tuple)
     sent_at : float
         When the client sent the batch, s (Unix time on the client; 0 when unknown).
     end_of_walk : bool
@@ -45,7 +90,7 @@ class Batch:
     device: str
     seq: int
     device_model: str = ""
-    steps: tuple[StepEvent, ...] = ()
+    steps: Sequence[StepEvent] = ()
     scans: tuple[RfScan, ...] = ()
     marks: tuple[SurveyMark, ...] = ()
     sent_at: float = 0.0
@@ -54,7 +99,9 @@ class Batch:
 
     def __post_init__(self) -> None:
         for name in ("steps", "scans", "marks", "refused"):
-            object.__setattr__(self, name, tuple(getattr(self, name)))
+            v = getattr(self, name)
+            if not isinstance(v, StepColumns):
+                object.__setattr__(self, name, tuple(v))
 
     def to_json(self) -> bytes:
         """Deprecated: ``codecs.BATCH.encode(batch)``."""
