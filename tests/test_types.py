@@ -129,6 +129,26 @@ def test_absolute_fix_checks_covariance():
         AbsoluteFix(2.0, [1.0, 2.0], [[1.0, 0.5], [0.0, 1.0]], "wifi")
 
 
+def test_absolute_fix_symmetry_test_is_numpys_allclose():
+    """The written-out symmetry test accepts and refuses exactly what np.allclose(c, c.T, atol) does,
+    near its edge (asymmetries around atol + rtol |c|) and far from it, at several scales."""
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        scale = 10.0 ** rng.uniform(-6, 6)
+        a = rng.uniform(0.5, 2.0) * scale
+        b = rng.uniform(-0.4, 0.4) * scale
+        tol = 1e-9 * max(1.0, a, abs(b)) + 1e-5 * abs(b)
+        c = np.array([[a, b], [b + tol * rng.uniform(0.0, 2.0) * rng.choice([-1, 1]), 1.3 * a]])
+        want = np.allclose(c, c.T, atol=1e-9 * max(1.0, float(np.abs(c).max())))
+        try:
+            AbsoluteFix(0.0, [0.0, 0.0], c, "wifi")
+            got = True
+        except ValueError as exc:
+            assert "symmetric" in str(exc)
+            got = False
+        assert got == want
+
+
 def test_containment_region():
     r = ContainmentRegion("F1", Polygon([(0, 0), (4, 0), (4, 3), (0, 3)]), 0.95)
     assert r.contains((1, 1)) and not r.contains((5, 1))

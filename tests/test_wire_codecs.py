@@ -1115,3 +1115,24 @@ def test_step_columns_hold_the_steps_without_making_them():
     assert isinstance(got, StepColumns) and len(got) == 8
     assert got == steps and steps == got and tuple(got) == steps and got[3] == steps[3] and got[-1] == steps[-1] and got[2:5] == steps[2:5]
     assert got != steps[:-1] and C.step_times(got) == [s.t for s in steps]
+
+
+def test_fix_region_geometry_is_shapelys_geojson():
+    """The fix's region is written from coordinate arrays; the JSON is the one shapely's mapping gives
+    (holes, several parts, a single polygon made a MultiPolygon by the record)."""
+    import json
+
+    import shapely
+    from shapely.geometry import mapping
+
+    from hybridloc.types import AbsoluteFix, ContainmentRegion, Fix
+
+    ring = shapely.Polygon([(0, 0), (10, 0), (10, 10), (0, 10)], [[(2, 2), (4, 2), (4, 4), (2, 4)]])
+    discs = shapely.union_all(shapely.buffer(shapely.points([[0.0, 0.0], [3.0, 0.0], [40.0, 1.0 / 3.0]]), 2.0))
+    fix = AbsoluteFix(1.0, [1.0, 2.0], np.diag([4.0, 9.0]), "wifi", "F1", 0.9)
+    for area in (ring, discs):
+        region = ContainmentRegion("F1", area, 0.95, 1.0)
+        msg = json.loads(C.FIX.encode(Fix(fix, region, {"F1": 1.0})))
+        assert json.dumps(msg["region"]["geometry"]) == json.dumps(mapping(region.area))
+        back = C.FIX.decode(C.FIX.encode(Fix(fix, region, {"F1": 1.0})))
+        assert back.region is not None and back.region.area.equals(region.area)

@@ -363,7 +363,13 @@ class KnnLocator:
         for i in range(len(scans)):
             fprob[i] = np.bincount(self._floor_code[idx[i]], weights=w_all[i], minlength=len(self.classes_))
         fprob /= fprob.sum(axis=1, keepdims=True)
-        out = []
+        out: list[LocateResult | None] = []
+        # the regions' discs of every scan buffered in one call and each scan's discs united in one
+        # call over a row of the (scans, k) array (None where a neighbour is on another floor): the
+        # same GEOS buffers and unions, in the same order, as one call per scan
+        discs = np.full(idx.shape, None, dtype=object)
+        radii = np.zeros(idx.shape)
+        pending = []  # (i, fix, floor, nb)
         for i, s in enumerate(scans):
             if known[i] == 0:
                 out.append(LocateResult(None, None, reason="no known transmitter in the scan"))
@@ -381,6 +387,14 @@ class KnnLocator:
             cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + KNN_SIGMA_FLOOR**2)
             fix = AbsoluteFix(s.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i][b]))
             rad = 2.0 * math.sqrt(max(np.linalg.eigvalsh(cov).max(), 1e-6))
-            region = ContainmentRegion(fl or None, shapely.union_all(shapely.buffer(shapely.points(self.pos[nb]), rad)), 0.95, s.t)
-            out.append(LocateResult(fix, region, {str(c): float(p) for c, p in zip(self.classes_, fprob[i])}, n_known=int(known[i])))
-        return out
+            discs[i, : len(nb)] = shapely.points(self.pos[nb])
+            radii[i, : len(nb)] = rad
+            pending.append((i, fix, fl, len(out)))
+            out.append(None)
+        if pending:
+            rows = np.array([i for i, _, _, _ in pending])
+            areas = shapely.union_all(shapely.buffer(discs[rows], radii[rows]), axis=1)
+            for (i, fix, fl, at), area in zip(pending, areas):
+                region = ContainmentRegion(fl or None, area, 0.95, scans[i].t)
+                out[at] = LocateResult(fix, region, {str(c): float(p) for c, p in zip(self.classes_, fprob[i])}, n_known=int(known[i]))
+        return out  # type: ignore[return-value]

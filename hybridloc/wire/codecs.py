@@ -178,6 +178,20 @@ def _matrix2(v: Any, what: str) -> np.ndarray:
     return np.array([[_finite(x, what) for x in r] for r in v])
 
 
+def _geojson_multipolygon(area) -> dict:
+    """``shapely.geometry.mapping(area)`` of a MultiPolygon (a ContainmentRegion's area) built from its
+    rings' coordinate arrays: the same GeoJSON once dumped (arrays for tuples, the same floats), at a
+    fraction of the cost of the coordinate-by-coordinate tuples of ``__geo_interface__``."""
+    import shapely
+
+    z = bool(area.has_z)
+    polys = []
+    for p in area.geoms:
+        rings = [p.exterior, *p.interiors]
+        polys.append([shapely.get_coordinates(r, include_z=z).tolist() for r in rings])
+    return {"type": "MultiPolygon", "coordinates": polys}
+
+
 def _dumps(msg: dict, compact: bool = False) -> bytes:
     if compact:
         return json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
@@ -683,9 +697,7 @@ class FixCodec(Codec[Fix]):
             },
         }
         if a.region is not None:
-            from shapely.geometry import mapping
-
-            d["region"] = {"floor": a.region.floor, "mass": a.region.mass, "geometry": mapping(a.region.area)}
+            d["region"] = {"floor": a.region.floor, "mass": a.region.mass, "geometry": _geojson_multipolygon(a.region.area)}
         if a.floor_probs:
             d["floor_probs"] = dict(a.floor_probs)
         return _dumps(d)
