@@ -36,18 +36,20 @@ QUARTER = 0.5 * math.pi
 
 @dataclass(frozen=True)
 class HdeConfig:
-    """Settings of :class:`DriftEliminator` (angles in radians, lengths in metres)."""
+    """Settings of :class:`DriftEliminator` (angles in radians, lengths in metres). The defaults are
+    the candidate of :data:`HDE_CANDIDATES` that ``hybridloc eval pdr-foot`` chooses on the gait-driven
+    walks (held out by walk and by session there)."""
 
     grid: float | None = None  # a dominant direction in the nav frame (the others at + k pi/2); None: learned from the walk
-    window: float = 10 * DEG  # |stride heading - nearest dominant direction| below this to be measured
-    straight: float = 5 * DEG  # the last ``strides`` stride headings within this of their circular mean
+    window: float = 15 * DEG  # |stride heading - nearest dominant direction| below this to be measured
+    straight: float = 20 * DEG  # the last ``strides`` stride headings within this of their circular mean
     strides: int = 3
     sigma: float = 3 * DEG  # standard deviation of the measured heading
     min_stride: float = 0.3  # m; a shorter move between stance ends is not a stride
     # Prior standard deviation of the gyro bias's vertical component (rad/s; None: the filter's
     # ``gyro_bias_sigma0``, as for the other components). Stance observes the other two (ZARU, and
     # tilt through the ZUPT); only the heading measurements see this one, so its prior may be wider.
-    bias_sigma0_up: float | None = None
+    bias_sigma0_up: float | None = 0.2 * DEG
 
 
 def circular_mean(angles, period: float = 2 * math.pi) -> float:
@@ -118,3 +120,7 @@ HDE_CANDIDATES = tuple(
 def describe(c: HdeConfig) -> str:
     bu = "filter's" if c.bias_sigma0_up is None else f"{c.bias_sigma0_up / DEG:g} deg/s"
     return f"straight {c.straight / DEG:g} deg, vertical gyro bias prior {bu}"
+
+
+#: What ``hybridloc pdr foot --hde`` uses (the grid learned unless given).
+HDE_DEFAULT = HdeConfig()
