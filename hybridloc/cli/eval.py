@@ -395,7 +395,7 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
     res = [[evaluate_gait_walk(w, replace(base, hde=c)) for c in cands] for w in walks]
     fin = np.array([[r.final_pct for r in row] for row in res])  # (walks, candidates)
     closes = np.array([r.closes for r in rs])
-    sessions = [r.session for r in res[0]]
+    sessions = [row[0].session for row in res]  # per walk
     ch_w, held_w = leave_one_group_out(fin, [w.name for w in walks])
     ch_s, held_s = leave_one_group_out(fin, sessions)
     bj = int(np.argmin(fin.mean(axis=0)))
