@@ -74,6 +74,17 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
     from ..io.common import stem_of
     from ..pdr.files import write_steps_csv
 
+    hde = None
+    if args.hde is not None:
+        from dataclasses import replace
+
+        from ..ins.hde import HDE_DEFAULT
+        from ..pdr.files import parse_start
+
+        try:
+            hde = replace(HDE_DEFAULT, grid=None if args.hde == "learn" else parse_start(f"0,0,{args.hde}")[2])
+        except ValueError as exc:
+            raise BadInput(f"--hde {args.hde!r}: a grid direction in rad or e.g. 30deg ({exc})") from exc
     out = Path(args.out)
     status = 0
     for p in args.files:
@@ -86,7 +97,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         except Exception as exc:  # one line per unreadable input, then the next input
             status = max(status, report_input_error(p, exc))
             continue
-        res = run_foot_ins(imu, FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward))
+        res = run_foot_ins(imu, FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward, hde=hde))
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
         with open(d / "trajectory.csv", "w", newline="", encoding="utf-8") as f:
@@ -101,6 +112,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             f"{p}: {len(res.t)} samples at {imu.rate_hz:.1f} Hz, {len(st)} strides, {s['stance_samples']} stance samples, "
             f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']}, re-initialisations {s['reinit']}; "
             f"input: {report.summary()} -> {d}"
+            + (f"; drift elimination: {s['hde_accepted']} of {s['hde_strides']} strides measured as a dominant direction" if hde is not None else "")
         )
     return status
 
@@ -155,5 +167,14 @@ def register(sub) -> None:
         "--forward",
         action="store_true",
         help="write the forward filter's track (what a live client has at each sample) instead of the default track smoothed back over each stride from its stance (RTS)",
+    )
+    ft.add_argument(
+        "--hde",
+        nargs="?",
+        const="learn",
+        metavar="GRID",
+        help="heuristic drift elimination: straight strides near a dominant direction of the building (GRID + k 90 deg in the INS frame, "
+        "rad or e.g. 30deg; without GRID learned from the walk's first straight stretch) are measured as that direction (hybridloc.ins.hde); "
+        "off by default",
     )
     ft.set_defaults(func=_cmd_pdr_foot)

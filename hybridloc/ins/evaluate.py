@@ -18,7 +18,7 @@ import numpy as np
 
 from ..io.imu_files import read_pyshoe_mat
 from ..metrics import pyshoe_align, pyshoe_armse, return_to_start_error
-from .foot import FootInsConfig, dedrift_i, run_foot_ins
+from .foot import FootInsConfig, dedrift_i, run_foot_ins, still_prefix
 from .stance import gyro_minimum
 
 #: A trial is a loop when its true end is within this distance of its true start, m.
@@ -102,6 +102,7 @@ class GaitResult:
     final_err_m: float  # last footprint against the true end, m
     distance_m: float  # true path (footprint to footprint), m
     closes: bool  # true end within GAIT_CLOSE_FRACTION of the path from the start
+    session: str = ""  # gait_session: logging rate and mounting
 
     @property
     def final_pct(self) -> float:
@@ -149,7 +150,16 @@ def evaluate_gait_walk(path: str | Path, config: FootInsConfig | None = None) ->
     final = float(np.linalg.norm(est[-1] - fp.pos_xy[-1]))
     closes = bool(np.linalg.norm(fp.pos_xy[-1] - fp.pos_xy[0]) <= GAIT_CLOSE_FRACTION * fp.distance_m)
     name = Path(path).name.split(".")[0]
-    return GaitResult(name, fp.n_strides, n_det, err, final, fp.distance_m, closes)
+    up = np.mean(rec.imu.accel_body[: still_prefix(rec.imu, 0.5)], axis=0)
+    return GaitResult(name, fp.n_strides, n_det, err, final, fp.distance_m, closes, gait_session(rec.imu.rate_hz, up))
+
+
+def gait_session(rate_hz: float, up_body: np.ndarray) -> str:
+    """A gait-driven walk's recording session, told apart by what the logs show: the logging rate and
+    the sensor's mounting (the body axis gravity leans on at the start; the set's walks 31-36 have it
+    along +x, 38-40 along -x, 42-45 log at 250 Hz). The file names carry no dates."""
+    u = np.asarray(up_body, float)
+    return f"{rate_hz:.0f}Hz/{'+' if u[0] >= 0 else '-'}x"
 
 
 def gait_walks(folder: str | Path) -> list[Path]:

@@ -45,7 +45,8 @@ from ..types import ImuBlock, StepEvent
 from ..units import G0, wrap_angle
 from . import stance as stance_mod
 from .eskf import ErrorStateEkf, ImuNoise
-from .measurements import ZeroAngularRate, ZeroVelocity
+from .hde import DriftEliminator, HdeConfig
+from .measurements import Heading, StrideHeading, ZeroAngularRate, ZeroVelocity
 from .smoother import IntervalRts
 from .strapdown import NominalState, level_from_accel, quat_to_dcm
 
@@ -71,6 +72,7 @@ class FootInsConfig:
     min_swing: float = stance_mod.MIN_SWING_S  # s, the "robust" detector's shortest swing (stance.one_stance_per_step)
     smooth_max_s: float = 2.0  # longest smoothing interval, s (a long standing still is cut into pieces)
     noise: ImuNoise = field(default_factory=ImuNoise)
+    hde: HdeConfig | None = None  # heuristic drift elimination (hde.py): straight strides measured as a dominant direction; None: off
 
 
 @dataclass
@@ -181,9 +183,23 @@ def run_foot_ins(
         + [nz.gyro_bias_sigma0**2] * 3
     )
     P0[8, 8] = 1e-10  # heading is defined as heading0: no uncertainty at the start
+    if cfg.hde is not None and cfg.hde.bias_sigma0_up is not None:
+        # the gyro bias's vertical component (body frame: along gravity at the start) gets its own prior:
+        # sigma0^2 I + (sigma_up^2 - sigma0^2) u u^T
+        u = x0.R.T @ np.array([0.0, 0.0, 1.0])
+        P0[12:15, 12:15] += (cfg.hde.bias_sigma0_up**2 - nz.gyro_bias_sigma0**2) * np.outer(u, u)
     kf = ErrorStateEkf(x0, P0, nz, g)
     zupt = ZeroVelocity(cfg.zupt_sigma)
     zaru = ZeroAngularRate(np.zeros(3))
+    hde = DriftEliminator(cfg.hde) if cfg.hde is not None else None
+    if hde is not None:
+        # the foot's heading is that of the body axis most level at the start (x or y), made level there
+        up = acc[: still_prefix(imu, cfg.init_seconds)].mean(axis=0)
+        up = up / np.linalg.norm(up)
+        ax = np.eye(3)[int(np.argmin(np.abs(up[:2])))]
+        ax = ax - (ax @ up) * up
+        foot_heading = Heading(ax / np.linalg.norm(ax))
+        stride_heading = StrideHeading(foot_heading.axis, cfg.hde.sigma)
     pos = np.zeros((n, 3))
     vel = np.zeros((n, 3))
     quat = np.zeros((n, 4))
@@ -260,6 +276,15 @@ def run_foot_ins(
                 cz = kf.correct(zaru, zero3)
                 if cz.accepted:
                     dx = dx + cz.dx  # the two corrections add to first order
+            if hde is not None and c.accepted and (i + 1 == n or not stance_l[i + 1]):  # the stance's last sample: a stride may end here
+                got = hde.stride_end(kf.x.p)
+                if got is not None:
+                    z_dom, psi = got
+                    # h = foot heading + (stride heading - foot heading) now: the innovation is z_dom - psi
+                    stride_heading.offset = psi - float(foot_heading.evaluate(kf.x)[0])
+                    ch = kf.correct(stride_heading, np.array([z_dom]))
+                    if ch.accepted:
+                        dx = dx + ch.dx
         if rts is not None:
             if broken:
                 smooth_back()
@@ -281,6 +306,10 @@ def run_foot_ins(
     sig = np.sqrt(np.clip(np.einsum("nii->ni", Ppos), 0.0, None))
     stats["P_min_eig"] = float(np.linalg.eigvalsh(kf.P).min())
     stats["P_asym"] = float(np.abs(kf.P - kf.P.T).max())
+    if hde is not None:
+        stats["hde_strides"], stats["hde_straight"], stats["hde_measured"] = hde.n_strides, hde.n_straight, hde.n_measured
+        stats["hde_accepted"] = kf.stats.accepted.get("hde", 0)
+        stats["hde_grid"] = hde.grid
     return FootInsResult(t.copy(), pos, vel, quat, sig, stance, Ppos, stats, pos_forward, step_stance)
 
 

@@ -108,6 +108,28 @@ class Heading(MeasurementModel):
         return self.R
 
 
+class StrideHeading(Heading):
+    """The heading of a stride, predicted as the foot's heading plus the stride's offset from it:
+    h = atan2(f_y, f_x) + offset, f = R a_body (the Jacobian is :class:`Heading`'s).
+
+    Heuristic drift elimination (Borenstein, Ojeda & Kwanmuang 2009, HDR; Jimenez et al. 2012, iHDE:
+    "Improved heuristic drift elimination with magnetically-aided dominant directions"): when a walker
+    goes straight along one of a building's dominant directions, the stride heading the INS computed
+    (``offset`` = that heading minus the foot's own, fixed over the stride) is measured as the nearest
+    dominant direction z. Its innovation is the drift since the last such stride; through the filter's
+    covariance it also reaches the gyro biases (dtheta' = -R db_g).
+    """
+
+    kind = "hde"
+
+    def __init__(self, axis_body=(1.0, 0.0, 0.0), sigma: float = 2 * math.pi / 180, offset: float = 0.0):
+        super().__init__(axis_body, sigma)
+        self.offset = float(offset)
+
+    def evaluate(self, x):
+        return super().evaluate(x) + self.offset
+
+
 class PositionFix(MeasurementModel):
     """An absolute position (2-D or 3-D) with its covariance, h = p[:dim]."""
 
