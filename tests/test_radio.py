@@ -1,5 +1,6 @@
 """Radio maps, survey labelling, positioning, similarity: synthetic worlds with known truth + real data."""
 
+import json
 import math
 
 import numpy as np
@@ -222,6 +223,11 @@ def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_dat
     )
     assert r.returncode == 0, r.stderr
     assert "standard split" in r.stdout and "ratio of mean error ours/plain" in r.stdout
+    assert "floor vote and position vote chosen apart" in r.stdout and "with that choice: building hit" in r.stdout
+    head = json.loads(r.stdout.strip().splitlines()[-1])
+    keys = list(head)
+    assert keys.index("uji_phone_cv_penalised_m") < keys.index("uji_lopo_split_floor_hit_pct") < keys.index("uji_split_votes_floor_hit_pct")
+    assert head["uji_split_votes_building_hit_pct"] >= 99.0
 
 
 def test_sorensen_neighbours_match_scipy_bray_curtis():

@@ -5,9 +5,15 @@
   from all the others (all floors), and every held-out scan between two waypoints is scored against the
   waypoints interpolated to its time.
 * UJIIndoorLoc: cross-validation grouped by user (every user's rows are located with the other users'
-  rows as references), with a plain 3-NN on raw dBm measured in the same run; and, when the validation
-  file (validationData.csv) lies beside the training one or is named, the standard split (every
-  training row a reference, every validation row a query).
+  rows as references), with a plain 3-NN on raw dBm measured in the same run; grouped by phone (the
+  validation file's phones are not in the training file) with nested leave-one-phone-out choice of the
+  settings, for the joint building/floor/position vote (:func:`evaluate_uji_phone`) and for the floor
+  and position votes chosen apart (:func:`evaluate_uji_phone_split`, also leaving one phone out at a
+  time); and, when the validation file (validationData.csv) lies beside the training one or is named,
+  the standard split (every training row a reference, every validation row a query), also answered
+  with the split votes chosen on the whole training file.
+* Indoor Location Competition routes held out whole: each scan's error beside the distance from its
+  truth to the nearest reference label on its floor (what limits it: the map's coverage).
 """
 
 from __future__ import annotations
@@ -55,11 +61,13 @@ class FingerprintScore:
     region_areas: list[float] = field(default_factory=list)
     no_fix: int = 0
     by_trace: dict[str, list[float]] = field(default_factory=dict)  # the errors of each test trace's scans
+    cover_m: list[float] = field(default_factory=list)  # per entry of errors: the truth's distance to the nearest reference label on its floor, m
 
-    def add(self, res: LocateResult, truth_xy: np.ndarray, truth_floor: str) -> None:
+    def add(self, res: LocateResult, truth_xy: np.ndarray, truth_floor: str, cover_m: float = float("nan")) -> None:
         if res.fix is None:
             self.no_fix += 1
             return
+        self.cover_m.append(cover_m)
         self.floor_hits.append(res.fix.floor == truth_floor)
         self.errors.append(float(np.linalg.norm(res.fix.pos_enu[:2] - truth_xy)) if res.fix.floor == truth_floor else float("nan"))
         if res.region is not None:
@@ -118,12 +126,18 @@ def evaluate_ilc(
 ) -> FingerprintScore:
     """Leave-traces-out: trace i is in fold ``fold_of[i]`` (default i mod ``folds``: walks recorded
     one after the other land in different folds)."""
+    from scipy.spatial import cKDTree
+
     score = FingerprintScore()
     fold_of = np.arange(len(traces)) % folds if fold_of is None else np.asarray(fold_of)
     for f in range(folds):
         train = [t for i, t in enumerate(traces) if fold_of[i] != f]
         test = [t for i, t in enumerate(traces) if fold_of[i] == f]
         refs = [ls for t in train for ls in t.labelled]
+        label_xy: dict[str | None, list] = {}
+        for ls in refs:
+            label_xy.setdefault(ls.floor, []).append(ls.pos_enu[:2])
+        trees = {fl: cKDTree(np.array(v)) for fl, v in label_xy.items()}
         if method == "prob":
             loc = ProbabilisticLocator(build_radio_map(refs, plan=plan, params=params), **loc_kw)
         else:
@@ -135,8 +149,9 @@ def evaluate_ilc(
             truth = np.column_stack([np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 0]), np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 1])])
             results = [loc.locate(s) for s in scans] if method == "prob" else loc.locate_many(scans)
             n0 = len(score.errors)
-            for res, xy in zip(results, truth):
-                score.add(res, xy, t.floor)
+            cover = trees[t.floor].query(truth)[0] if t.floor in trees else np.full(len(truth), np.inf)
+            for res, xy, c in zip(results, truth, cover):
+                score.add(res, xy, t.floor, float(c))
             score.by_trace[t.name] = score.errors[n0:]
     return score
 
