@@ -76,6 +76,9 @@ print(f"{'method':<20} {'all':>7} {'covered':>8}  per phone " + " ".join(f"{p:>4
 for name, P in proba.items():
     hit = P.argmax(axis=1) == f
     out[name] = {"floor_hit_pct": 100 * hit.mean(), "covered_floor_hit_pct": 100 * hit[covered].mean()}
-    print(f"{name:<20} {100 * hit.mean():6.2f}% {100 * hit[covered].mean():7.2f}%  per phone " + " ".join(f"{100 * hit[ph == p].mean():4.0f}" for p in phones))
+    print(
+        f"{name:<20} {100 * hit.mean():6.2f}% {100 * hit[covered].mean():7.2f}%  per phone "
+        + " ".join(f"{100 * hit[ph == p].mean():4.0f}" for p in phones)
+    )
 print(f"(covered: another phone's reference within {UJI_COVERED_M:g} m on the floor, {100 * covered.mean():.1f} % of the scans)")
 print(json.dumps(out))
