@@ -199,6 +199,7 @@ def test_uji_knn_building_and_floor(shared_data):
 
 
 @pytest.mark.shared_data
+@pytest.mark.timeout(900)  # the whole UJIIndoorLoc evaluation (grouped by user, by phone twice) in a subprocess
 def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_data, tmp_path):
     """The standard protocol (all training rows as references, the validation file's rows as queries)
     through ``eval fingerprint``: here with a validation file made of one user's rows (user 11) and a
@@ -219,7 +220,7 @@ def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_dat
     v = evaluate_uji_split(str(train), str(val))
     assert v["ours"]["n"] > 300 and v["ours"]["building"] >= 0.99  # buildings are 100s of m apart, own APs
     r = subprocess.run(
-        [sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""], capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""], capture_output=True, text=True, timeout=850
     )
     assert r.returncode == 0, r.stderr
     assert "standard split" in r.stdout and "ratio of mean error ours/plain" in r.stdout
