@@ -19,6 +19,7 @@ about 5 min on 2 cores)
 
 import argparse
 import json
+import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -34,6 +35,7 @@ ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("training", nargs="?", default="../shared/data/ujiindoorloc/trainingData.csv.gz")
 ap.add_argument("--k", type=int, default=10, help="neighbours of the kNN floor vote")
 args = ap.parse_args()
+warnings.filterwarnings("ignore", "All-NaN slice", RuntimeWarning)  # an access point never heard on a floor
 
 X, pos, b, f, ph = _uji_arrays(args.training)
 heard = X > MISSING_DBM
