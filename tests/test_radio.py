@@ -1,5 +1,6 @@
 """Radio maps, survey labelling, positioning, similarity: synthetic worlds with known truth + real data."""
 
+import json
 import math
 
 import numpy as np
@@ -197,17 +198,10 @@ def test_uji_knn_building_and_floor(shared_data):
     assert building >= 0.99  # buildings are 100s of metres apart with their own access points
 
 
-@pytest.mark.shared_data
-def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_data, tmp_path):
-    """The standard protocol (all training rows as references, the validation file's rows as queries)
-    through ``eval fingerprint``: here with a validation file made of one user's rows (user 11) and a
-    training file of the others', both in the original CSV layout, so the path that scores the real
-    validationData.csv, once it is beside the training file, runs end to end."""
+def _uji_user_split(shared_data, tmp_path):
+    """A training file of every user but 11 (every 4th row) and a validation file of user 11's rows
+    (every 10th), both in the original CSV layout."""
     import gzip
-    import subprocess
-    import sys
-
-    from hybridloc.radio.evaluate import evaluate_uji_split
 
     with gzip.open(shared_data / "ujiindoorloc" / "trainingData.csv.gz", "rt") as f:
         header, *rows = f.read().splitlines()
@@ -215,13 +209,51 @@ def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_dat
     train, val = tmp_path / "trainingData.csv", tmp_path / "validationData.csv"
     train.write_text("\n".join([header] + [r for r in rows if r.split(",")[user] != "11"][::4]) + "\n")
     val.write_text("\n".join([header] + [r for r in rows if r.split(",")[user] == "11"][::10]) + "\n")
+    return train, val
+
+
+@pytest.mark.shared_data
+def test_uji_standard_split_is_scored_when_a_validation_file_is_there(shared_data, tmp_path):
+    """The standard protocol (all training rows as references, the validation file's rows as queries),
+    here with a validation file made of one user's rows and a training file of the others', both in the
+    original CSV layout: the joint vote and the plain 3-NN (:func:`evaluate_uji_split`) and the split
+    votes (:func:`answer_uji_split`, with a fixed choice: the grouped search that picks it is the
+    slow test below and ``eval fingerprint``)."""
+    from hybridloc.radio.evaluate import answer_uji_split, evaluate_uji_split
+    from hybridloc.radio.hierarchy import FloorVote, PositionVote, Representation, SplitChoice
+
+    train, val = _uji_user_split(shared_data, tmp_path)
     v = evaluate_uji_split(str(train), str(val))
     assert v["ours"]["n"] > 300 and v["ours"]["building"] >= 0.99  # buildings are 100s of m apart, own APs
+    rep = Representation("exponential", 24.0, True)
+    a = answer_uji_split(str(train), str(val), SplitChoice(FloorVote(rep), PositionVote(rep), float("nan")))
+    s = a["scores"].summary()
+    assert a["n"] == v["ours"]["n"]
+    assert s["building_hit_pct"] >= 99.0  # as above
+    # a floor is 3-4 m high and 15 dB of wall: the vote is far above the 1-in-4 or 1-in-5 of a guess
+    assert s["floor_hit_pct"] >= 60.0
+
+
+@pytest.mark.shared_data
+@pytest.mark.slow  # ~12 min on 2 cores: the whole UJIIndoorLoc evaluation; eval fingerprint runs the same code
+@pytest.mark.timeout(1800)
+def test_uji_standard_split_through_eval_fingerprint(shared_data, tmp_path):
+    """The path that scores the real validationData.csv, once it is beside the training file, end to end
+    through ``eval fingerprint`` (grouped by user, by phone, the split votes): its lines and keys."""
+    import subprocess
+    import sys
+
+    train, _ = _uji_user_split(shared_data, tmp_path)
     r = subprocess.run(
-        [sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""], capture_output=True, text=True, timeout=600
+        [sys.executable, "-m", "hybridloc.cli", "eval", "fingerprint", "--uji", str(train), "--ilc", ""], capture_output=True, text=True, timeout=1750
     )
     assert r.returncode == 0, r.stderr
     assert "standard split" in r.stdout and "ratio of mean error ours/plain" in r.stdout
+    assert "floor vote and position vote chosen apart" in r.stdout and "with that choice: building hit" in r.stdout
+    head = json.loads(r.stdout.strip().splitlines()[-1])
+    keys = list(head)
+    assert keys.index("uji_phone_cv_penalised_m") < keys.index("uji_lopo_split_floor_hit_pct") < keys.index("uji_split_votes_floor_hit_pct")
+    assert head["uji_split_votes_building_hit_pct"] >= 99.0
 
 
 def test_sorensen_neighbours_match_scipy_bray_curtis():
@@ -288,3 +320,82 @@ def test_hierarchical_vote_building_then_floor_then_position():
     Y = offset_free(X)
     np.testing.assert_allclose(Y[0], Y[1], atol=1e-9)
     assert Y[0, 2] == -110.0
+
+
+def _synthetic_buildings(rng, phones=(0, 1, 2, 3), per_floor=60):
+    """Two buildings 300 m apart, three floors each, 6 access points per floor; every phone walks
+    every floor (its own RSSI offset); a reading falls 15 dB per floor between it and the AP."""
+    aps = []  # (building, floor, x, y)
+    for B in range(2):
+        for F in range(3):
+            for _ in range(6):
+                aps.append((B, F, 300.0 * B + rng.uniform(0, 40), rng.uniform(0, 20)))
+    ap = np.array(aps)
+    rows = []
+    for p in phones:
+        offset = rng.normal(0, 6)
+        for B in range(2):
+            for F in range(3):
+                for _ in range(per_floor):
+                    xy = np.array([300.0 * B + rng.uniform(0, 40), rng.uniform(0, 20)])
+                    d = np.hypot(ap[:, 2] - xy[0], ap[:, 3] - xy[1]) + 1.0
+                    r = -35.0 - 25.0 * np.log10(d) - 15.0 * np.abs(ap[:, 1] - F) - 80.0 * (ap[:, 0] != B) + offset + rng.normal(0, 3, len(ap))
+                    rows.append((np.where(r > -95.0, r, -110.0), xy, B, F, p))
+    X = np.array([r[0] for r in rows])
+    pos = np.array([r[1] for r in rows])
+    return X, pos, np.array([r[2] for r in rows]), np.array([r[3] for r in rows]), np.array([r[4] for r in rows])
+
+
+def test_restricted_neighbour_lists_are_the_direct_search():
+    """Lists cut from the other-phone lists equal a direct search over the allowed references, also
+    where the cut leaves too few entries and the rows are searched again."""
+    from hybridloc.radio.hierarchy import Representation, other_group_neighbours, restricted_neighbours, sorensen_knn
+
+    rng = np.random.default_rng(5)
+    X, pos, b, f, ph = _synthetic_buildings(rng, phones=(0, 1, 2, 3), per_floor=8)
+    R = Representation()(X)
+    D, I = other_group_neighbours(R, ph, 30)
+    for excluded in ({1}, {1, 2}):
+        rows = np.flatnonzero(ph == 0)
+        Dk, Ik = restricted_neighbours(R, D, I, ph, rows, excluded, 12)
+        ref = np.flatnonzero(~np.isin(ph, list(excluded)) & (ph != 0))
+        d, i = sorensen_knn(R[ref], R[rows], 12)
+        np.testing.assert_allclose(Dk, d, atol=1e-6)
+    # lists cut short (14 entries, phones 1 and 2 out): rows left with fewer than 12 are searched again
+    Dk, Ik = restricted_neighbours(R, D[:, :14], I[:, :14], ph, np.flatnonzero(ph == 0), {1, 2}, 12)
+    ref = np.flatnonzero(ph == 3)
+    d, _ = sorensen_knn(R[ref], R[ph == 0], 12)
+    np.testing.assert_allclose(Dk, d, atol=1e-6)
+    assert set(ph[Ik.ravel()]) == {3}
+
+
+def test_split_vote_finds_known_buildings_and_floors_held_out_by_phone():
+    """Synthetic buildings with known floors, every phone held out in turn (settings chosen by
+    leave-one-phone-out over the others): building 100 %, floor >= 95 %, position within metres."""
+    from hybridloc.radio.hierarchy import (
+        Representation,
+        floor_grid,
+        other_group_neighbours,
+        position_grid,
+        restricted_neighbours,
+        score,
+        split_search,
+        split_vote,
+    )
+
+    rng = np.random.default_rng(7)
+    X, pos, b, f, ph = _synthetic_buildings(rng)
+    reps = [Representation("powed", np.e, True), Representation("exponential", 24.0, True)]
+    base = {r: (r(X), *other_group_neighbours(r(X), ph, 60)) for r in reps}
+    bb, ff, P = np.zeros(len(X), int), np.zeros(len(X), int), np.zeros((len(X), 2))
+    for p in np.unique(ph):
+        tr, te = np.flatnonzero(ph != p), np.flatnonzero(ph == p)
+        lists = {r: restricted_neighbours(R, D, I, ph, tr, {p}, 20) for r, (R, D, I) in base.items()}
+        c = split_search(lists, tr, b, f, pos, floor_grid(reps, (5, 10), (5,), (1.0,)), position_grid(reps, (3, 5), (1.0, 2.0)))
+        assert c.fitted < 20.0
+        lists = {r: restricted_neighbours(R, D, I, ph, te, {p}, 20) for r, (R, D, I) in base.items()}
+        bb[te], ff[te], P[te] = split_vote(lists, c.floor, c.position, b, f, pos)
+    s = score(bb, ff, P, b, f, pos).summary()
+    assert s["building_hit_pct"] == 100.0
+    assert s["floor_hit_pct"] >= 95.0
+    assert s["mean_m"] < 8.0  # a 40 x 20 m floor: a guess at its centre would be ~11 m off

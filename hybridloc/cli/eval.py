@@ -513,6 +513,8 @@ def print_fingerprint(res) -> None:
                 print(
                     f"    ratio ours/plain: mean {sm['ours']['mean_m'] / sm['plain']['mean_m']:.2f}, penalised {sm['ours']['penalised_m'] / sm['plain']['penalised_m']:.2f}"
                 )
+    if res.uji_phone_split is not None:
+        _print_uji_split_votes(res)
     if res.ilc:
         print(f"Indoor Location Competition {res.ilc}: {res.n_ilc_traces} traces as surveys, {res.folds}-fold leave-traces-out, WiFi only, per scan")
         for m in res.ilc_methods:
@@ -533,7 +535,73 @@ def print_fingerprint(res) -> None:
             f"on the others {np.nanmean(rest) if rest.size else float('nan'):.2f} m; 95% region holds the truth {100 * np.mean(s.region_hits):.1f}% "
             f"(mean area {np.mean(s.region_areas):.0f} m^2)"
         )
+        cov = np.array(s.cover_m)
+        bins = ((0, 2), (2, 5), (5, 10), (10, np.inf))
+        parts = []
+        for lo, hi in bins:
+            m = (cov >= lo) & (cov < hi)
+            parts.append(
+                f"{lo:g}-{hi:g} m: {100 * m.mean():.0f} % of scans, mean {np.nanmean(e[m]) if np.isfinite(e[m]).any() else float('nan'):.2f} m"
+            )
+        print("  routes held out whole, error by the distance from the truth to the nearest reference label on its floor: " + "; ".join(parts))
         print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
+
+
+def _split_label(c) -> str:
+    """A :class:`~hybridloc.radio.hierarchy.SplitChoice` in one phrase."""
+    f, p = c.floor, c.position
+    return (
+        f"floor by {f.rep.label()} (k_building {f.k_building}, k_floor {f.k_floor}, weight d^-{f.weight_power:g}), "
+        f"position by {p.rep.label()} (k {p.k} on the floor, weight d^-{p.weight_power:g})"
+    )
+
+
+def _print_uji_split_votes(res) -> None:
+    """The building/floor vote and the position vote chosen apart (evaluate_uji_phone_split), beside
+    the joint vote and the plain 3-NN on the same folds."""
+    sp, ph = res.uji_phone_split, res.uji_phone
+    print(
+        f"UJIIndoorLoc {res.uji}: floor vote and position vote chosen apart (each its own representation; position from the "
+        "neighbours on the chosen floor), settings chosen by leave-one-phone-out inside each split, held out by phone"
+    )
+    for name, title in (
+        ("kfold", f"the same {sp['folds']} phone folds as above"),
+        ("lopo", f"leave one phone out ({sp['n_phones']} splits: every other phone's references in the map)"),
+    ):
+        r = sp[name]
+        print(f"  {title}:")
+        for out_ph, c, held in r["chosen"]:
+            print(
+                f"    phones {','.join(str(p) for p in out_ph)} out: {_split_label(c)}: penalised {c.fitted:.2f} m fitted (inner CV), {held:.2f} m held out"
+            )
+        plain = ph["plain"] if name == "kfold" and ph is not None else r.get("plain")
+        joint = ph["ours"] if name == "kfold" and ph is not None else None
+        for subset, mask in (("all scans", None), (f"scans inside the map ({100 * r['covered'].mean():.0f} %)", r["covered"])):
+            print(f"    {subset}:")
+            rows = [("split", "floor vote + position vote (CV-chosen)", r["ours"])]
+            if joint is not None:
+                rows.append(("joint", "building/floor/position kNN (CV-chosen)", joint))
+            if plain is not None:
+                rows.append(("plain", "plain 3-NN, Euclidean, raw dBm", plain))
+            sm = {key: sc.summary(mask) for key, _, sc in rows}
+            for key, label, _ in rows:
+                x = sm[key]
+                print(
+                    f"      {label:<40} building hit {x['building_hit_pct']:.2f}%  floor hit {x['floor_hit_pct']:.2f}%  "
+                    f"mean {x['mean_m']:.2f} m on the right floor  penalised {x['penalised_m']:.2f} m (n={x['n']})"
+                )
+            if "plain" in sm:
+                print(
+                    f"      ratio split/plain: mean {sm['split']['mean_m'] / sm['plain']['mean_m']:.2f}, penalised {sm['split']['penalised_m'] / sm['plain']['penalised_m']:.2f}"
+                )
+    print(f"  chosen over the whole file (leave one phone out, {sp['full'].fitted:.2f} m penalised): {_split_label(sp['full'])}")
+    if res.uji_split_votes is not None:
+        x = res.uji_split_votes["scores"].summary()
+        print(
+            f"  standard split ({res.uji_validation}, {res.uji_split_votes['n']} scans) with that choice: building hit {x['building_hit_pct']:.2f}%  "
+            f"floor hit {x['floor_hit_pct']:.2f}%  mean {x['mean_m']:.2f} m on the right floor  penalised {x['penalised_m']:.2f} m"
+        )
+    print("  (goal on the validation file: building 100 %, floor >= 96 %, mean <= 6 m)")
 
 
 def fingerprint_headline(res) -> dict:
@@ -563,6 +631,38 @@ def fingerprint_headline(res) -> dict:
     if res.routes is not None:
         s = res.routes.score
         out["ilc_routes_held_out_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
+    if res.routes is not None:  # appended after the earlier keys
+        s = res.routes.score
+        cov, e = np.array(s.cover_m), np.array(s.errors)
+        near = cov < 2.0
+        out["ilc_routes_held_out_near_share_pct"] = 100 * float(near.mean()) if near.size else float("nan")
+        out["ilc_routes_held_out_near_mean_m"] = np.nanmean(e[near]) if np.isfinite(e[near]).any() else float("nan")
+        out["ilc_routes_held_out_far_mean_m"] = np.nanmean(e[cov >= 5.0]) if np.isfinite(e[cov >= 5.0]).any() else float("nan")
+    sp = res.uji_phone_split
+    if sp is not None:
+        for name, key in (("kfold", "uji_phone_cv_split"), ("lopo", "uji_lopo_split")):
+            x, xc = sp[name]["ours"].summary(), sp[name]["ours"].summary(sp[name]["covered"])
+            out.update(
+                {
+                    f"{key}_mean_m": x["mean_m"],
+                    f"{key}_building_hit_pct": x["building_hit_pct"],
+                    f"{key}_floor_hit_pct": x["floor_hit_pct"],
+                    f"{key}_penalised_m": x["penalised_m"],
+                    f"{key}_covered_mean_m": xc["mean_m"],
+                    f"{key}_covered_floor_hit_pct": xc["floor_hit_pct"],
+                    f"{key}_covered_penalised_m": xc["penalised_m"],
+                }
+            )
+        out["uji_lopo_plain_mean_m"] = sp["lopo"]["plain"].summary()["mean_m"]
+        out["uji_lopo_plain_penalised_m"] = sp["lopo"]["plain"].summary()["penalised_m"]
+    if res.uji_split_votes is not None:
+        x = res.uji_split_votes["scores"].summary()
+        out.update(
+            uji_split_votes_mean_m=x["mean_m"],
+            uji_split_votes_building_hit_pct=x["building_hit_pct"],
+            uji_split_votes_floor_hit_pct=x["floor_hit_pct"],
+            uji_split_votes_penalised_m=x["penalised_m"],
+        )
     return out
 
 

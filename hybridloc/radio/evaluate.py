@@ -5,9 +5,15 @@
   from all the others (all floors), and every held-out scan between two waypoints is scored against the
   waypoints interpolated to its time.
 * UJIIndoorLoc: cross-validation grouped by user (every user's rows are located with the other users'
-  rows as references), with a plain 3-NN on raw dBm measured in the same run; and, when the validation
-  file (validationData.csv) lies beside the training one or is named, the standard split (every
-  training row a reference, every validation row a query).
+  rows as references), with a plain 3-NN on raw dBm measured in the same run; grouped by phone (the
+  validation file's phones are not in the training file) with nested leave-one-phone-out choice of the
+  settings, for the joint building/floor/position vote (:func:`evaluate_uji_phone`) and for the floor
+  and position votes chosen apart (:func:`evaluate_uji_phone_split`, also leaving one phone out at a
+  time); and, when the validation file (validationData.csv) lies beside the training one or is named,
+  the standard split (every training row a reference, every validation row a query), also answered
+  with the split votes chosen on the whole training file.
+* Indoor Location Competition routes held out whole: each scan's error beside the distance from its
+  truth to the nearest reference label on its floor (what limits it: the map's coverage).
 """
 
 from __future__ import annotations
@@ -55,11 +61,13 @@ class FingerprintScore:
     region_areas: list[float] = field(default_factory=list)
     no_fix: int = 0
     by_trace: dict[str, list[float]] = field(default_factory=dict)  # the errors of each test trace's scans
+    cover_m: list[float] = field(default_factory=list)  # per entry of errors: the truth's distance to the nearest reference label on its floor, m
 
-    def add(self, res: LocateResult, truth_xy: np.ndarray, truth_floor: str) -> None:
+    def add(self, res: LocateResult, truth_xy: np.ndarray, truth_floor: str, cover_m: float = float("nan")) -> None:
         if res.fix is None:
             self.no_fix += 1
             return
+        self.cover_m.append(cover_m)
         self.floor_hits.append(res.fix.floor == truth_floor)
         self.errors.append(float(np.linalg.norm(res.fix.pos_enu[:2] - truth_xy)) if res.fix.floor == truth_floor else float("nan"))
         if res.region is not None:
@@ -118,12 +126,18 @@ def evaluate_ilc(
 ) -> FingerprintScore:
     """Leave-traces-out: trace i is in fold ``fold_of[i]`` (default i mod ``folds``: walks recorded
     one after the other land in different folds)."""
+    from scipy.spatial import cKDTree
+
     score = FingerprintScore()
     fold_of = np.arange(len(traces)) % folds if fold_of is None else np.asarray(fold_of)
     for f in range(folds):
         train = [t for i, t in enumerate(traces) if fold_of[i] != f]
         test = [t for i, t in enumerate(traces) if fold_of[i] == f]
         refs = [ls for t in train for ls in t.labelled]
+        label_xy: dict[str | None, list] = {}
+        for ls in refs:
+            label_xy.setdefault(ls.floor, []).append(ls.pos_enu[:2])
+        trees = {fl: cKDTree(np.array(v)) for fl, v in label_xy.items()}
         if method == "prob":
             loc = ProbabilisticLocator(build_radio_map(refs, plan=plan, params=params), **loc_kw)
         else:
@@ -135,8 +149,9 @@ def evaluate_ilc(
             truth = np.column_stack([np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 0]), np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 1])])
             results = [loc.locate(s) for s in scans] if method == "prob" else loc.locate_many(scans)
             n0 = len(score.errors)
-            for res, xy in zip(results, truth):
-                score.add(res, xy, t.floor)
+            cover = trees[t.floor].query(truth)[0] if t.floor in trees else np.full(len(truth), np.inf)
+            for res, xy, c in zip(results, truth, cover):
+                score.add(res, xy, t.floor, float(c))
             score.by_trace[t.name] = score.errors[n0:]
     return score
 
@@ -226,13 +241,18 @@ UJI_REPS = (
 
 def _uji_arrays(path: str):
     """(X dBm with MISSING_DBM, position (n, 2), building, floor, phone) of the rows that heard something."""
+    return _uji_arrays_waps(path)[1:]
+
+
+def _uji_arrays_waps(path: str):
+    """The access point names (the columns of X), then :func:`_uji_arrays`'s arrays."""
     from ..io.uji import read_uji
     from .locate import MISSING_DBM
 
     d = read_uji(path)
     rows = np.flatnonzero(np.isfinite(d.rssi_dbm).any(axis=1))
     X = np.where(np.isfinite(d.rssi_dbm[rows]), d.rssi_dbm[rows], MISSING_DBM)
-    return X, d.pos[rows], d.building[rows], d.floor[rows], d.phone[rows]
+    return d.waps, X, d.pos[rows], d.building[rows], d.floor[rows], d.phone[rows]
 
 
 def evaluate_uji_phone(path: str, folds: int = UJI_PHONE_FOLDS, votes=None, reps=None) -> dict:
@@ -286,6 +306,111 @@ def evaluate_uji_phone(path: str, folds: int = UJI_PHONE_FOLDS, votes=None, reps
     for name, (bb, ff, P) in res.items():
         out[name] = score(bb, ff, P, b, fl, pos)
     return out
+
+
+#: Neighbours searched once per UJIIndoorLoc row among the other phones' rows (every nested split's
+#: list is cut from it), and kept per query for the split votes.
+UJI_SEARCH_K = 100
+UJI_LIST_K = 40
+
+
+def _uji_split_lists(base: dict, ph: np.ndarray, rows: np.ndarray, excluded) -> dict:
+    """rep -> (D, I) of ``rows`` among the rows of phones neither their own nor ``excluded``."""
+    from .hierarchy import restricted_neighbours
+
+    return {rep: restricted_neighbours(R, D, I, ph, rows, excluded, UJI_LIST_K) for rep, (R, D, I) in base.items()}
+
+
+def evaluate_uji_phone_split(path: str, folds: int = UJI_PHONE_FOLDS, reps=None, floors=None, positions=None) -> dict:
+    """The building/floor vote and the position vote chosen apart (each with its own representation,
+    :func:`~.hierarchy.split_search`), held out by phone two ways:
+
+    * ``"kfold"``: the same ``folds`` GroupKFold folds as :func:`evaluate_uji_phone` (a quarter of the
+      phones out at once: a floor only those phones walked has no reference left);
+    * ``"lopo"``: leave one phone out (every other phone's references in the map, as for the validation
+      file, whose phones walked inside the training file's coverage).
+
+    Each outer split's settings are chosen by leave-one-phone-out over its own references only. The
+    neighbour searches are done once per representation (:func:`~.hierarchy.other_group_neighbours`);
+    each split's lists are cut from them (:func:`~.hierarchy.restricted_neighbours`, exact). The plain
+    3-NN (Euclidean, raw dBm) answers the LOPO splits beside it. ``"full"`` is the choice over the
+    whole file (leave-one-phone-out over every phone), the one a validation file is answered with.
+    """
+    from scipy.spatial import cKDTree
+    from sklearn.model_selection import GroupKFold
+    from sklearn.neighbors import NearestNeighbors
+
+    from .hierarchy import (
+        Representation,
+        VoteSettings,
+        floor_grid,
+        hierarchical_vote,
+        other_group_neighbours,
+        position_grid,
+        score,
+        split_search,
+        split_vote,
+    )
+
+    X, pos, b, f, ph = _uji_arrays(path)
+    fl = b * 100 + f
+    reps = [Representation(*r) for r in (reps or UJI_REPS)]
+    floors = floors or floor_grid(reps)
+    positions = positions or position_grid(reps)
+    base = {}
+    for rep in reps:
+        R = rep(X)
+        base[rep] = (R, *other_group_neighbours(R, ph, UJI_SEARCH_K))
+    n = len(X)
+    out: dict = {"n_phones": len(np.unique(ph)), "folds": folds}
+    phones = np.unique(ph)
+    splits = {
+        "kfold": list(GroupKFold(n_splits=folds).split(X, groups=ph)),
+        "lopo": [(np.flatnonzero(ph != p), np.flatnonzero(ph == p)) for p in phones],
+    }
+    for name, sp in splits.items():
+        bb, ff, P = np.zeros(n, int), np.zeros(n, int), np.zeros((n, 2))
+        covered = np.zeros(n, bool)
+        chosen = []
+        for tr, te in sp:
+            out_ph = set(np.unique(ph[te]).tolist())
+            c = split_search(_uji_split_lists(base, ph, tr, out_ph), tr, b, fl, pos, floors, positions)
+            bb[te], ff[te], P[te] = split_vote(_uji_split_lists(base, ph, te, out_ph), c.floor, c.position, b, fl, pos)
+            held = float(score(bb[te], ff[te], P[te], b[te], fl[te], pos[te]).penalised_m.mean())
+            chosen.append((sorted(out_ph), c, held))
+            for F in np.unique(fl[te]):
+                q, r = te[fl[te] == F], tr[fl[tr] == F]
+                if len(r):
+                    covered[q] = cKDTree(pos[r]).query(pos[q])[0] <= UJI_COVERED_M
+        out[name] = {"ours": score(bb, ff, P, b, fl, pos), "covered": covered, "chosen": chosen}
+    # the plain 3-NN held out by phone alike
+    pb, pf, pP = np.zeros(n, int), np.zeros(n, int), np.zeros((n, 2))
+    for tr, te in splits["lopo"]:
+        D_, I_ = NearestNeighbors(n_neighbors=3).fit(X[tr]).kneighbors(X[te])
+        pb[te], pf[te], pP[te] = hierarchical_vote(D_, tr[I_], b, fl, pos, VoteSettings(3, 3, 3))
+    out["lopo"]["plain"] = score(pb, pf, pP, b, fl, pos)
+    everyone = np.arange(n)
+    out["full"] = split_search(_uji_split_lists(base, ph, everyone, set()), everyone, b, fl, pos, floors, positions)
+    return out
+
+
+def answer_uji_split(train_path: str, test_path: str, choice) -> dict:
+    """The validation file's rows answered with ``choice`` (a :class:`~.hierarchy.SplitChoice`, e.g.
+    :func:`evaluate_uji_phone_split`'s ``"full"``) over every training row. Returns
+    {"scores": Scores, "n": rows}."""
+    from .hierarchy import Scores, score, sorensen_knn, split_vote
+    from .locate import MISSING_DBM
+
+    wt, Xt, pt, bt, ft, _ = _uji_arrays_waps(train_path)
+    wv, Xv0, pv, bv, fv, _ = _uji_arrays_waps(test_path)
+    col = {w: j for j, w in enumerate(wv)}
+    Xv = np.stack([Xv0[:, col[w]] if w in col else np.full(len(Xv0), MISSING_DBM) for w in wt], axis=1)  # the training file's columns
+    lists = {}
+    for rep in {choice.floor.rep, choice.position.rep}:
+        lists[rep] = sorensen_knn(rep(Xt), rep(Xv), UJI_LIST_K)
+    bb, ff, P = split_vote(lists, choice.floor, choice.position, bt, bt * 100 + ft, pt)
+    s: Scores = score(bb, ff, P, bv, bv * 100 + fv, pv)
+    return {"scores": s, "n": len(Xv)}
 
 
 def evaluate_uji_split(train_path: str, test_path: str, k: int = 5) -> dict:
@@ -342,6 +467,8 @@ class FingerprintEval:
     uji_split: dict | None = None  # evaluate_uji_split, when a validation file is scored
     uji_cv: dict | None = None  # evaluate_uji
     uji_phone: dict | None = None  # evaluate_uji_phone
+    uji_phone_split: dict | None = None  # evaluate_uji_phone_split
+    uji_split_votes: dict | None = None  # answer_uji_split with uji_phone_split's "full" choice, when a validation file is scored
     ilc: str = ""
     folds: int = 4
     n_ilc_traces: int = 0
@@ -371,6 +498,9 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
             out.uji_split = evaluate_uji_split(uji, str(val))
         out.uji_cv = evaluate_uji(uji)
         out.uji_phone = evaluate_uji_phone(uji)
+        out.uji_phone_split = evaluate_uji_phone_split(uji)
+        if val is not None:
+            out.uji_split_votes = answer_uji_split(uji, str(val), out.uji_phone_split["full"])
     if ilc:
         if not Path(ilc).is_dir():
             raise MissingData(f"Indoor Location Competition folder {ilc} not found (pass --ilc '' to skip)")

@@ -212,3 +212,192 @@ def grouped_search(
                 best = (pen, rep, v)
     assert best is not None
     return SearchResult(best[1], best[2], best[0], table)
+
+
+# --- Nested leave-one-group-out from neighbour lists computed once -------------------------------------
+#
+# grouped_search recomputes every neighbour search for every held-out group. When the outer loop also
+# leaves groups out (the phone-grouped cross-validation), the searches can be done once: each row's
+# nearest rows among the *other* groups (:func:`other_group_neighbours`), from which every nested split's
+# list is the same list with the outer split's groups removed (:func:`restricted_neighbours`; rows left
+# with too short a list are searched again, so the lists are exact). Building and floor are then voted
+# from one representation's list and the position averaged from another's, restricted to the chosen
+# floor (:func:`position_on_floor`); :func:`split_search` chooses both by leave-one-group-out.
+
+
+def other_group_neighbours(R: np.ndarray, groups: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """(distances, indices), each (n, K), of every row's K nearest rows of ``R`` in other groups
+    (Sorensen); short lists (fewer than K rows in the other groups) are padded with index -1, distance inf."""
+    n = len(R)
+    D = np.full((n, K), np.inf)
+    I = np.full((n, K), -1, dtype=np.int64)
+    for g in np.unique(groups):
+        te, tr = np.flatnonzero(groups == g), np.flatnonzero(groups != g)
+        if not len(tr):
+            continue
+        d, i = sorensen_knn(R[tr], R[te], K)
+        D[te, : d.shape[1]], I[te, : d.shape[1]] = d, tr[i]
+    return D, I
+
+
+def restricted_neighbours(
+    R: np.ndarray, D: np.ndarray, I: np.ndarray, groups: np.ndarray, rows: np.ndarray, excluded, K: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The K nearest references of each of ``rows`` among the rows whose group is neither the row's
+    own nor in ``excluded``, from the lists (D, I) of :func:`other_group_neighbours` (which must be
+    longer than K). Rows whose list keeps fewer than K entries are searched again. Padded with -1 / inf."""
+    excluded = np.asarray(sorted(excluded))
+    Dr, Ir = D[rows], I[rows]
+    keep = (Ir >= 0) & ~np.isin(groups[np.maximum(Ir, 0)], excluded)
+    order = np.argsort(~keep, axis=1, kind="stable")  # kept entries first, in their order
+    Dk = np.where(np.take_along_axis(keep, order, 1), np.take_along_axis(Dr, order, 1), np.inf)[:, :K]
+    Ik = np.where(np.take_along_axis(keep, order, 1), np.take_along_axis(Ir, order, 1), -1)[:, :K]
+    short = keep.sum(axis=1) < K
+    if short.any():
+        allowed = ~np.isin(groups, excluded)
+        for g in np.unique(groups[rows[short]]):
+            q = np.flatnonzero(short & (groups[rows] == g))
+            ref = np.flatnonzero(allowed & (groups != g))
+            Dk[q], Ik[q] = np.inf, -1
+            if len(ref):
+                d, i = sorensen_knn(R[ref], R[rows[q]], K)
+                Dk[q, : d.shape[1]], Ik[q, : d.shape[1]] = d, ref[i]
+    return Dk, Ik
+
+
+@dataclass(frozen=True)
+class FloorVote:
+    """Building and floor voted from one representation's neighbour list (:func:`hierarchical_vote`)."""
+
+    rep: Representation
+    k_floor: int = 10
+    k_building: int = 20
+    weight_power: float = 1.0
+
+
+@dataclass(frozen=True)
+class PositionVote:
+    """Position = the distance^-weight_power weighted mean of the first ``k`` neighbours on the chosen
+    building and floor in one representation's neighbour list (:func:`position_on_floor`)."""
+
+    rep: Representation
+    k: int = 5
+    weight_power: float = 1.0
+
+
+def vote_floors(D: np.ndarray, I: np.ndarray, building: np.ndarray, floor: np.ndarray, pos: np.ndarray, v: FloorVote):
+    """(building, floor) of each query, voted from the padded lists (D, I) (see :func:`hierarchical_vote`)."""
+    Ds, Is = _unpadded(D, I)
+    bb, ff, _ = hierarchical_vote(Ds, Is, building, floor, pos, VoteSettings(1, v.k_floor, v.k_building, v.weight_power))
+    return bb, ff
+
+
+def _unpadded(D: np.ndarray, I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Padding (-1, inf) replaced by each row's last real entry (every row must hold one)."""
+    pad = I < 0
+    if not pad.any():
+        return D, I
+    last = np.maximum((~pad).sum(axis=1) - 1, 0)
+    r = np.arange(len(I))
+    return np.where(pad, D[r, last][:, None], D), np.where(pad, I[r, last][:, None], I)
+
+
+def position_on_floor(
+    D: np.ndarray,
+    I: np.ndarray,
+    bb: np.ndarray,
+    ff: np.ndarray,
+    building: np.ndarray,
+    floor: np.ndarray,
+    pos: np.ndarray,
+    k: int,
+    weight_power: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean position of each query's first ``k`` neighbours in (D, I) that lie on its chosen
+    building ``bb`` and floor ``ff``. Returns (positions (n, 2), found (n,) bool); rows with no such
+    neighbour are NaN and not found."""
+    valid = I >= 0
+    Ii = np.maximum(I, 0)
+    on = valid & (building[Ii] == bb[:, None]) & (floor[Ii] == ff[:, None])
+    use = on & (np.cumsum(on, axis=1) <= k)
+    w = np.where(use, 1.0 / np.maximum(np.where(valid, D, 1.0), 1e-9) ** weight_power, 0.0)
+    tot = w.sum(axis=1)
+    found = tot > 0
+    P = np.full((len(I), 2), np.nan)
+    P[found] = np.einsum("nk,nkd->nd", w[found], pos[Ii[found]]) / tot[found, None]
+    return P, found
+
+
+def split_vote(
+    lists: dict,
+    fv: FloorVote,
+    pv: PositionVote,
+    building: np.ndarray,
+    floor: np.ndarray,
+    pos: np.ndarray,
+    floors_voted: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Building and floor from ``lists[fv.rep]`` (or ``floors_voted``, the same computed before),
+    position from ``lists[pv.rep]`` on that floor; when the position list holds no neighbour on the
+    chosen floor, the floor list's (else the floor list's nearest neighbour)."""
+    Df, If = lists[fv.rep]
+    bb, ff = floors_voted if floors_voted is not None else vote_floors(Df, If, building, floor, pos, fv)
+    P, found = position_on_floor(*lists[pv.rep], bb, ff, building, floor, pos, pv.k, pv.weight_power)
+    if not found.all():
+        P2, found2 = position_on_floor(Df, If, bb, ff, building, floor, pos, pv.k, pv.weight_power)
+        P[~found] = P2[~found]
+        rest = ~found & ~found2
+        P[rest] = pos[np.maximum(If[rest, 0], 0)]
+    return bb, ff, P
+
+
+def floor_grid(reps, k_floors=(5, 10, 20), k_buildings=(5, 20), weight_powers=(1.0, 2.0)) -> list[FloorVote]:
+    return [FloorVote(r, *c) for r in reps for c in itertools.product(k_floors, k_buildings, weight_powers)]
+
+
+def position_grid(reps, ks=(1, 2, 3, 5, 7, 10, 15), weight_powers=(1.0, 2.0, 3.0, 4.0)) -> list[PositionVote]:
+    return [PositionVote(r, *c) for r in reps for c in itertools.product(ks, weight_powers)]
+
+
+@dataclass
+class SplitChoice:
+    floor: FloorVote
+    position: PositionVote
+    fitted: float  # penalised score of the choice over the inner held-out queries, m
+
+
+def split_search(
+    lists: dict,
+    rows: np.ndarray,
+    building: np.ndarray,
+    floor: np.ndarray,
+    pos: np.ndarray,
+    floors: list[FloorVote],
+    positions: list[PositionVote],
+    default_k: int = 5,
+) -> SplitChoice:
+    """Leave-one-group-out choice of a :class:`FloorVote` and a :class:`PositionVote`.
+
+    ``lists`` maps each representation to (D, I) for the queries ``rows`` (indices into ``building``,
+    ``floor``, ``pos``), each query's references being drawn from the other groups only (so the
+    scores are held out). First the building/floor vote with the lowest mean penalised score (the
+    position being the floor list's ``default_k`` neighbours on the floor, weight power 1), then, on
+    the floors it chose, the position vote with the lowest mean penalised score.
+    """
+    b, f, p = building[rows], floor[rows], pos[rows]
+    best_f = None
+    for fv in floors:
+        pv = PositionVote(fv.rep, default_k, 1.0)
+        pen = float(score(*split_vote(lists, fv, pv, building, floor, pos), b, f, p).penalised_m.mean())
+        if best_f is None or pen < best_f[0]:
+            best_f = (pen, fv)
+    assert best_f is not None
+    fv = best_f[1]
+    voted = vote_floors(*lists[fv.rep], building, floor, pos, fv)
+    best_p = None
+    for pv in positions:
+        pen = float(score(*split_vote(lists, fv, pv, building, floor, pos, voted), b, f, p).penalised_m.mean())
+        if best_p is None or pen < best_p[0]:
+            best_p = (pen, pv)
+    assert best_p is not None
+    return SplitChoice(fv, best_p[1], best_p[0])
