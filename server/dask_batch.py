@@ -57,6 +57,7 @@ from collections.abc import Iterable, Iterator
 import numpy as np
 
 from hybridloc.errors import BadInput
+from hybridloc.slam.online import CrowdSlam
 
 from .slam_batch import (
     BatchSummary,
@@ -69,6 +70,7 @@ from .slam_batch import (
     crowd_map,
     finish,
     hold_order,
+    load_radio_map,
     solve_floor,
     write_floor,
 )
@@ -285,8 +287,15 @@ def solve_run_on_dask(
     walks = {wid: store.read_walk(wid) for wid, _ in order}
     fold_walks = sorted(walks)
     solve = [f for f in todo if f not in done_before]
-    every_floor = set(todo) | {f for w in walks.values() for f in w.floors}
-    groups = [g for g in floor_groups((w.floors for w in walks.values()), every_floor) if set(g) & set(solve)]
+    # each walk's floors as a CrowdSlam holds it: the floors it names, or for a single-floor walk
+    # without marks the one the server put it on (online.CrowdSlam._walk_pieces: its absolute track's,
+    # else its fingerprints' vote through this map) - the group that solves that floor must hold it
+    probe = CrowdSlam(site, plan)
+    probe.set_map(load_radio_map(store, site)[1])
+    tracks = dict(order)
+    held_floors = {wid: sorted({pc.floor for pc in probe._walk_pieces(w, tracks[wid])} or set(w.floors)) for wid, w in walks.items()}
+    every_floor = set(todo) | {f for fl in held_floors.values() for f in fl}
+    groups = [g for g in floor_groups(held_floors.values(), every_floor) if set(g) & set(solve)]
     tally = _Tally()
     n = len(todo)
     finished = len(done_before & set(todo))
@@ -298,7 +307,7 @@ def solve_run_on_dask(
         plan_f, map_f = client.scatter([plan, map_bytes], hash=False, broadcast=True)
         futures += [plan_f, map_f]
         if groups:
-            payloads = [[(walks[wid], tr) for wid, tr in order if set(walks[wid].floors) & set(g)] for g in groups]
+            payloads = [[(walks[wid], tr) for wid, tr in order if set(held_floors[wid]) & set(g)] for g in groups]
             # one scatter call: Dask spreads the list's items over the workers (round robin), and each
             # group's actor is then made where its walks are
             held_f = client.scatter(payloads, hash=False)

@@ -315,6 +315,9 @@ class CrowdSlam:
         self._next_frame = 1
         self._map = None  # RadioMap | None
         self._locator: Any = None  # KnnLocator of the map
+        #: walk id -> (the floor it names, the floor it is held on): single-floor walks without marks
+        #: moved by their own fingerprints (:meth:`_walk_pieces`)
+        self.floor_moves: dict[int, tuple[str, str]] = {}
         self._gate = math.inf
 
     # -------------------------------------------------------------- map
@@ -359,11 +362,51 @@ class CrowdSlam:
         self._next_frame += 1
         return self._next_frame - 1
 
-    def _walk_pieces(self, walk: Walk) -> list[WalkPiece]:
+    def _walk_pieces(self, walk: Walk, track: CorrectedTrack | None = None) -> list[WalkPiece]:
+        """The walk's pieces, each on its floor: the floor the walk names, except for a single-floor walk
+        without survey marks, whose floor is the server's - the floor of its absolute ``track`` (where a
+        solve put it before), else the one its fingerprints name (:meth:`vote_floor`)."""
         if walk.walk_id is None:
             raise ValueError("CrowdSlam: a walk needs an integer walk_id")
         wid = int(walk.walk_id)
-        return walk_pieces(walk, wid, self.cfg.walk, name=str(wid))
+        pieces = walk_pieces(walk, wid, self.cfg.walk, name=str(wid))
+        if not self.cfg.floor_vote or len(pieces) != 1 or (pieces[0].mark >= 0).any():
+            return pieces
+        pc = pieces[0]
+        if track is not None and track.anchored != RELATIVE:
+            held_on = set(track.floor)
+            moved = held_on.pop() if len(held_on) == 1 else None
+        else:
+            moved = self.vote_floor(pc)
+        if moved is None or moved == pc.floor:
+            self.floor_moves.pop(wid, None)
+            return pieces
+        if self.floor_moves.get(wid) != (pc.floor, moved):
+            log.info("walk %s: on floor %s by its fingerprints (it names %s)", wid, moved, pc.floor)
+        self.floor_moves[wid] = (pc.floor, moved)
+        return [dataclasses.replace(pc, floor=moved)]
+
+    def vote_floor(self, piece: WalkPiece) -> str | None:
+        """The floor the piece's own scans name through the served map, or None when they do not name
+        one clearly (:class:`.pipeline.SlamConfig` ``floor_vote_*``): scans past the mapped-distance gate
+        or with a floor probability below ``fix_min_floor_prob`` do not vote."""
+        if self._locator is None or self._map is None:
+            return None
+        cfg = self.cfg
+        scans = [s for s in piece.scans if s.technology.value == self._map.technology]
+        if len(scans) < cfg.floor_vote_min_fixes:
+            return None
+        near = self._locator.nearest(scans)[0][:, 0] <= self._gate
+        votes = Counter(
+            r.fix.floor
+            for r, ok in zip(self._locator.locate_many(scans), near)
+            if ok and r.fix is not None and r.fix.floor and r.fix.floor_prob >= cfg.fix_min_floor_prob
+        )
+        n = sum(votes.values())
+        if n < cfg.floor_vote_min_fixes:
+            return None
+        floor, top = votes.most_common(1)[0]
+        return floor if top >= cfg.floor_vote_share * n else None
 
     def _drop(self, walk_id: int) -> None:
         for f in self._floors.values():
@@ -378,6 +421,7 @@ class CrowdSlam:
     def remove_walk(self, walk_id: int) -> None:
         """Forget a walk (held or quarantined). The others keep their solution until the next batch."""
         self._drop(int(walk_id))
+        self.floor_moves.pop(int(walk_id), None)
         self.quarantined.pop(int(walk_id), None)
         self._quarantined_walks.pop(int(walk_id), None)
         self._scan_floor.pop(int(walk_id), None)
@@ -395,9 +439,9 @@ class CrowdSlam:
         solver's position exactly); other nodes are interpolated in time between the points around them.
         ``quarantined``: the stored reason of a quarantined walk - it is then only counted (coverage),
         not held."""
-        pieces = self._walk_pieces(walk)
         wid = int(walk.walk_id)  # type: ignore[arg-type]
         self.remove_walk(wid)
+        pieces = self._walk_pieces(walk, track)
         if quarantined:
             self._remember_floors(walk, pieces)
             self.quarantined[wid] = quarantined

@@ -57,6 +57,15 @@ class SlamConfig:
     fix_gate_quantile: float = 0.9
     #: a fix whose map-floor probability is below this is not used
     fix_min_floor_prob: float = 0.6
+    #: the floor a crowd walk names is a claim, not a fact (a phone's floor comes from its own fixes or a
+    #: barometer): a single-floor walk without survey marks is moved to the floor its own fingerprints
+    #: name (online.CrowdSlam.vote_floor) when at least ``floor_vote_min_fixes`` of its scans pass the
+    #: mapped-distance gate with a floor probability >= fix_min_floor_prob and at least
+    #: ``floor_vote_share`` of those name one other floor. Fixed a priori, not tuned: five independent
+    #: scans and a 4:1 majority (a fix's floor is right 92-96 % of the time, README's fingerprint rows)
+    floor_vote: bool = True
+    floor_vote_min_fixes: int = 5
+    floor_vote_share: float = 0.8
     #: walkable-area factor: r = max(0, d(p) - margin) / sigma on nodes and edge midpoints
     field_sigma_m: float = 0.5
     field_margin_m: float = 0.3
