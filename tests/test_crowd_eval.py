@@ -178,6 +178,13 @@ def test_the_report_ends_with_the_json_line_of_the_issue(crowd):
         assert fig["corrected_mean_m"] is None or math.isfinite(fig["corrected_mean_m"])
         assert fig["coverage"] is None or 0.0 <= fig["coverage"] <= 1.0
         assert isinstance(fig["walks_quarantined"], int)
+        # the batch re-solves after the crowd: at least one, repeated only while the coverage grows
+        from hybridloc.crowd_eval import FINAL_BATCH_MIN_GAIN, FINAL_BATCHES
+
+        covs = crowd.final_coverages
+        assert 1 <= fig["final_batches"] == len(covs) <= FINAL_BATCHES
+        assert all(b - a >= FINAL_BATCH_MIN_GAIN for a, b in zip(covs[:-2], covs[1:-1]))  # every repeat was earned
+        assert fig["coverage_first_batch"] is None or math.isclose(fig["coverage_first_batch"], covs[0], rel_tol=1e-4)  # printed to 6 digits
 
 
 def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, capsys):

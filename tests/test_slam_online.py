@@ -461,3 +461,42 @@ def test_batch_quarantines_a_corrupted_walk_and_solves_the_rest(sample):
     assert stages[0] == ("loops", "F1") and stages[-1] == ("done", "F1")
     # its candidates are in its outcome (the audit of what it tried), not in the floor's current audit
     assert all("950" not in (lp.walk_a, lp.walk_b) for lp in out.loops)
+
+
+def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
+    """A crowd walk's floor is a claim: a single-floor walk without marks that names a floor its scans
+    do not match is held on the floor the served map's fixes name (>= SlamConfig.floor_vote_min_fixes
+    gated fixes, a floor_vote_share majority); a surveyed walk, a walk with too few scans, a site with
+    no map, or the vote switched off keep the claim; a stored absolute track keeps the walk where the
+    solve put it."""
+    walks, plan, smap = sample
+    cfg = SlamConfig()
+    wifi = lambda w: [s for s in w.scans if s.technology.value == "wifi"]  # noqa: E731
+    # a walk whose places the map covers (a surveyed walk's scans, its marks dropped: the bundled sample's
+    # map is too sparse for most other walks' scans to pass the mapped-distance gate)
+    covered = next(w for w in walks if w.marks and len(wifi(w)) >= 3 * cfg.floor_vote_min_fixes)
+    claim = dataclasses.replace(covered, walk_id=900, floors=("F9",), marks=())
+    cs = CrowdSlam("site1", plan)
+    cs.set_map(smap)
+    o = cs.add_walk(claim)
+    assert o.quarantined == "" and o.track is not None
+    assert set(o.track.floor) == {"F1"} and cs.floor_moves[900] == ("F9", "F1")
+    # a surveyed walk keeps the floor it names, whatever its scans say
+    marks_f9 = tuple(dataclasses.replace(m, floor="F9") for m in covered.marks)
+    surveyed = cs._walk_pieces(dataclasses.replace(covered, walk_id=901, floors=("F9",), marks=marks_f9))[0]
+    assert (surveyed.mark >= 0).any() and surveyed.floor == "F9"
+    # too few scans to vote: the claim stands
+    few = dataclasses.replace(claim, walk_id=902, scans=tuple(wifi(claim)[: cfg.floor_vote_min_fixes - 1]))
+    assert cs._walk_pieces(few)[0].floor == "F9" and 902 not in cs.floor_moves
+    # no map, or the vote off: the claim stands
+    bare = CrowdSlam("site1", plan)
+    assert bare._walk_pieces(claim)[0].floor == "F9"
+    off = CrowdSlam("site1", plan, dataclasses.replace(cfg, floor_vote=False))
+    off.set_map(smap)
+    assert off._walk_pieces(claim)[0].floor == "F9"
+    # a restart: the stored absolute track holds the walk on its floor, map or not
+    bare.hold(claim, o.track)
+    assert bare._pieces[900][0].floor == "F1" and bare.floor_moves[900] == ("F9", "F1")
+    # forgetting the walk forgets its move
+    bare.remove_walk(900)
+    assert 900 not in bare.floor_moves
