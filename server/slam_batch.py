@@ -537,6 +537,10 @@ def _solve_run(
     for wid in store.slam.solvable_walks(site):
         if wid not in slam.walks:
             slam.hold(store.read_walk(wid), None)
+    # walks the map could not place when they were added: their floor asked again of today's map
+    moved = slam.revote_floors()
+    if moved:
+        log.info("site %s: %d walk(s) held on another floor than they name, by their fingerprints", site, len(moved))
     fold_walks = sorted(slam.walks)
     tally = _Tally()
     n = len(todo)

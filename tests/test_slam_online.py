@@ -500,3 +500,9 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     # forgetting the walk forgets its move
     bare.remove_walk(900)
     assert 900 not in bare.floor_moves
+    # held before a map could place it, asked again once the map is served (what a batch starts with)
+    bare.hold(claim, None)
+    assert bare._pieces[900][0].floor == "F9" and bare.revote_floors() == []
+    bare.set_map(smap)
+    assert bare.revote_floors() == [900] and bare._pieces[900][0].floor == "F1" and bare.floor_moves[900] == ("F9", "F1")
+    assert bare.revote_floors() == []  # nothing left to move

@@ -394,6 +394,22 @@ class CrowdSlam:
         self.floor_moves[wid] = (pc.floor, moved)
         return [dataclasses.replace(pc, floor=moved)]
 
+    def revote_floors(self) -> list[int]:
+        """Ask every held walk that is not absolutely placed (no track, or a relative one) for its floor
+        again with the map served now (:meth:`_walk_pieces`), and hold again, with its track, each walk
+        whose floor changes; a batch starts with this (a map grown since a walk was added may name its
+        floor now). Returns the walks moved."""
+        moved = []
+        for wid, walk in list(self.walks.items()):
+            track = self.tracks.get(wid)
+            if track is not None and track.anchored != RELATIVE:
+                continue
+            now = {pc.floor for pc in self._pieces.get(wid, [])}
+            if {pc.floor for pc in self._walk_pieces(walk, track)} != now:
+                self.hold(walk, track)
+                moved.append(wid)
+        return moved
+
     def vote_floor(self, piece: WalkPiece) -> str | None:
         """The floor the piece's own scans name through the served map, or None when they do not name
         one clearly (:class:`.pipeline.SlamConfig` ``floor_vote_*``): scans past the mapped-distance gate
