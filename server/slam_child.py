@@ -148,7 +148,13 @@ def batch(store: Store, site: str, floors: list[str] | None = None, online: list
         if summary.resumed:
             _SITES.pop(site, None)  # the floors solved before the kill are not in memory: reload
         else:
+            # the run ended with a new crowd map: the kept CrowdSlam fixes the walks added from now on
+            # against it (before, only the version was noted, so site_slam never loaded it and the kept
+            # state went on fixing walks against the map it was built with)
             c.batch_run = summary.run_id
+            mv, rmap = load_radio_map(store, site)
+            if rmap is not None and mv != c.map_version:
+                c.slam.set_map(rmap)
             c.map_version = _map_version(store, site)
     want = set(online or ())
     newest: dict[str, int] = {}

@@ -470,13 +470,13 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     no map, or the vote switched off keep the claim; a stored absolute track keeps the walk where the
     solve put it."""
     walks, plan, smap = sample
-    cfg = SlamConfig()
+    cfg = SlamConfig(floor_vote=True)  # opt-in (SlamConfig.floor_vote)
     wifi = lambda w: [s for s in w.scans if s.technology.value == "wifi"]  # noqa: E731
     # a walk whose places the map covers (a surveyed walk's scans, its marks dropped: the bundled sample's
     # map is too sparse for most other walks' scans to pass the mapped-distance gate)
     covered = next(w for w in walks if w.marks and len(wifi(w)) >= 3 * cfg.floor_vote_min_fixes)
     claim = dataclasses.replace(covered, walk_id=900, floors=("F9",), marks=())
-    cs = CrowdSlam("site1", plan)
+    cs = CrowdSlam("site1", plan, cfg)
     cs.set_map(smap)
     o = cs.add_walk(claim)
     assert o.quarantined == "" and o.track is not None
@@ -489,9 +489,9 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     few = dataclasses.replace(claim, walk_id=902, scans=tuple(wifi(claim)[: cfg.floor_vote_min_fixes - 1]))
     assert cs._walk_pieces(few)[0].floor == "F9" and 902 not in cs.floor_moves
     # no map, or the vote off: the claim stands
-    bare = CrowdSlam("site1", plan)
+    bare = CrowdSlam("site1", plan, cfg)
     assert bare._walk_pieces(claim)[0].floor == "F9"
-    off = CrowdSlam("site1", plan, dataclasses.replace(cfg, floor_vote=False))
+    off = CrowdSlam("site1", plan)  # the default: off
     off.set_map(smap)
     assert off._walk_pieces(claim)[0].floor == "F9"
     # a restart: the stored absolute track holds the walk on its floor, map or not

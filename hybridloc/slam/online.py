@@ -27,8 +27,9 @@ is), else stays relative. Links into another frame than the walk's are dropped f
 reason ``other-frame``): an absolute walk cannot be tied to coordinates of an unplaced group. Grouping
 relative walks into a placeable component, or re-placing held walks, is the batch's job.
 
-**The floor of a walk** is the one it names, except for a crowd walk on one floor without survey marks:
-its floor is a claim (a phone's floor estimate), and it is held on the floor its own scans name through
+**The floor of a walk** is the one it names. With ``SlamConfig.floor_vote`` (opt-in; why it is off there)
+a crowd walk on one floor without survey marks is taken as a claim (a phone's floor estimate), and it is
+held on the floor its own scans name through
 the served map (:meth:`~CrowdSlam.vote_floor`: at least ``floor_vote_min_fixes`` fixes past the
 mapped-distance gate, a ``floor_vote_share`` majority), or on the floor of its stored absolute track (where
 a solve put it). On ILC site1 (eval crowd, F = 0.1) 32 of the 77 walks a batch left relative had most of
