@@ -550,28 +550,3 @@ def test_server_killed_during_a_batch_run_resumes_and_loses_nothing(tmp_path, wa
             except subprocess.TimeoutExpired:
                 srv.kill()
                 srv.wait()
-
-
-def test_the_kept_crowd_slam_takes_the_map_its_batch_built(tmp_path, walks):
-    """The child keeps one CrowdSlam per site between calls; a batch run ends with a new crowd map, and
-    the walks added after it are fixed against that map (the kept state loads it), not the one the state
-    was built with."""
-    from hybridloc.server import slam_child
-    from hybridloc.server.slam_batch import load_radio_map
-
-    db = _filled(tmp_path, walks, False, n=6)
-    st = Store(db)
-    slam_child._SITES.clear()
-    try:
-        for w in st.walks(SITE):
-            slam_child.add_walk(st, SITE, w.walk_id)
-        before = slam_child._SITES[SITE].slam._map
-        slam_child.batch(st, SITE)
-        version, newest = load_radio_map(st, SITE)
-        assert newest is not None and version is not None  # the run built a crowd map from its walks' labels
-        kept = slam_child._SITES[SITE]
-        assert kept.map_version == version and kept.slam._map is not before
-        assert len(kept.slam._map.references) == len(newest.references)
-    finally:
-        slam_child._SITES.clear()
-        st.close()
