@@ -382,10 +382,14 @@ class CrowdRun:
     final_wait_ok: bool | None = None  # every finished walk processed before the corrected scoring
     final_batch_ok: bool | None = None  # the final batch re-solve completed
     final_batch: str = ""  # its outcome in words
-    final_batches: int = 0  # batch re-solves after the crowd (run_crowd: repeated while the coverage grows)
-    final_coverages: list = field(default_factory=list)  # the server's coverage after each
+    final_coverages: list = field(default_factory=list)  # the server's coverage after each batch re-solve after the crowd
     concurrency: int = 1
     close_errors: int = 0  # client sessions whose close failed (their walks count)
+
+    @property
+    def final_batches(self) -> int:
+        """Batch re-solves after the crowd (run_crowd: repeated while the coverage grows)."""
+        return len(self.final_coverages)
 
 
 def run_crowd(
@@ -518,14 +522,13 @@ def run_crowd(
             tracks, states = slam.tracks(ids)
             for c in scores:
                 c.incremental = _corrected_errors(c, tracks, states)[0]
-            # ... then the server's batch re-solves of every floor: the correction after the crowd. Each
-            # batch ends with a new crowd map, which the next one fixes walks against (a walk the old map
-            # could not place may be placed now); a live server's next scheduled runs would do that in
-            # the minutes after the crowd, so the runs are repeated while one lifts the coverage by at
-            # least FINAL_BATCH_MIN_GAIN, at most FINAL_BATCHES times
+            # ... then the server's batch re-solves of every floor: the correction after the crowd. A
+            # live server's next scheduled runs would follow in the minutes after the crowd, so the runs
+            # are repeated while one lifts the coverage by at least FINAL_BATCH_MIN_GAIN, at most
+            # FINAL_BATCHES times. (Today the server's kept SLAM state keeps its map between batches,
+            # server/slam_child.py, so a second run solves as the first did and only confirms it.)
             for _ in range(FINAL_BATCHES):
                 run.final_batch_ok, run.final_batch = slam.batch(wait_timeout)
-                run.final_batches += 1
                 cov = (slam.summary() or {}).get("coverage")
                 covs = run.final_coverages
                 covs.append(float("nan") if cov is None else float(cov))

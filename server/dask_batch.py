@@ -70,7 +70,6 @@ from .slam_batch import (
     crowd_map,
     finish,
     hold_order,
-    load_radio_map,
     solve_floor,
     write_floor,
 )
@@ -287,13 +286,16 @@ def solve_run_on_dask(
     walks = {wid: store.read_walk(wid) for wid, _ in order}
     fold_walks = sorted(walks)
     solve = [f for f in todo if f not in done_before]
-    # each walk's floors as a CrowdSlam holds it: the floors it names, or for a single-floor walk
-    # without marks the one the server put it on (online.CrowdSlam._walk_pieces: its absolute track's,
-    # else its fingerprints' vote through this map) - the group that solves that floor must hold it
+    # each walk's floors as the groups' CrowdSlams hold it (CrowdSlam.held_floors: the floors it names,
+    # or with the floor vote the one the server put it on) - the group that solves that floor must hold
+    # it; the map is read only when the vote needs it
     probe = CrowdSlam(site, plan)
-    probe.set_map(load_radio_map(store, site)[1])
+    if probe.cfg.floor_vote and map_bytes is not None:
+        from hybridloc.radio.radiomap import RadioMap
+
+        probe.set_map(RadioMap.load(io.BytesIO(map_bytes)))
     tracks = dict(order)
-    held_floors = {wid: sorted({pc.floor for pc in probe._walk_pieces(w, tracks[wid])} or set(w.floors)) for wid, w in walks.items()}
+    held_floors = {wid: probe.held_floors(w, tracks[wid]) for wid, w in walks.items()}
     every_floor = set(todo) | {f for fl in held_floors.values() for f in fl}
     groups = [g for g in floor_groups(held_floors.values(), every_floor) if set(g) & set(solve)]
     tally = _Tally()

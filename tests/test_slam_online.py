@@ -494,6 +494,8 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     off = CrowdSlam("site1", plan)  # the default: off
     off.set_map(smap)
     assert off._walk_pieces(claim)[0].floor == "F9"
+    # what the Dask path groups floors by
+    assert cs.held_floors(claim) == ["F1"] and off.held_floors(claim) == ["F9"] and off.revote_floors() == []
     # a restart: the stored absolute track holds the walk on its floor, map or not
     bare.hold(claim, o.track)
     assert bare._pieces[900][0].floor == "F1" and bare.floor_moves[900] == ("F9", "F1")

@@ -615,14 +615,8 @@ def fingerprint_headline(res) -> dict:
         v = res.uji_cv["ours"]["all"]
         out.update(uji_cv_mean_m=np.nanmean(v["errors"]), uji_cv_floor_hit_pct=100 * v["floor"])
     if res.uji_phone is not None:
-        x = res.uji_phone["ours"].summary()
-        out.update(
-            uji_phone_cv_mean_m=x["mean_m"],
-            uji_phone_cv_building_hit_pct=x["building_hit_pct"],
-            uji_phone_cv_floor_hit_pct=x["floor_hit_pct"],
-            uji_phone_cv_penalised_m=x["penalised_m"],
-            uji_phone_cv_plain_mean_m=res.uji_phone["plain"].summary()["mean_m"],
-        )
+        out.update(_score_keys("uji_phone_cv", res.uji_phone["ours"].summary()))
+        out["uji_phone_cv_plain_mean_m"] = res.uji_phone["plain"].summary()["mean_m"]
     for m, key in zip(res.ilc_methods, ("ilc_knn", "ilc_prob")):
         s = m.score
         out[f"{key}_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
@@ -631,8 +625,6 @@ def fingerprint_headline(res) -> dict:
     if res.routes is not None:
         s = res.routes.score
         out["ilc_routes_held_out_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
-    if res.routes is not None:  # appended after the earlier keys
-        s = res.routes.score
         cov, e = np.array(s.cover_m), np.array(s.errors)
         near = cov < 2.0
         out["ilc_routes_held_out_near_share_pct"] = 100 * float(near.mean()) if near.size else float("nan")
@@ -641,13 +633,10 @@ def fingerprint_headline(res) -> dict:
     sp = res.uji_phone_split
     if sp is not None:
         for name, key in (("kfold", "uji_phone_cv_split"), ("lopo", "uji_lopo_split")):
-            x, xc = sp[name]["ours"].summary(), sp[name]["ours"].summary(sp[name]["covered"])
+            xc = sp[name]["ours"].summary(sp[name]["covered"])
+            out.update(_score_keys(key, sp[name]["ours"].summary()))
             out.update(
                 {
-                    f"{key}_mean_m": x["mean_m"],
-                    f"{key}_building_hit_pct": x["building_hit_pct"],
-                    f"{key}_floor_hit_pct": x["floor_hit_pct"],
-                    f"{key}_penalised_m": x["penalised_m"],
                     f"{key}_covered_mean_m": xc["mean_m"],
                     f"{key}_covered_floor_hit_pct": xc["floor_hit_pct"],
                     f"{key}_covered_penalised_m": xc["penalised_m"],
@@ -656,14 +645,14 @@ def fingerprint_headline(res) -> dict:
         out["uji_lopo_plain_mean_m"] = sp["lopo"]["plain"].summary()["mean_m"]
         out["uji_lopo_plain_penalised_m"] = sp["lopo"]["plain"].summary()["penalised_m"]
     if res.uji_split_votes is not None:
-        x = res.uji_split_votes["scores"].summary()
-        out.update(
-            uji_split_votes_mean_m=x["mean_m"],
-            uji_split_votes_building_hit_pct=x["building_hit_pct"],
-            uji_split_votes_floor_hit_pct=x["floor_hit_pct"],
-            uji_split_votes_penalised_m=x["penalised_m"],
-        )
+        out.update(_score_keys("uji_split_votes", res.uji_split_votes["scores"].summary()))
     return out
+
+
+def _score_keys(prefix: str, x: dict) -> dict:
+    """The headline keys of a building/floor/position score (:meth:`hybridloc.radio.hierarchy.Scores.summary`),
+    in this order: ``<prefix>_mean_m``, ``_building_hit_pct``, ``_floor_hit_pct``, ``_penalised_m``."""
+    return {f"{prefix}_{k}": x[k] for k in ("mean_m", "building_hit_pct", "floor_hit_pct", "penalised_m")}
 
 
 def _cmd_eval_sim_realism(args: argparse.Namespace) -> int:

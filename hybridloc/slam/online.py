@@ -395,12 +395,21 @@ class CrowdSlam:
         self.floor_moves[wid] = (pc.floor, moved)
         return [dataclasses.replace(pc, floor=moved)]
 
+    def held_floors(self, walk: Walk, track: CorrectedTrack | None = None) -> list[str]:
+        """The floors ``walk`` would be held on (with its stored ``track``): the ones it names, or with
+        ``floor_vote`` the server's choice (:meth:`_walk_pieces`)."""
+        if not self.cfg.floor_vote:
+            return sorted(set(walk.floors))
+        return sorted({pc.floor for pc in self._walk_pieces(walk, track)} or set(walk.floors))
+
     def revote_floors(self) -> list[int]:
         """Ask every held walk that is not absolutely placed (no track, or a relative one) for its floor
         again with the map served now (:meth:`_walk_pieces`), and hold again, with its track, each walk
         whose floor changes; a batch starts with this (a map grown since a walk was added may name its
         floor now). Returns the walks moved."""
-        moved = []
+        moved: list[int] = []
+        if not self.cfg.floor_vote:  # every walk is on the floor it names: nothing to ask
+            return moved
         for wid, walk in list(self.walks.items()):
             track = self.tracks.get(wid)
             if track is not None and track.anchored != RELATIVE:
