@@ -1,5 +1,6 @@
 """Radio maps, survey labelling, positioning, similarity: synthetic worlds with known truth + real data."""
 
+import dataclasses
 import json
 import math
 
@@ -104,6 +105,14 @@ def test_map_file_round_trip(world, tmp_path):
     a = ProbabilisticLocator(rmap).locate(tests[0]).fix.pos_enu
     b = ProbabilisticLocator(back).locate(tests[0]).fix.pos_enu
     np.testing.assert_allclose(a, b)
+    # who labelled each reference survives the file (a SLAM batch leaves a walk's own labels out by it);
+    # a file written before the key existed reads as unknown
+    named = dataclasses.replace(rmap, references=[dataclasses.replace(r, source=f"walk-{i % 3}") for i, r in enumerate(rmap.references)])
+    named.save(p)
+    assert [r.source for r in RadioMap.load(p).references] == [r.source for r in named.references]
+    with np.load(p) as z:
+        np.savez(tmp_path / "old.npz", **{k: z[k] for k in z.files if k != "ref/source"})
+    assert {r.source for r in RadioMap.load(tmp_path / "old.npz").references} == {""}
     (tmp_path / "bad.npz").write_bytes(b"not a map")
     with pytest.raises(ValueError, match="not a hybridloc radio map"):
         RadioMap.load(tmp_path / "bad.npz")

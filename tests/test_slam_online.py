@@ -323,6 +323,31 @@ def test_labels_coverage_and_crowd_maps(sample, replay):
         assert len(rm.references) == sum(1 for ls in labels if ls.scan.technology.value == tech)
 
 
+def test_a_batch_on_a_crowd_map_keeps_the_survey_labels(sample, replay):
+    """On a crowd map (what a restarted server or ``slam rebuild`` serves: every label sourced by its
+    walk id) a batch is not fixed to its crowd walks' own labels, fed back, but keeps the survey walks'
+    labels, which come from their marks: its crowd walks still get fixes on the floor it solves (before,
+    every label of the floor was left out, and a one-floor site's batch got no fix at all)."""
+    _, plan, smap = sample
+    cs, *_ = replay
+    crowd = build_crowd_maps(cs.labels(), "site1", plan)["wifi"]
+    ids = set(cs.walks)
+    left_out = cs._fed_back(ids)
+    assert left_out == {str(w) for w in ids if not cs.walks[w].marks}
+    kept = {r.source for r in crowd.references if r.source not in left_out}
+    assert kept and kept <= {str(w) for w in ids if cs.walks[w].marks}
+    fl = cs._floor("F1")
+    keys = sorted(k for k, h in fl.held.items() if not cs.walks[k[0]].marks)
+    pieces = [fl.held[k].piece for k in keys]
+    try:
+        cs.set_map(crowd)
+        fixes = cs._map_fixes(pieces, exclude=left_out)
+        everyone = cs._map_fixes(pieces, exclude={str(w) for w in ids})  # the old rule
+    finally:
+        cs.set_map(smap)
+    assert sum(map(len, fixes.values())) > 0 and not everyone
+
+
 def test_hold_round_trip(sample, replay):
     """A server restart: the stored walks and tracks held again give the same labels and coverage, and a
     walk added afterwards is solved as it would have been without the restart (the neighbours' loop and

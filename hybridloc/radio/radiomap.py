@@ -207,6 +207,9 @@ def _references_to_arrays(refs: list[LabelledScan], tix: dict[str, int]) -> dict
         "ref/floor_names": np.frombuffer(json.dumps(fl_names).encode(), np.uint8),
         "ref/extra_tx": np.frombuffer(json.dumps(list(extra)).encode(), np.uint8),
         "ref/device": np.frombuffer(json.dumps([r.scan.device_model for r in refs]).encode(), np.uint8),
+        # who labelled each reference (a survey device, or a crowd walk's id): a SLAM batch must not fix a
+        # walk to its own labels (slam.online.CrowdSlam.set_map), also when the map comes from a file
+        "ref/source": np.frombuffer(json.dumps([r.source for r in refs]).encode(), np.uint8),
         "ref/i": np.array(ri, np.int32),
         "ref/j": np.array(tj, np.int32),
         "ref/rssi": np.array(val, np.float32),
@@ -222,6 +225,7 @@ def _references_from_arrays(z, txs: list[str], technology: str) -> list[Labelled
     names = txs + json.loads(bytes(z["ref/extra_tx"]).decode())
     fl_names = json.loads(bytes(z["ref/floor_names"]).decode())
     devices = json.loads(bytes(z["ref/device"]).decode())
+    sources = json.loads(bytes(z["ref/source"]).decode()) if "ref/source" in z else [""] * len(z["ref/t"])  # older files: unknown
     t, pos, sig, fl = z["ref/t"], z["ref/pos"], z["ref/sigma"], z["ref/floor"]
     ri, tj, val, age = z["ref/i"], z["ref/j"], z["ref/rssi"], z["ref/age"]
     order = np.argsort(ri, kind="stable")
@@ -232,7 +236,9 @@ def _references_from_arrays(z, txs: list[str], technology: str) -> list[Labelled
         rssi = {names[j]: float(v) for j, v in zip(tj[sel], val[sel])}
         ages = {names[j]: float(a) for j, a in zip(tj[sel], age[sel])}
         out.append(
-            LabelledScan(RfScan(float(t[i]), technology, rssi, age_s=ages, device_model=devices[i]), pos[i], float(sig[i]), fl_names[fl[i]] or None)
+            LabelledScan(
+                RfScan(float(t[i]), technology, rssi, age_s=ages, device_model=devices[i]), pos[i], float(sig[i]), fl_names[fl[i]] or None, sources[i]
+            )
         )
     return out
 

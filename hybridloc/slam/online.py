@@ -332,8 +332,9 @@ class CrowdSlam:
     # -------------------------------------------------------------- map
     def set_map(self, radio_map) -> None:
         """The map the server serves (survey + crowd): its fixes place added walks (as run_slam's
-        ``radio_map``). A batch leaves out the references whose ``source`` is a walk of the floor it
-        solves (``str(walk_id)``, as :meth:`labels` names them): a walk is not fixed to its own labels."""
+        ``radio_map``). A batch leaves out the references whose ``source`` is a crowd walk of the floor
+        it solves (``str(walk_id)``, as :meth:`labels` names them; :meth:`_fed_back`): a walk is not
+        fixed to its own labels."""
         from ..radio.locate import KnnLocator
 
         self._map = radio_map if radio_map is not None and radio_map.references else None
@@ -341,6 +342,15 @@ class CrowdSlam:
         if self._map is not None:
             self._locator = KnnLocator(self._map.references, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s)
             self._gate = mapped_distance_gate(self._map.references, self.cfg)
+
+    def _fed_back(self, walk_ids) -> set[str]:
+        """The map sources (``str(walk_id)``) a solve of ``walk_ids`` must not be fixed to: the labels of
+        its crowd walks, which are its own previous solution fed back. A survey walk's labels stay: they
+        come from its marks (sd 0.5 m), the survey map's references are the same scans labelled by the
+        same marks (server/rebuild.py, sourced by device), and leaving them out left a batch on a crowd
+        map - a restarted server's, or ``slam rebuild``'s - with no fix from the survey on the floor it
+        solved."""
+        return {str(w) for w in walk_ids if not self.walks[w].marks}
 
     def _map_fixes(self, pieces: list[WalkPiece], exclude: set[str] | None = None) -> dict[int, list]:
         if self._map is None:
@@ -773,7 +783,7 @@ class CrowdSlam:
             fsl._number()
             say("loops", 0)
             fsl.detect_loops()
-            fsl.map_fixes = self._map_fixes(pieces, exclude={str(k[0]) for k in use})
+            fsl.map_fixes = self._map_fixes(pieces, exclude=self._fed_back({k[0] for k in use}))
             say("solve", 1)
             sol = fsl.solve()
             found = self._batch_verdicts(fsl, sol, use)
