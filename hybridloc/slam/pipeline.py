@@ -64,7 +64,8 @@ class SlamConfig:
     #: ``floor_vote_share`` of those name one other floor. Fixed a priori, not tuned: five independent
     #: scans and a 4:1 majority (a fix's floor is right 92-96 % of the time, README's fingerprint rows).
     #: Off by default: on site1's eval crowd it lifted the coverage 68.6 -> 72.7 % but the correction gain
-    #: fell 46 -> 34 % (goal 40 %); a re-solve from the database of a finished run gave 73.7 -> 80.1 %
+    #: fell 46 -> 34 % (goal 40 %). A re-solve from the database of a finished run gave 66.2 -> 71.1 %,
+    #: corrected mean 6.61 -> 6.44 m (73.7 -> 80.1 % before a batch stopped fixing walks to their own labels)
     floor_vote: bool = False
     floor_vote_min_fixes: int = 5
     floor_vote_share: float = 0.8
