@@ -225,8 +225,8 @@ def _references_from_arrays(z, txs: list[str], technology: str) -> list[Labelled
     names = txs + json.loads(bytes(z["ref/extra_tx"]).decode())
     fl_names = json.loads(bytes(z["ref/floor_names"]).decode())
     devices = json.loads(bytes(z["ref/device"]).decode())
-    sources = json.loads(bytes(z["ref/source"]).decode()) if "ref/source" in z else [""] * len(z["ref/t"])  # older files: unknown
     t, pos, sig, fl = z["ref/t"], z["ref/pos"], z["ref/sigma"], z["ref/floor"]
+    sources = json.loads(bytes(z["ref/source"]).decode()) if "ref/source" in z else [""] * len(t)  # older files: unknown
     ri, tj, val, age = z["ref/i"], z["ref/j"], z["ref/rssi"], z["ref/age"]
     order = np.argsort(ri, kind="stable")
     bounds = np.searchsorted(ri[order], np.arange(len(t) + 1))

@@ -29,8 +29,7 @@ relative walks into a placeable component, or re-placing held walks, is the batc
 
 **The floor of a walk** is the one it names. With ``SlamConfig.floor_vote`` (opt-in; why it is off there)
 a crowd walk on one floor without survey marks is taken as a claim (a phone's floor estimate), and it is
-held on the floor its own scans name through
-the served map (:meth:`~CrowdSlam.vote_floor`: at least ``floor_vote_min_fixes`` fixes past the
+held on the floor its own scans name through the served map (:meth:`~CrowdSlam.vote_floor`: at least ``floor_vote_min_fixes`` fixes past the
 mapped-distance gate, a ``floor_vote_share`` majority), or on the floor of its stored absolute track (where
 a solve put it). On ILC site1 (eval crowd, F = 0.1) 32 of the 77 walks a batch left relative had most of
 their gated fixes on another floor than the recording's folder, about 2-4 m from the truth in the plane
@@ -408,10 +407,9 @@ class CrowdSlam:
         return [dataclasses.replace(pc, floor=moved)]
 
     def held_floors(self, walk: Walk, track: CorrectedTrack | None = None) -> list[str]:
-        """The floors ``walk`` would be held on (with its stored ``track``): the ones it names, or with
-        ``floor_vote`` the server's choice (:meth:`_walk_pieces`)."""
-        if not self.cfg.floor_vote:
-            return sorted(set(walk.floors))
+        """The floors ``walk`` would be held on (with its stored ``track``): those of its pieces
+        (:meth:`_walk_pieces`: the floors it names where it has a piece, or with ``floor_vote`` the
+        server's choice; without the vote no map is read), else the floors it names."""
         return sorted({pc.floor for pc in self._walk_pieces(walk, track)} or set(walk.floors))
 
     def revote_floors(self) -> list[int]:
