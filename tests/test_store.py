@@ -11,6 +11,8 @@ import time
 
 import pytest
 import zenoh
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from hybridloc.server import db as m
 from hybridloc.server.service import Server
@@ -173,6 +175,10 @@ def test_walk_floors_from_marks_and_fixes_in_order_of_first_appearance(store):
     assert [w.device for w in store.walks(SITE, floor="F2")] == ["dev1"]
     assert store.walks(SITE, floor="F7") == []
     assert store.read_walk(by_dev["dev1"].walk_id).floors == ("F1", "B1", "F2")
+    # one group naming floors the walk has, earlier, twice: each floor's first time is its earliest
+    fix = lambda t, f: ("dev1", AbsoluteFix(t, [1.0, 2.0], [[4.0, 0.0], [0.0, 4.0]], "wifi", floor=f))  # noqa: E731
+    store.add_fixes([fix(4.0, "B1"), fix(3.5, "F2"), fix(3.0, "F2"), fix(12.0, "F1")])
+    assert store.read_walk(by_dev["dev1"].walk_id).floors == ("F1", "F2", "B1")
 
 
 def test_idle_walks_close_on_the_server_clock(store):
@@ -241,3 +247,21 @@ def test_the_driver_level_step_insert_names_every_step_column():
 
     assert list(_STEP_COLUMNS) == [c.name for c in m.Step.__table__.columns if c.name != "id"]
     assert _step_insert_sql("qmark").count("?") == len(_STEP_COLUMNS) and _step_insert_sql("pyformat").count("%s") == len(_STEP_COLUMNS)
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    st.dictionaries(
+        st.sampled_from(["rssi", "freq", "age"]),
+        st.dictionaries(
+            st.text(min_size=1, max_size=64), st.one_of(st.floats(allow_nan=False, allow_infinity=False), st.integers(-(2**53), 2**53)), max_size=30
+        ),
+    )
+)
+def test_readings_json_reads_back_as_json_dumps_does(readings):
+    """The scan table's readings text (msgspec) reads back to what ``json.dumps``'s text (SQLAlchemy's
+    JSON type, the text stored before) reads back to, float for float."""
+    from server.store import readings_json
+
+    got, was = json.loads(readings_json(readings)), json.loads(json.dumps(readings))
+    assert repr(got) == repr(was) == repr(readings)

@@ -493,6 +493,15 @@ def _steps_fast(
     (so that limits.screen would keep every one), values as the general path gives them; else None."""
     if not t:
         return ()
+    if len(t) <= _SCALAR_STEPS:
+        return _steps_scalar(t, ln, hd, sl, sh, hc, shc, dh, sdh, fc, dg)
+    return _steps_numpy(t, ln, hd, sl, sh, hc, shc, dh, sdh, fc, dg)
+
+
+def _steps_numpy(
+    t: list, ln: list, hd: list, sl: list, sh: list, hc: list, shc: list, dh: list, sdh: list, fc: list, dg: list
+) -> Sequence[StepEvent] | None:
+    """:func:`_steps_fast` on numpy arrays (many steps: a spool replay's 1,000)."""
     A = np.array([t, ln, hd, sl, sh, dh, sdh], float)
     has_hc = [x is not None for x in hc]
     H = np.array([x if x is not None else 0.0 for x in hc], float)
@@ -524,6 +533,47 @@ def _steps_fast(
     t, ln, sl, sh, dh, sdh = (A[k].tolist() for k in (0, 1, 3, 4, 5, 6))
     # held as columns: the server stores them as such, never making a thousand StepEvents per batch
     return StepColumns([t, ln, heading, sl, sh, change, list(shc), dh, sdh, list(fc), list(dg)])
+
+
+#: Up to this many steps, :func:`_steps_fast` checks them one by one in Python: a live batch (a phone's
+#: second: 2 steps) paid ~25 numpy calls' overhead, most of the server's decoding under bench_load
+_SCALAR_STEPS = 16
+_INF = math.inf
+
+
+def _steps_scalar(
+    t: list, ln: list, hd: list, sl: list, sh: list, hc: list, shc: list, dh: list, sdh: list, fc: list, dg: list
+) -> Sequence[StepEvent] | None:
+    """:func:`_steps_fast` for a few steps: the same checks on Python floats (float64, as numpy's), the
+    same result (tests/test_wire_codecs.py holds the two to each other)."""
+    isfin = math.isfinite
+    try:
+        T, L, HD, SL, SH_, DH, SDH = ([float(x) for x in c] for c in (t, ln, hd, sl, sh, dh, sdh))
+        H = [0.0 if x is None else float(x) for x in hc]
+        SHC = [0.0 if x is None else float(x) for x in shc]
+    except (TypeError, ValueError, OverflowError):
+        return None
+    for i in range(len(T)):
+        ti, li, hi, sli, shi, dhi, sdhi, ci, sci = T[i], L[i], HD[i], SL[i], SH_[i], DH[i], SDH[i], H[i], SHC[i]
+        if not (
+            isfin(ti) and isfin(li) and isfin(hi) and isfin(sli) and isfin(shi) and isfin(dhi) and isfin(sdhi) and isfin(ci) and isfin(sci)
+            and li >= 0.0 and sli >= 0.0 and shi >= 0.0 and sdhi >= 0.0 and sci >= 0.0
+            and abs(ti) < limits.MAX_ABS_TIME_S
+            and abs(hi) <= limits.MAX_ANGLE_RAD and shi <= limits.MAX_ANGLE_RAD and abs(sci) <= limits.MAX_ANGLE_RAD
+            and li <= limits.MAX_STEP_LENGTH_M
+            and abs(ci) <= limits.MAX_HEADING_CHANGE_RAD
+            and abs(dhi) <= limits.MAX_HEIGHT_CHANGE_M
+        ):  # fmt: skip
+            return None
+        if i:
+            dt = ti - T[i - 1]
+            if not (dt >= limits.MIN_STEP_INTERVAL_S and li <= limits.MAX_STEP_SPEED_M_S * dt):
+                return None
+    if not (-limits.MAX_FLOOR_CHANGE <= min(fc) and max(fc) <= limits.MAX_FLOOR_CHANGE and max(map(len, dg)) <= 32):
+        return None
+    heading = [wrap_angle(x) for x in HD]
+    change = [None if x is None else wrap_angle(c) for x, c in zip(hc, H)]
+    return StepColumns([T, L, heading, SL, SH_, change, list(shc), DH, SDH, list(fc), list(dg)])
 
 
 def _scans_fast(scans_in: list[_WireScan], model: str) -> tuple[RfScan, ...] | None:
