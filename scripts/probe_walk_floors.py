@@ -138,7 +138,7 @@ out: dict = {"walks": n_walks, "scans": n_scans}
 for r in rules:
     h = hits[r]
     print(
-        f"  {r:18s} right {h['right']:4d} ({h['right'] / n_walks:.1%}; scans {h['right scans'] / n_scans:.1%}), wrong {h['wrong']:4d}, none {h['none']:4d}"
+        f"  {r:28s} right {h['right']:4d} ({h['right'] / n_walks:.1%}; scans {h['right scans'] / n_scans:.1%}), wrong {h['wrong']:4d}, none {h['none']:4d}"
     )
     out[r.replace(" ", "_").replace("(", "").replace(")", "") + "_right"] = round(h["right"] / n_walks, 4)
 
