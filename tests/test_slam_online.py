@@ -491,11 +491,11 @@ def test_batch_quarantines_a_corrupted_walk_and_solves_the_rest(sample):
 def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     """A crowd walk's floor is a claim: a single-floor walk without marks that names a floor its scans
     do not match is held on the floor the served map's fixes name (>= SlamConfig.floor_vote_min_fixes
-    gated fixes, a floor_vote_share majority); a surveyed walk, a walk with too few scans, a site with
-    no map, or the vote switched off keep the claim; a stored absolute track keeps the walk where the
-    solve put it."""
+    gated fixes, a floor_vote_share majority), or the vote map's when one is set; a surveyed walk, a walk
+    with too few scans, a site with no map, or the vote switched off keep the claim; a stored absolute
+    track keeps the walk where the solve put it."""
     walks, plan, smap = sample
-    cfg = SlamConfig(floor_vote=True)  # opt-in (SlamConfig.floor_vote)
+    cfg = SlamConfig(floor_vote=True)  # the default (SlamConfig.floor_vote), written out
     wifi = lambda w: [s for s in w.scans if s.technology.value == "wifi"]  # noqa: E731
     # a walk whose places the map covers (a surveyed walk's scans, its marks dropped: the bundled sample's
     # map is too sparse for most other walks' scans to pass the mapped-distance gate)
@@ -516,9 +516,16 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     # no map, or the vote off: the claim stands
     bare = CrowdSlam("site1", plan, cfg)
     assert bare._walk_pieces(claim)[0].floor == "F9"
-    off = CrowdSlam("site1", plan)  # the default: off
+    off = CrowdSlam("site1", plan, dataclasses.replace(cfg, floor_vote=False))
     off.set_map(smap)
     assert off._walk_pieces(claim)[0].floor == "F9"
+    assert CrowdSlam("site1", plan).cfg.floor_vote  # the default: on
+    # the vote reads the vote map when one is set (the SLAM child's newest crowd map), not the served one
+    voted = CrowdSlam("site1", plan, cfg)
+    voted.set_vote_map(smap)
+    assert voted._walk_pieces(claim)[0].floor == "F1" and voted._map is None
+    voted.set_vote_map(None)  # none: back to the served map, here none
+    assert voted._walk_pieces(claim)[0].floor == "F9"
     # what the Dask path groups floors by
     assert cs.held_floors(claim) == ["F1"] and off.held_floors(claim) == ["F9"] and off.revote_floors() == []
     # a restart: the stored absolute track holds the walk on its floor, map or not

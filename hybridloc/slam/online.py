@@ -27,11 +27,12 @@ is), else stays relative. Links into another frame than the walk's are dropped f
 reason ``other-frame``): an absolute walk cannot be tied to coordinates of an unplaced group. Grouping
 relative walks into a placeable component, or re-placing held walks, is the batch's job.
 
-**The floor of a walk** is the one it names. With ``SlamConfig.floor_vote`` (opt-in; why it is off there)
-a crowd walk on one floor without survey marks is taken as a claim (a phone's floor estimate), and it is
-held on the floor its own scans name through the served map (:meth:`~CrowdSlam.vote_floor`: at least ``floor_vote_min_fixes`` fixes past the
-mapped-distance gate, a ``floor_vote_share`` majority), or on the floor of its stored absolute track (where
-a solve put it). On ILC site1 (eval crowd, F = 0.1) 32 of the 77 walks a batch left relative had most of
+**The floor of a walk** is the one it names, except that with ``SlamConfig.floor_vote`` (the default; the
+figures there) a crowd walk on one floor without survey marks is taken as a claim (a phone's floor
+estimate), and it is held on the floor its own scans name through the served map, or the vote map when
+one is set (:meth:`~CrowdSlam.set_vote_map`; :meth:`~CrowdSlam.vote_floor`: at least
+``floor_vote_min_fixes`` fixes past the mapped-distance gate, a ``floor_vote_share`` majority), or on the
+floor of its stored absolute track (where a solve put it). On ILC site1 (eval crowd, F = 0.1) 32 of the 77 walks a batch left relative had most of
 their gated fixes on another floor than the recording's folder, about 2-4 m from the truth in the plane
 for those with enough gated fixes: without the vote they could link to nothing on the floor they named.
 
@@ -327,6 +328,9 @@ class CrowdSlam:
         #: moved by their own fingerprints (:meth:`_walk_pieces`)
         self.floor_moves: dict[int, tuple[str, str]] = {}
         self._gate = math.inf
+        #: the map the floor vote reads (set_vote_map), when not the served one: (locator, gate)
+        self._vote: tuple[Any, float] | None = None
+        self._vote_tech = "wifi"
 
     # -------------------------------------------------------------- map
     def set_map(self, radio_map) -> None:
@@ -341,6 +345,22 @@ class CrowdSlam:
         if self._map is not None:
             self._locator = KnnLocator(self._map.references, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s)
             self._gate = mapped_distance_gate(self._map.references, self.cfg)
+
+    def set_vote_map(self, radio_map) -> None:
+        """The map :meth:`vote_floor` reads, when it is not the one that places walks (:meth:`set_map`):
+        the server's newest crowd map. Its labels cover where the survey's do not, so it names more walks'
+        floors, while its fixes, fed back, place walks worse than the survey's (server/slam_child.py). A
+        walk voted is one without an absolute track, so it has no label of its own in the map."""
+        from ..radio.locate import KnnLocator
+
+        if radio_map is None or not radio_map.references:
+            self._vote = None
+            return
+        self._vote = (
+            KnnLocator(radio_map.references, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s),
+            mapped_distance_gate(radio_map.references, self.cfg),
+        )
+        self._vote_tech = radio_map.technology
 
     def _fed_back(self, walk_ids) -> set[str]:
         """The map sources (``str(walk_id)``) a solve of ``walk_ids`` must not be fixed to: the labels of
@@ -434,16 +454,20 @@ class CrowdSlam:
         """The floor the piece's own scans name through the served map, or None when they do not name
         one clearly (:class:`.pipeline.SlamConfig` ``floor_vote_*``): scans past the mapped-distance gate
         or with a floor probability below ``fix_min_floor_prob`` do not vote."""
-        if self._locator is None or self._map is None:
+        if self._vote is not None:
+            loc, gate, tech = self._vote[0], self._vote[1], self._vote_tech
+        elif self._locator is not None and self._map is not None:
+            loc, gate, tech = self._locator, self._gate, self._map.technology
+        else:
             return None
         cfg = self.cfg
-        scans = [s for s in piece.scans if s.technology.value == self._map.technology]
+        scans = [s for s in piece.scans if s.technology.value == tech]
         if len(scans) < cfg.floor_vote_min_fixes:
             return None
-        near = self._locator.nearest(scans)[0][:, 0] <= self._gate
+        near = loc.nearest(scans)[0][:, 0] <= gate
         votes = Counter(
             r.fix.floor
-            for r, ok in zip(self._locator.locate_many(scans), near)
+            for r, ok in zip(loc.locate_many(scans), near)
             if ok and r.fix is not None and r.fix.floor and r.fix.floor_prob >= cfg.fix_min_floor_prob
         )
         n = sum(votes.values())
