@@ -78,6 +78,7 @@ def site_slam(store: Store, site: str) -> CrowdSlam:
             _, rmap = load_radio_map(store, site)
             if rmap is not None:
                 c.slam.set_map(rmap)
+                c.slam.set_vote_map(None)  # a map made elsewhere (a survey's): the vote reads it too
             c.map_version = mv
     return c.slam
 

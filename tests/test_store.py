@@ -265,3 +265,12 @@ def test_readings_json_reads_back_as_json_dumps_does(readings):
 
     got, was = json.loads(readings_json(readings)), json.loads(json.dumps(readings))
     assert repr(got) == repr(was) == repr(readings)
+
+
+def test_readings_msgspec_cannot_write_are_written_as_before():
+    """NaN (msgspec: null) and a lone surrogate (msgspec: refused) are written by json.dumps, as before."""
+    from server.store import readings_json
+
+    for readings in ({"rssi": {"a": -50.0}, "age": {"a": math.nan}}, {"rssi": {"\ud800": -50.0}}):
+        assert readings_json(readings) == json.dumps(readings)
+    assert readings_json({"rssi": {"nullable": -50.0}}) == json.dumps({"rssi": {"nullable": -50.0}})
