@@ -1174,3 +1174,23 @@ def test_few_steps_are_checked_in_python_as_numpy_checks_them(cols):
     assert (a is None) == (b is None)
     if a is not None:
         assert repr(a.columns) == repr(b.columns)
+
+
+def test_a_lone_surrogate_is_not_text():
+    """An escaped lone surrogate ("\\ud800") reads as a string no UTF-8 can hold: refused as malformed
+    JSON on both parsers' paths (stored, it failed the database's encoding and rolled back its whole
+    group of batches); a surrogate pair is a character like any other."""
+    base = {"schema": P.BATCH_SCHEMA, "site": "s1", "device": "d1", "seq": 1, "steps": []}
+    lone = [
+        dict(base, scans=[{"t": 1.0, "tech": "wifi", "rssi": {"\ud800": -50.0}}]),
+        dict(base, marks=[{"t": 1.0, "x": 0.0, "y": 0.0, "floor": "F\udfff"}]),
+        dict(base, device_model="\udb00"),
+    ]
+    for msg in lone:
+        payload = json.dumps(msg).encode()  # json escapes the surrogate: ASCII bytes
+        for decode in (C.BATCH.decode, C.BATCH.decode_general):
+            with pytest.raises(P.Rejected) as e:
+                decode(payload, "s1", "d1")
+            assert e.value.reason == "malformed-json"
+    pair = json.dumps(dict(base, scans=[{"t": 1.0, "tech": "wifi", "rssi": {"\ud83d\ude00": -50.0}}])).encode()
+    assert list(C.BATCH.decode(pair, "s1", "d1").scans[0].rssi_dbm) == ["\U0001f600"]

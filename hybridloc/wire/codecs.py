@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any, Generic, TypeVar
 
@@ -116,11 +117,38 @@ def _load(payload: bytes, schema: str | None, max_bytes: int | None = None) -> d
 
 def _load_slow(payload: bytes):
     try:
-        return json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)  # NaN, Infinity, -Infinity
+        msg = json.loads(payload.decode("utf-8"), parse_constant=_reject_constant)  # NaN, Infinity, -Infinity
     except Rejected:
         raise
     except (ValueError, RecursionError) as exc:  # bad UTF-8 or JSON, an integer past Python's digit limit, nesting too deep
         raise Rejected("malformed-json", str(exc)[:80]) from None
+    # json reads an escaped lone surrogate ("\ud800") into a string no UTF-8 can hold (msgspec refuses
+    # it): such a string, stored, failed the database's encoding and rolled back its whole group of
+    # batches, other devices' included. Refused as the fast parser refuses it.
+    if _SURROGATE_ESCAPE.search(payload) and not _utf8_text(msg):
+        raise Rejected("malformed-json", "a string with a lone surrogate (not Unicode text)")
+    return msg
+
+
+_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89a-fA-F]")
+
+
+def _utf8_text(obj: Any) -> bool:
+    """Every string in ``obj`` (keys too) is Unicode text UTF-8 can hold."""
+    stack = [obj]
+    while stack:
+        o = stack.pop()
+        if isinstance(o, str):
+            try:
+                o.encode("utf-8")
+            except UnicodeEncodeError:
+                return False
+        elif isinstance(o, dict):
+            stack.extend(o.keys())
+            stack.extend(o.values())
+        elif isinstance(o, list):
+            stack.extend(o)
+    return True
 
 
 def _finite(v: Any, what: str) -> float:
