@@ -328,9 +328,8 @@ class CrowdSlam:
         #: moved by their own fingerprints (:meth:`_walk_pieces`)
         self.floor_moves: dict[int, tuple[str, str]] = {}
         self._gate = math.inf
-        #: the map the floor vote reads (set_vote_map), when not the served one: (locator, gate)
-        self._vote: tuple[Any, float] | None = None
-        self._vote_tech = "wifi"
+        #: the map the floor vote reads (set_vote_map), when not the served one: (locator, gate, technology)
+        self._vote: tuple[Any, float, str] | None = None
 
     # -------------------------------------------------------------- map
     def set_map(self, radio_map) -> None:
@@ -338,29 +337,21 @@ class CrowdSlam:
         ``radio_map``). A batch leaves out the references whose ``source`` is a crowd walk of the floor
         it solves (``str(walk_id)``, as :meth:`labels` names them; :meth:`_fed_back`): a walk is not
         fixed to its own labels."""
+        self._map = radio_map if radio_map is not None and radio_map.references else None
+        self._locator, self._gate = self._knn(self._map.references) if self._map is not None else (None, math.inf)
+
+    def _knn(self, refs: list[LabelledScan]) -> tuple[Any, float]:
+        """The kNN locator of ``refs`` (the server's settings) and its mapped-distance gate."""
         from ..radio.locate import KnnLocator
 
-        self._map = radio_map if radio_map is not None and radio_map.references else None
-        self._locator, self._gate = None, math.inf
-        if self._map is not None:
-            self._locator = KnnLocator(self._map.references, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s)
-            self._gate = mapped_distance_gate(self._map.references, self.cfg)
+        return KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s), mapped_distance_gate(refs, self.cfg)
 
     def set_vote_map(self, radio_map) -> None:
         """The map :meth:`vote_floor` reads, when it is not the one that places walks (:meth:`set_map`):
         the server's newest crowd map. Its labels cover where the survey's do not, so it names more walks'
         floors, while its fixes, fed back, place walks worse than the survey's (server/slam_child.py). A
         walk voted is one without an absolute track, so it has no label of its own in the map."""
-        from ..radio.locate import KnnLocator
-
-        if radio_map is None or not radio_map.references:
-            self._vote = None
-            return
-        self._vote = (
-            KnnLocator(radio_map.references, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s),
-            mapped_distance_gate(radio_map.references, self.cfg),
-        )
-        self._vote_tech = radio_map.technology
+        self._vote = (*self._knn(radio_map.references), radio_map.technology) if radio_map is not None and radio_map.references else None
 
     def _fed_back(self, walk_ids) -> set[str]:
         """The map sources (``str(walk_id)``) a solve of ``walk_ids`` must not be fixed to: the labels of
@@ -378,13 +369,10 @@ class CrowdSlam:
             return {}
         loc, gate = self._locator, self._gate
         if exclude and any(r.source in exclude for r in self._map.references):
-            from ..radio.locate import KnnLocator
-
             refs = [r for r in self._map.references if r.source not in exclude]
             if not refs:
                 return {}
-            loc = KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s)
-            gate = mapped_distance_gate(refs, self.cfg)
+            loc, gate = self._knn(refs)
         assert loc is not None
         return locate_pieces(pieces, loc.locate_many, self.cfg, self._map.technology, loc.nearest, gate)
 
@@ -455,7 +443,7 @@ class CrowdSlam:
         one clearly (:class:`.pipeline.SlamConfig` ``floor_vote_*``): scans past the mapped-distance gate
         or with a floor probability below ``fix_min_floor_prob`` do not vote."""
         if self._vote is not None:
-            loc, gate, tech = self._vote[0], self._vote[1], self._vote_tech
+            loc, gate, tech = self._vote
         elif self._locator is not None and self._map is not None:
             loc, gate, tech = self._locator, self._gate, self._map.technology
         else:

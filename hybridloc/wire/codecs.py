@@ -566,7 +566,6 @@ def _steps_numpy(
 #: Up to this many steps, :func:`_steps_fast` checks them one by one in Python: a live batch (a phone's
 #: second: 2 steps) paid ~25 numpy calls' overhead, most of the server's decoding under bench_load
 _SCALAR_STEPS = 16
-_INF = math.inf
 
 
 def _steps_scalar(
