@@ -144,25 +144,20 @@ for r in rules:
 
 
 def score(st: Store) -> dict:
-    """Coverage and the corrected mean at the waypoints (crowd_eval's scoring of the final tracks)."""
+    """The server's coverage (``hybridloc status``'s, as eval crowd reports it) and the corrected mean at
+    the waypoints (crowd_eval's scoring of the final tracks)."""
     states, tracks = st.slam.walk_states(site), st.slam.tracks(site)
-    infos = {w.walk_id: w for w in st.walks(site)}
     by_dev: dict = collections.defaultdict(list)
-    for wid, w in infos.items():
-        by_dev[w.device].append(wid)
-    errs, covered, total = [], 0, 0
+    for w in st.walks(site):
+        by_dev[w.device].append(w.walk_id)
+    errs = []
     for c in plan.clients:
-        usable = []
-        for wid in by_dev.get(c.device, []):
-            total += infos[wid].n_scans
-            if usable_track(tracks.get(wid), states.get(wid)):
-                covered += infos[wid].n_scans
-                usable.append(tracks[wid])
+        usable = [tracks[wid] for wid in by_dev.get(c.device, []) if usable_track(tracks.get(wid), states.get(wid))]
         wps = read_ilc_trace(c.path).waypoints
         if usable and len(wps.t):
             errs.append(track_errors(usable, np.asarray(wps.t, float), np.asarray(wps.pos_enu, float)[:, :2]))
     e = np.concatenate(errs) if errs else np.zeros(0)
-    return {"coverage": round(covered / max(total, 1), 4), "corrected_mean_m": round(float(np.nanmean(e)), 3) if len(e) else None}
+    return {"coverage": round(st.slam.summary(site)["coverage"], 4), "corrected_mean_m": round(float(np.nanmean(e)), 3) if len(e) else None}
 
 
 if args.resolve:
