@@ -408,6 +408,23 @@ class AbsoluteFix:
         object.__setattr__(self, "cov", c)
         object.__setattr__(self, "source", FixSource(self.source))
 
+    @classmethod
+    def trusted(
+        cls, t: float, pos_enu: np.ndarray, cov: np.ndarray, source: FixSource, floor: str | None = None, floor_prob: float = 1.0
+    ) -> AbsoluteFix:
+        """A fix whose caller has made what :meth:`__post_init__` checks true by construction: ``t``
+        finite, ``pos_enu`` (2,) or (3,) finite, ``cov`` symmetric positive definite of the matching
+        shape, ``floor_prob`` in [0, 1], ``source`` a FixSource. The arrays are copied and frozen as the
+        checked constructor does; nothing is checked again (the kNN locator builds one per located scan
+        and its covariance is PD by its floor term, so the checks cost as much as the rest of a fix)."""
+        fix = object.__new__(cls)
+        p, c = np.array(pos_enu, dtype=float, copy=True), np.array(cov, dtype=float, copy=True)
+        p.setflags(write=False)
+        c.setflags(write=False)
+        for name, value in (("t", t), ("pos_enu", p), ("cov", c), ("source", source), ("floor", floor), ("floor_prob", floor_prob)):
+            object.__setattr__(fix, name, value)
+        return fix
+
     @property
     def sigma(self) -> np.ndarray:
         """Per-axis standard deviations, m."""

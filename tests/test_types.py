@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -127,6 +128,22 @@ def test_absolute_fix_checks_covariance():
         AbsoluteFix(2.0, [1.0, 2.0], np.diag([4.0, -1.0]), "wifi")
     with pytest.raises(ValueError, match="symmetric"):
         AbsoluteFix(2.0, [1.0, 2.0], [[1.0, 0.5], [0.0, 1.0]], "wifi")
+
+
+def test_trusted_absolute_fix_is_the_checked_one_without_the_checks():
+    """AbsoluteFix.trusted (the kNN locator's constructor) holds what the checked constructor holds:
+    copies, frozen, the same fields; a caller's later change to its arrays does not reach the fix."""
+    pos, cov = np.array([1.0, 2.0]), np.array([[4.0, 0.5], [0.5, 9.0]])
+    t = AbsoluteFix.trusted(2.0, pos, cov, FixSource.WIFI, "F1", 0.9)
+    c = AbsoluteFix(2.0, pos, cov, "wifi", "F1", 0.9)
+    pos[0], cov[0, 0] = 99.0, 99.0
+    for f in (t, c):
+        assert (f.t, f.source, f.floor, f.floor_prob) == (2.0, FixSource.WIFI, "F1", 0.9)
+        np.testing.assert_array_equal(f.pos_enu, [1.0, 2.0])
+        np.testing.assert_array_equal(f.cov, [[4.0, 0.5], [0.5, 9.0]])
+        assert not f.pos_enu.flags.writeable and not f.cov.flags.writeable
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            f.t = 3.0  # type: ignore[misc]
 
 
 def test_absolute_fix_symmetry_test_is_numpys_allclose():

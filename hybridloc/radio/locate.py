@@ -358,25 +358,25 @@ class KnnLocator:
         known = (X > MISSING_DBM).sum(axis=1)
         Xr = self._rep(X)
         dist, idx = self.neighbours(Xr)
+        n, n_cls = len(scans), len(self.classes_)
         w_all = 1.0 / np.maximum(dist, 1e-9)
-        fprob = np.zeros((len(scans), len(self.classes_)))
-        for i in range(len(scans)):
-            fprob[i] = np.bincount(self._floor_code[idx[i]], weights=w_all[i], minlength=len(self.classes_))
+        # each scan's floor vote: the weights binned by (scan, floor) in one bincount (a bin sums its
+        # weights in the order a bincount per scan did)
+        code = self._floor_code[idx]
+        fprob = np.bincount((np.arange(n)[:, None] * n_cls + code).ravel(), weights=w_all.ravel(), minlength=n * n_cls).reshape(n, n_cls)
         fprob /= fprob.sum(axis=1, keepdims=True)
+        best = np.argmax(fprob, axis=1)
         out: list[LocateResult | None] = []
         # the regions' discs of every scan buffered in one call and each scan's discs united in one
         # call over a row of the (scans, k) array (None where a neighbour is on another floor): the
         # same GEOS buffers and unions, in the same order, as one call per scan
-        discs = np.full(idx.shape, None, dtype=object)
-        radii = np.zeros(idx.shape)
-        pending = []  # (i, fix, floor, nb)
-        for i, s in enumerate(scans):
+        discs = shapely.points(self.pos[idx]) if n else np.full(idx.shape, None, dtype=object)
+        pending = []  # (i, mean, cov, where in out)
+        for i in range(n):
             if known[i] == 0:
                 out.append(LocateResult(None, None, reason="no known transmitter in the scan"))
                 continue
-            b = int(np.argmax(fprob[i]))
-            fl = self.classes_[b]
-            on = self._floor_code[idx[i]] == b  # the neighbours on the chosen floor
+            on = code[i] == best[i]  # the neighbours on the chosen floor
             nb = idx[i][on]
             w = w_all[i][on] / w_all[i][on].sum()
             mean = w @ self.pos[nb]
@@ -385,16 +385,24 @@ class KnnLocator:
             # show: when all k agree on a wrong place (a similar-looking corridor) the spread is small
             # but the error is not. 3 m per axis ~ the median WiFi error on the ILC data.
             cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + KNN_SIGMA_FLOOR**2)
-            fix = AbsoluteFix(s.t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i][b]))
-            rad = 2.0 * math.sqrt(max(np.linalg.eigvalsh(cov).max(), 1e-6))
-            discs[i, : len(nb)] = shapely.points(self.pos[nb])
-            radii[i, : len(nb)] = rad
-            pending.append((i, fix, fl, len(out)))
+            discs[i, ~on] = None
+            pending.append((i, mean, cov, len(out)))
             out.append(None)
         if pending:
             rows = np.array([i for i, _, _, _ in pending])
-            areas = shapely.union_all(shapely.buffer(discs[rows], radii[rows]), axis=1)
-            for (i, fix, fl, at), area in zip(pending, areas):
+            covs = np.stack([c for _, _, c, _ in pending])
+            # eigenvalues of every scan's covariance in one call (the same LAPACK call per matrix); the
+            # region's disc radius is 2 sigma of the major axis (of the covariance as summed: the fix
+            # holds it symmetrised)
+            radii = 2.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(covs).max(axis=1), 1e-6))
+            areas = shapely.union_all(shapely.buffer(discs[rows], np.broadcast_to(radii[:, None], discs[rows].shape)), axis=1)
+            names = [str(c) for c in self.classes_]
+            for (i, mean, cov, at), area in zip(pending, areas):
+                b = best[i]
+                fl = self.classes_[b]
+                # PD by construction (the spread is PSD, the floor term adds KNN_SIGMA_FLOOR^2 I), symmetric,
+                # finite: the checked constructor's tests would cost as much as the rest of the answer
+                fix = AbsoluteFix.trusted(scans[i].t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i, b]))
                 region = ContainmentRegion(fl or None, area, 0.95, scans[i].t)
-                out[at] = LocateResult(fix, region, {str(c): float(p) for c, p in zip(self.classes_, fprob[i])}, n_known=int(known[i]))
+                out[at] = LocateResult(fix, region, dict(zip(names, fprob[i].tolist())), n_known=int(known[i]))
         return out  # type: ignore[return-value]
