@@ -84,6 +84,42 @@ def test_probabilistic_and_knn_locate_synthetic_world(world):
         assert all(r.fix.floor == "F1" and 0 < r.fix.floor_prob <= 1 for r in results)
 
 
+def _answers(results):
+    return [
+        (r.reason, r.n_known, r.floor_probs, None if r.fix is None else (r.fix.t, r.fix.pos_enu.tolist(), r.fix.cov.tolist(), r.fix.floor, r.fix.floor_prob))
+        for r in results
+    ]
+
+
+def test_knn_memo_relabel_and_fixes_without_regions_answer_as_a_fresh_search(world):
+    """The memo of searches (by scan), a relabelled locator (same scans, labels moved) and answers
+    without regions give exactly what a fresh locator's full answers give: a search row reads only its
+    scan and the references' fingerprints."""
+    refs, _, _, tests = world
+    tests = tests + [RfScan(20_000.0, "wifi", {"unknown": -50.0})]
+    plain = KnnLocator(refs, k=5)
+    want = _answers(plain.locate_many(tests))
+    memo = KnnLocator(refs, k=5, memo=True)
+    for chunk in (1, 7, len(tests)):  # the first pass fills the memo, the others read it, in other groupings
+        got = [r for i in range(0, len(tests), chunk) for r in memo.locate_many(tests[i : i + chunk])]
+        assert _answers(got) == want
+    bare = memo.locate_many(tests, regions=False)
+    assert _answers(bare) == want and all(r.region is None for r in bare)
+    np.testing.assert_array_equal(memo.nearest(tests)[1], plain.nearest(tests)[1])
+    # labels moved 4 m east: the same neighbours, fixes 4 m east, from the shared index and memo
+    moved = [dataclasses.replace(r, pos_enu=np.asarray(r.pos_enu) + [4.0, 0.0]) for r in refs]
+    re = memo.relabel(moved)
+    assert re is not None and re._memo is memo._memo
+    fresh = KnnLocator(moved, k=5).locate_many(tests)
+    assert _answers(re.locate_many(tests)) == _answers(fresh)
+    for a, b in zip(re.locate_many(tests), plain.locate_many(tests)):
+        if a.fix is not None:
+            np.testing.assert_allclose(a.fix.pos_enu, np.asarray(b.fix.pos_enu) + [4.0, 0.0], atol=1e-9)
+    # other scans (one reference fewer, or another scan object) are not relabelled
+    assert memo.relabel(moved[1:]) is None
+    assert memo.relabel([dataclasses.replace(moved[0], scan=dataclasses.replace(moved[0].scan))] + moved[1:]) is None
+
+
 def test_no_fix_answers(world):
     _, rmap, _, _ = world
     loc = ProbabilisticLocator(rmap)

@@ -25,6 +25,7 @@ the detection floor, or a map of another site.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -297,6 +298,7 @@ class KnnLocator:
         tx: list[str] | None = None,
         max_age_s: float | None = None,
         metric: str = "sorensen",
+        memo: bool = False,
     ):
         if not refs:
             raise ValueError("kNN needs reference scans")
@@ -316,16 +318,60 @@ class KnnLocator:
         self.k = min(k, len(refs))
         self.max_age_s = max_age_s
         X = self._rep(fingerprint_matrix([r.scan for r in refs], self.tx_index, max_age_s=max_age_s))
-        self.pos = np.array([r.pos_enu for r in refs])
-        self.sig = np.array([r.sigma for r in refs])
-        self.floors = np.array([r.floor or "" for r in refs])
-        self.classes_ = np.unique(self.floors)
-        self._floor_code = np.searchsorted(self.classes_, self.floors)
+        self._set_labels(refs)
+        # each query scan's search result, by the scan (a search row depends only on its own scan and on
+        # the references' fingerprints): the SLAM batch asks the same scans of the same references in
+        # every EM round and every batch; a server locating each scan once leaves it off
+        self._memo: dict[int, tuple] | None = {} if memo and metric == "sorensen" else None
         if metric == "sorensen":
             self._R = sparse.csc_array(X.astype(np.float32))
             self._R_sum = X.sum(axis=1, dtype=np.float64)
         else:
             self._nn = NearestNeighbors(n_neighbors=self.k).fit(X)
+
+    #: Entries a memo holds before it starts again (~0.5 kB each at k = 30)
+    MEMO_MAX = 200_000
+
+    def _set_labels(self, refs: list[LabelledScan]) -> None:
+        self.refs = refs
+        self.pos = np.array([r.pos_enu for r in refs])
+        self.sig = np.array([r.sigma for r in refs])
+        self.floors = np.array([r.floor or "" for r in refs])
+        self.classes_ = np.unique(self.floors)
+        self._floor_code = np.searchsorted(self.classes_, self.floors)
+
+    def relabel(self, refs: list[LabelledScan]) -> KnnLocator | None:
+        """This locator over ``refs``, when they are the same scans (the same objects, in the same order)
+        with other labels (positions, sigmas, floors): the fingerprint index and the memo of searches are
+        shared, since a search reads only the scans. None when the scans differ."""
+        if len(refs) != len(self.refs) or any(a.scan is not b.scan for a, b in zip(refs, self.refs)):
+            return None
+        out = copy.copy(self)
+        out._set_labels(refs)
+        return out
+
+    def _search(self, scans: list[RfScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(distances, indices, readings known) of each scan: from the memo where it holds the scan, the
+        others searched together (:meth:`neighbours`; the same rows as a search of all of them)."""
+        memo = self._memo
+        if memo is None:
+            X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
+            return *self.neighbours(self._rep(X)), (X > MISSING_DBM).sum(axis=1)
+        got = [memo.get(id(s)) for s in scans]
+        miss = [i for i, (s, g) in enumerate(zip(scans, got)) if g is None or g[0] is not s]
+        if miss:
+            X = fingerprint_matrix([scans[i] for i in miss], self.tx_index, max_age_s=self.max_age_s)
+            dist, idx = self.neighbours(self._rep(X))
+            known = (X > MISSING_DBM).sum(axis=1)
+            if len(memo) + len(miss) > self.MEMO_MAX:
+                memo.clear()
+            for j, i in enumerate(miss):
+                # the scan itself is held beside its result, so its id is not reused while the entry lives
+                got[i] = memo[id(scans[i])] = (scans[i], dist[j], idx[j], known[j])
+        k = self.k
+        if not scans:
+            return np.empty((0, k)), np.empty((0, k), dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return np.stack([g[1] for g in got]), np.stack([g[2] for g in got]), np.array([g[3] for g in got])
 
     def _rep(self, X):
         if self.representation == "powed-rel":
@@ -351,13 +397,12 @@ class KnnLocator:
     def nearest(self, scans: list[RfScan]) -> tuple[np.ndarray, np.ndarray]:
         """(distances, indices) (n, k) of each scan's k nearest references in fingerprint space (the
         locator's representation and metric): how well the references explain the scan."""
-        return self.neighbours(self._rep(fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)))
+        return self._search(scans)[:2]
 
-    def locate_many(self, scans: list[RfScan]) -> list[LocateResult]:
-        X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
-        known = (X > MISSING_DBM).sum(axis=1)
-        Xr = self._rep(X)
-        dist, idx = self.neighbours(Xr)
+    def locate_many(self, scans: list[RfScan], regions: bool = True) -> list[LocateResult]:
+        """The answer to each scan (module docstring); ``regions=False`` leaves out the containment
+        regions (region None; the fixes are the same), which cost as much as the rest of an answer."""
+        dist, idx, known = self._search(scans)
         n, n_cls = len(scans), len(self.classes_)
         w_all = 1.0 / np.maximum(dist, 1e-9)
         # each scan's floor vote: the weights binned by (scan, floor) in one bincount (a bin sums its
@@ -370,7 +415,7 @@ class KnnLocator:
         # the regions' discs of every scan buffered in one call and each scan's discs united in one
         # call over a row of the (scans, k) array (None where a neighbour is on another floor): the
         # same GEOS buffers and unions, in the same order, as one call per scan
-        discs = shapely.points(self.pos[idx]) if n else np.full(idx.shape, None, dtype=object)
+        discs = shapely.points(self.pos[idx]) if n and regions else None
         pending = []  # (i, mean, cov, where in out)
         for i in range(n):
             if known[i] == 0:
@@ -385,24 +430,28 @@ class KnnLocator:
             # show: when all k agree on a wrong place (a similar-looking corridor) the spread is small
             # but the error is not. 3 m per axis ~ the median WiFi error on the ILC data.
             cov = (dxy * w[:, None]).T @ dxy + np.eye(2) * (float(w @ self.sig[nb] ** 2) + KNN_SIGMA_FLOOR**2)
-            discs[i, ~on] = None
+            if discs is not None:
+                discs[i, ~on] = None
             pending.append((i, mean, cov, len(out)))
             out.append(None)
-        if pending:
+        if not pending:
+            return out  # type: ignore[return-value]
+        areas: list = [None] * len(pending)
+        if discs is not None:
             rows = np.array([i for i, _, _, _ in pending])
             covs = np.stack([c for _, _, c, _ in pending])
             # eigenvalues of every scan's covariance in one call (the same LAPACK call per matrix); the
             # region's disc radius is 2 sigma of the major axis (of the covariance as summed: the fix
             # holds it symmetrised)
             radii = 2.0 * np.sqrt(np.maximum(np.linalg.eigvalsh(covs).max(axis=1), 1e-6))
-            areas = shapely.union_all(shapely.buffer(discs[rows], np.broadcast_to(radii[:, None], discs[rows].shape)), axis=1)
-            names = [str(c) for c in self.classes_]
-            for (i, mean, cov, at), area in zip(pending, areas):
-                b = best[i]
-                fl = self.classes_[b]
-                # PD by construction (the spread is PSD, the floor term adds KNN_SIGMA_FLOOR^2 I), symmetric,
-                # finite: the checked constructor's tests would cost as much as the rest of the answer
-                fix = AbsoluteFix.trusted(scans[i].t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i, b]))
-                region = ContainmentRegion(fl or None, area, 0.95, scans[i].t)
-                out[at] = LocateResult(fix, region, dict(zip(names, fprob[i].tolist())), n_known=int(known[i]))
+            areas = list(shapely.union_all(shapely.buffer(discs[rows], np.broadcast_to(radii[:, None], discs[rows].shape)), axis=1))
+        names = [str(c) for c in self.classes_]
+        for (i, mean, cov, at), area in zip(pending, areas):
+            b = best[i]
+            fl = self.classes_[b]
+            # PD by construction (the spread is PSD, the floor term adds KNN_SIGMA_FLOOR^2 I), symmetric,
+            # finite: the checked constructor's tests would cost as much as the rest of the answer
+            fix = AbsoluteFix.trusted(scans[i].t, mean, 0.5 * (cov + cov.T), FixSource.WIFI, fl or None, float(fprob[i, b]))
+            region = ContainmentRegion(fl or None, area, 0.95, scans[i].t) if area is not None else None
+            out[at] = LocateResult(fix, region, dict(zip(names, fprob[i].tolist())), n_known=int(known[i]))
         return out  # type: ignore[return-value]

@@ -75,13 +75,14 @@ def _fused(test: list[_Walk], refs: list[LabelledScan], axes: dict, k: int = 5, 
 
     if not refs:
         return np.concatenate([np.full(max(len(w.wp.t) - 1, 0), np.nan) for w in test]) if test else np.zeros(0)
-    loc = KnnLocator(refs, k=k, max_age_s=max_age_s)
+    # memo: each walk's scans are searched once for its fixes and its gate (the fixes without regions)
+    loc = KnnLocator(refs, k=k, max_age_s=max_age_s, memo=True)
     gate = mapped_distance_gate(refs, SlamConfig()) if gated else math.inf
     out = []
     for w in test:
         steps = list(w.walk.steps)
         scans = [s for s in w.walk.scans if s.technology.value == "wifi"]
-        answers = loc.locate_many(scans) if scans else []
+        answers = loc.locate_many(scans, regions=False) if scans else []
         near = loc.nearest(scans)[0][:, 0] <= gate if scans and math.isfinite(gate) else np.ones(len(answers), bool)
         fixes = [r.fix for r, ok in zip(answers, near) if r.fix is not None and ok]
         est = run_fusion(LocalFusion(corridor_axes=axes), steps, fixes) if steps else []

@@ -94,6 +94,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -344,7 +345,9 @@ class CrowdSlam:
         """The kNN locator of ``refs`` (the server's settings) and its mapped-distance gate."""
         from ..radio.locate import KnnLocator
 
-        return KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s), mapped_distance_gate(refs, self.cfg)
+        # memo on: the served map's locator places every walk's scans again in each batch (and the vote
+        # map's asks the same walks' floors), the same answers each time
+        return KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s, memo=True), mapped_distance_gate(refs, self.cfg)
 
     def set_vote_map(self, radio_map) -> None:
         """The map :meth:`vote_floor` reads, when it is not the one that places walks (:meth:`set_map`):
@@ -374,7 +377,7 @@ class CrowdSlam:
                 return {}
             loc, gate = self._knn(refs)
         assert loc is not None
-        return locate_pieces(pieces, loc.locate_many, self.cfg, self._map.technology, loc.nearest, gate)
+        return locate_pieces(pieces, partial(loc.locate_many, regions=False), self.cfg, self._map.technology, loc.nearest, gate)
 
     # -------------------------------------------------------------- state
     def _floor(self, name: str) -> _Floor:
@@ -455,7 +458,7 @@ class CrowdSlam:
         near = loc.nearest(scans)[0][:, 0] <= gate
         votes = Counter(
             r.fix.floor
-            for r, ok in zip(loc.locate_many(scans), near)
+            for r, ok in zip(loc.locate_many(scans, regions=False), near)
             if ok and r.fix is not None and r.fix.floor and r.fix.floor_prob >= cfg.fix_min_floor_prob
         )
         n = sum(votes.values())
@@ -808,9 +811,10 @@ class CrowdSlam:
             # EM (pipeline.run_slam) with the crowd map of this floor's labels: the walks' floor is known,
             # so other floors' labels would only add a floor vote that drops fixes, at three times the
             # cost of the fold maps (site1: 33 of 54 s per floor)
+            em_cache: dict = {}
             for rnd in range(cfg.em_rounds):
                 lab, lab_walk = _labels(sol, [pc.walk for pc in fsl.pieces])
-                if not set_em_fixes([fsl], lab, lab_walk, lambda w: fold.get(w, 0), cfg):
+                if not set_em_fixes([fsl], lab, lab_walk, lambda w: fold.get(w, 0), cfg, em_cache):
                     break
                 say(f"em {rnd + 1}", 2 + rnd)
                 new = fsl.solve()

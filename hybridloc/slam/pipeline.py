@@ -25,6 +25,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -239,19 +240,25 @@ class _Anchors:
     fixes: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
 
-def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000) -> float:
+def gate_locator(refs: list[LabelledScan], cfg: SlamConfig, memo: bool = False):
+    """The kNN locator :func:`mapped_distance_gate` searches ``refs`` with (30 neighbours)."""
+    from ..radio.locate import KnnLocator
+
+    return KnnLocator(refs, k=min(30, len(refs)), max_age_s=cfg.knn_max_age_s, memo=memo)
+
+
+def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000, locator=None) -> float:
     """The fingerprint distance below which a scan is explained by a map of ``refs`` (no ground truth:
     the references' own labels). For each reference, the nearest other reference whose label lies within
     ``radius_m`` - of another walk, or of the same walk at least ``MIN_PAIR_DT_S`` apart (an independent
     scan of the same place): the distance a scan has to the map where the map covers its place. The
     gate is the ``cfg.fix_gate_quantile`` quantile of those distances; a scan farther from every
     reference comes from a place the map does not cover, and its fix (the nearest mapped place,
-    whatever the distance) is not used."""
-    from ..radio.locate import KnnLocator
-
+    whatever the distance) is not used. ``locator``: :func:`gate_locator` of ``refs``, when the caller
+    holds one (built here otherwise)."""
     if len(refs) < 10:
         return math.inf
-    loc = KnnLocator(refs, k=min(30, len(refs)), max_age_s=cfg.knn_max_age_s)
+    loc = locator if locator is not None else gate_locator(refs, cfg)
     rng = np.random.default_rng(0)
     idx = rng.choice(len(refs), size=min(n_max, len(refs)), replace=False)
     dist, nb = loc.nearest([refs[i].scan for i in idx])
@@ -697,11 +704,18 @@ def _all_labels(floors: dict[str, FloorSolution], walk_of: dict[str, list[int]])
     return labels, label_walk
 
 
-def set_em_fixes(slams, labels: list[LabelledScan], label_walk: list[int], fold_of: Callable[[int], int], cfg: SlamConfig) -> bool:
+def set_em_fixes(
+    slams, labels: list[LabelledScan], label_walk: list[int], fold_of: Callable[[int], int], cfg: SlamConfig, cache: dict | None = None
+) -> bool:
     """One EM E-step (module docstring, 6): the crowd map of every fold of walks but one is built from
     ``labels`` (``label_walk``: the walk of each, ``fold_of(walk)``: its fold), the pieces of that
     fold's walks in each :class:`FloorSlam` of ``slams`` are located against it, and the fixes become
-    their ``em_fixes``. False (nothing set) when fewer than 20 WiFi labels exist."""
+    their ``em_fixes``. False (nothing set) when fewer than 20 WiFi labels exist.
+
+    ``cache``: a dict the caller keeps across the E-steps of one solve. A fold whose labels are the same
+    scans as in the previous step (only their positions moved) keeps its locators' fingerprint index and
+    searches (:meth:`~hybridloc.radio.locate.KnnLocator.relabel`): a search reads only the scans, so the
+    fixes are those a fresh locator gives."""
     from ..radio.locate import KnnLocator
 
     wifi = [i for i, ls in enumerate(labels) if ls.scan.technology.value == "wifi"]
@@ -710,17 +724,26 @@ def set_em_fixes(slams, labels: list[LabelledScan], label_walk: list[int], fold_
     slams = list(slams)
     for fsl in slams:
         fsl.em_fixes = {}
+    memo = cache is not None
     for f in range(max(cfg.em_folds, 2)):
         refs = [labels[i] for i in wifi if fold_of(label_walk[i]) != f]
         if len(refs) < 10:
             continue
-        loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s)
-        gate = mapped_distance_gate(refs, cfg)
+        held = cache.get(f) if cache is not None else None
+        loc = held[0].relabel(refs) if held is not None else None
+        if loc is None:
+            loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s, memo=memo)
+        gl = held[1].relabel(refs) if held is not None else None
+        if gl is None:
+            gl = gate_locator(refs, cfg, memo=memo)
+        if cache is not None:
+            cache[f] = (loc, gl)
+        gate = mapped_distance_gate(refs, cfg, locator=gl)
         for fsl in slams:
             sel = [k for k, pc in enumerate(fsl.pieces) if fold_of(pc.walk) == f]
             if not sel:
                 continue
-            got = locate_pieces([fsl.pieces[k] for k in sel], loc.locate_many, cfg, "wifi", loc.nearest, gate)
+            got = locate_pieces([fsl.pieces[k] for k in sel], partial(loc.locate_many, regions=False), cfg, "wifi", loc.nearest, gate)
             for j, v in got.items():
                 fsl.em_fixes[sel[j]] = v
     return True
@@ -788,7 +811,7 @@ def run_slam(
         fsl._number()
         fsl.detect_loops()
         if locator is not None:
-            fsl.map_fixes = locate_pieces(pieces, locator.locate_many, cfg, radio_map.technology, locator.nearest, map_gate)
+            fsl.map_fixes = locate_pieces(pieces, partial(locator.locate_many, regions=False), cfg, radio_map.technology, locator.nearest, map_gate)
         if progress:
             progress("solve", fname, n_done, total)
         fs = fsl.solve()
@@ -797,9 +820,10 @@ def run_slam(
     walk_of = {fname: [pc.walk for pc in fs.pieces] for fname, fs in floors.items()}
     # EM with the crowd map: each fold of walks located against the map of the others
     folds = np.arange(len(walks)) % max(cfg.em_folds, 2)
+    em_cache: dict = {}
     for rnd in range(cfg.em_rounds):
         labels, label_walk = _all_labels(floors, walk_of)
-        if not set_em_fixes(slams.values(), labels, label_walk, lambda w: int(folds[w]), cfg):
+        if not set_em_fixes(slams.values(), labels, label_walk, lambda w: int(folds[w]), cfg, em_cache):
             break
         moves = []
         for n_done, (fname, fsl) in enumerate(sorted(slams.items())):
