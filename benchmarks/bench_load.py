@@ -1,6 +1,6 @@
 """Live load: many phone clients at their real step and scan rates through real Zenoh on loopback.
 
-    python -m benchmarks.bench_load [--clients 1000] [--minutes 10] [--db sqlite|postgres|URL] [--sessions N] [--window S]
+    python -m benchmarks.bench_load [--clients 1000] [--minutes 10] [--db sqlite|postgres|URL] [--sessions N] [--window S] [--locate-workers N]
 
 The server is ``hybridloc serve`` in its own process, serving a real radio map of site1 F1 built from
 the bundled sample's surveys (``hybridloc/data/ilc_site1_F1``), so every scan costs a real locate.
@@ -248,6 +248,7 @@ def run(
     fixed_resend: bool = False,
     faults: list[tuple[str, int, float]] = (),  # type: ignore[assignment]
     drop_fraction: float = 0.2,
+    locate_workers: int = 0,
 ) -> dict:
     import zenoh
 
@@ -273,7 +274,7 @@ def run(
     ep = f"tcp/127.0.0.1:{free_port()}"
     if any(k == "db-outage" for k, _, _ in faults) and pg is None:
         raise ValueError("a db-outage fault needs --db postgres (the benchmark's own PostgreSQL server)")
-    serve_args = ("--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam")
+    serve_args = ("--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam", "--locate-workers", str(locate_workers))
     server = {"proc": _serve(ep, url, *serve_args), "rss": 0.0}
     devices = [f"load{i:05d}" for i in range(clients)]
     n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
@@ -451,6 +452,7 @@ def run(
         "fix_p99_ms": round(float(np.percentile(fix, 99)), 1) if fix.size else None,
         "resends": load.resends,
         "fixed_resend": fixed_resend,
+        "locate_workers": locate_workers,
         "misrouted": load.misrouted,
         "server_peak_rss_mb": round(rss, 1),
         "wall_s": round(wall, 1),
@@ -520,6 +522,9 @@ def main(argv: list[str] | None = None) -> dict:
     )
     ap.add_argument("--drop-fraction", type=float, default=0.2, help="share of the Zenoh sessions a clients-drop fault closes")
     ap.add_argument("--no-ceiling", action="store_true", help="skip the large-batch ceiling and the raw insert rate")
+    ap.add_argument(
+        "--locate-workers", type=int, default=0, help="the server's locate worker processes (serve --locate-workers; 0: its locate thread)"
+    )
     ap.add_argument("--ceiling-batches", type=int, default=40, help="batches of 1,000 steps + 100 scans per device for the ceiling")
     ap.add_argument("--ceiling-only", action="store_true", help="only the large-batch ceiling and the raw insert rate (no live load)")
     ap.add_argument(
@@ -548,7 +553,20 @@ def main(argv: list[str] | None = None) -> dict:
         _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps)
         print(json.dumps(r))
         return r
-    r = run(args.clients, args.minutes, args.db, args.sessions, args.window, args.speed, args.fixed_resend, faults, args.drop_fraction)
+    if args.locate_workers < 0:
+        raise SystemExit("--locate-workers must be >= 0")
+    r = run(
+        args.clients,
+        args.minutes,
+        args.db,
+        args.sessions,
+        args.window,
+        args.speed,
+        args.fixed_resend,
+        faults,
+        args.drop_fraction,
+        args.locate_workers,
+    )
     held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
     print(
         f"load: {r['clients']} clients x {r['minutes']:g} simulated min on {r['db']} ({r['sessions']} sessions): "

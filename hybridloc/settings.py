@@ -10,6 +10,7 @@ line's own, so no file and no variable change nothing). Example file::
     endpoint = "tcp/10.0.0.5:7447"
     db = "postgresql+psycopg://hybridloc@db/hybridloc"
     floorplan = "sites/site1"          # the site's floor plans (client --floorplan)
+    locate_workers = 1                 # serve: processes answering the stored scans (0: in the server)
 
     [security]
     user = "phone-7"
@@ -105,6 +106,7 @@ class Settings:
     endpoint: str = "tcp/127.0.0.1:7447"  # Zenoh endpoint: the server listens on it, clients connect to it
     db: str = "hybridloc.db"  # SQLite file or database URL (postgresql+psycopg://...)
     method: str = "knn"  # the server's locate method, one of LOCATE_METHODS
+    locate_workers: int = 0  # worker processes answering the server's stored scans (0: its locate thread)
     floorplan: str | None = None  # the site's floor plan folder (Indoor Location Competition layout)
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)

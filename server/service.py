@@ -11,7 +11,9 @@ Threads:
   pushes them to their devices. It runs beside ingest, so locating never delays an acknowledgement;
   when it falls behind, it sheds load: of a device's scans waiting together only the newest is
   located, the older ones are answered "no fix, superseded" (a fix for where the walker was seconds
-  ago is worth less than the next one, and a client always hears back);
+  ago is worth less than the next one, and a client always hears back). With ``locate_workers``
+  (``serve --locate-workers N``) the answers are computed in worker processes (:mod:`.locate_pool`),
+  off this process's interpreter lock, which ingest then has to itself; the answers are the same;
 * queryable callbacks (locate, map, status) answer from memory and are short;
 * one crowd-SLAM worker per SLAM site (:mod:`.slam_worker`): a thread that only waits on its spawned
   child process, where the solves run, and publishes corrected tracks, map versions and progress. It
@@ -32,7 +34,7 @@ from collections import Counter, deque
 import zenoh
 from sqlalchemy import exc as sa_exc
 
-from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
+from hybridloc.radio.locate import ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
 from hybridloc.types import Fix, RfScan, Technology
 from hybridloc.wire import codecs as C
@@ -40,6 +42,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
+from .locate_pool import LocatePool, PoolBroken, answers, make_locator
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
@@ -63,6 +66,7 @@ class Server:
         slam_options: SlamOptions | None = None,
         sites: list[str] | None = None,
         connect: list[str] | None = None,
+        locate_workers: int = 0,
     ):
         #: the sites this process serves (ingest, locate, maps): None or empty = every site. Processes
         #: serving different sites share one router mesh (``connect``: other routers) and one database.
@@ -93,6 +97,11 @@ class Server:
         if method not in ("knn", "prob"):
             raise ValueError("method must be knn or prob")
         self.method = method
+        if locate_workers < 0:
+            raise ValueError(f"locate_workers must be >= 0, got {locate_workers}")
+        #: worker processes answering the stored scans (:mod:`.locate_pool`); 0: the locate thread itself
+        self.locate_workers = locate_workers
+        self._pool: LocatePool | None = LocatePool(locate_workers, method) if locate_workers else None
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> Server:
@@ -156,6 +165,8 @@ class Server:
             except Exception:  # noqa: BLE001 - already gone at shutdown
                 pass
         self._entities.clear()
+        if self._pool is not None:
+            self._pool.close()
         if self.session is not None:
             self.session.close()
             self.session = None
@@ -178,14 +189,9 @@ class Server:
         if got is None:
             return None
         version, blob = got
-        rmap = RadioMap.load(io.BytesIO(blob))
-        # weighted kNN over the map's reference scans by default (calibrated 95 % regions on the
-        # Indoor Location Competition data); the cell likelihood when asked or without references
-        loc = (
-            _KnnOne(KnnLocator(rmap.references, max_age_s=8.0))
-            if self.method == "knn" and rmap.references
-            else ProbabilisticLocator(rmap, max_age_s=8.0)
-        )
+        loc = make_locator(RadioMap.load(io.BytesIO(blob)), self.method)
+        if self._pool is not None:
+            self._pool.add_map(site, version, blob)
         with self._lock:
             self.locators[site] = (version, loc, blob)
         return version
@@ -207,10 +213,21 @@ class Server:
         loc = self.locators.get(site)
         if loc is None:
             return [Fix(None, reason=f"no radio map for site {site!r}", t=sc.t) for sc in scans]
-        results = loc[1].locate_many(scans) if isinstance(loc[1], _KnnOne) else [loc[1].locate(sc) for sc in scans]
-        return [
-            Fix(None, reason=res.reason, t=sc.t) if res.fix is None else Fix(res.fix, res.region, res.floor_probs) for sc, res in zip(scans, results)
-        ]
+        return answers(loc[1], scans)
+
+    def _answer_site(self, site: str, scans: list[RfScan]) -> list[tuple[bytes, object]]:
+        """(FIX message, fix or None) of each scan: from the locate workers when the server has them,
+        else (and when a worker died meanwhile) from this process; the same answers either way."""
+        if self._pool is not None:
+            try:
+                got = self._pool.answer(site, scans)
+            except PoolBroken as exc:
+                self.counts["locate-pool-failures"] += 1
+                log.error("a locate worker died (%s): %d scans answered here, a new pool for the next ones", exc, len(scans))
+            else:
+                if got is not None:
+                    return got
+        return [(C.FIX.encode(a), a.fix) for a in self.answer_many(site, scans)]
 
     # ------------------------------------------------------------ ingest
     def _run(self) -> None:
@@ -379,24 +396,25 @@ class Server:
             if j is None or sc.t >= asked[j][1].t:
                 newest[k] = i
         keep = set(newest.values())
-        answers: list = [None] * len(asked)
+        out: list = [None] * len(asked)  # (FIX message, fix or None) per scan
         for i, (_, sc) in enumerate(asked):
             if i not in keep:
-                answers[i] = Fix(None, reason="superseded: a newer scan of this device was waiting to be located", t=sc.t)
+                shed = Fix(None, reason="superseded: a newer scan of this device was waiting to be located", t=sc.t)
+                out[i] = (C.FIX.encode(shed), None)
                 self.counts["fixes-shed"] += 1
         for site in dict.fromkeys(asked[i][0].site for i in keep):
             mine = [i for i in sorted(keep) if asked[i][0].site == site]
             # the site's scans located in one call: one fingerprint matrix, one neighbour search (the
             # same answers as one call per scan)
-            for i, a in zip(mine, self.answer_many(site, [asked[i][1] for i in mine])):
-                self.counts["fixes-pushed" if a.fix is not None else "no-fix-pushed"] += 1
-                answers[i] = a
-        self._with_database(self.store.add_fixes, [(b.device, a.fix) for (b, _), a in zip(asked, answers) if a.fix is not None])
+            for i, a in zip(mine, self._answer_site(site, [asked[i][1] for i in mine])):
+                self.counts["fixes-pushed" if a[1] is not None else "no-fix-pushed"] += 1
+                out[i] = a
+        self._with_database(self.store.add_fixes, [(b.device, a[1]) for (b, _), a in zip(asked, out) if a[1] is not None])
         # blocked on congestion as the acks are (a dropped fix is an answer the client never hears: under
         # bench_load's reconnect bursts and on PostgreSQL at 1,000 clients, a few per cent were dropped)
         block = zenoh.CongestionControl.BLOCK
-        for (b, _), a in zip(asked, answers):
-            self.session.put(P.key_fix(b.site, b.device), C.FIX.encode(a), encoding=C.FIX.encoding, congestion_control=block)
+        for (b, _), a in zip(asked, out):
+            self.session.put(P.key_fix(b.site, b.device), a[0], encoding=C.FIX.encoding, congestion_control=block)
 
     # ------------------------------------------------------------ queryables
     def _on_locate(self, q: zenoh.Query) -> None:
@@ -447,19 +465,6 @@ class Server:
             self.online.add(device)
         else:
             self.online.discard(device)
-
-
-class _KnnOne:
-    """One-scan ``locate`` on top of the batch kNN locator."""
-
-    def __init__(self, knn: KnnLocator):
-        self.knn = knn
-
-    def locate(self, scan):
-        return self.knn.locate_many([scan])[0]
-
-    def locate_many(self, scans):
-        return self.knn.locate_many(scans) if scans else []
 
 
 def serve_forever(server: Server, beside=None) -> None:

@@ -86,7 +86,12 @@ def test_probabilistic_and_knn_locate_synthetic_world(world):
 
 def _answers(results):
     return [
-        (r.reason, r.n_known, r.floor_probs, None if r.fix is None else (r.fix.t, r.fix.pos_enu.tolist(), r.fix.cov.tolist(), r.fix.floor, r.fix.floor_prob))
+        (
+            r.reason,
+            r.n_known,
+            r.floor_probs,
+            None if r.fix is None else (r.fix.t, r.fix.pos_enu.tolist(), r.fix.cov.tolist(), r.fix.floor, r.fix.floor_prob),
+        )
         for r in results
     ]
 

@@ -1,5 +1,6 @@
 """Server over real Zenoh sessions on loopback, real SQLite files and real Alembic migrations."""
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -416,3 +417,70 @@ def test_a_backlog_of_one_devices_scans_is_answered_newest_first_and_the_rest_sh
     by_t = {(a.t, a.reason.startswith("superseded")) for a in got}
     # the newest of each device (t = 20) is located (no map here: "no radio map"), the older two shed
     assert by_t == {(0.0, True), (10.0, True), (20.0, False)}
+
+
+def _synthetic_map(tmp_path, rng):
+    from hybridloc.radio.radiomap import BuildParams, build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+
+    aps = {"a1": (0, 0), "a2": (20, 0), "a3": (0, 20), "a4": (20, 20)}
+
+    def reading(p):
+        return {k: -40 - 30 * np.log10(max(1.0, np.hypot(p[0] - q[0], p[1] - q[1]))) + rng.normal(0, 1.5) for k, q in aps.items()}
+
+    refs = [LabelledScan(RfScan(float(i), "wifi", reading(p)), p, 0.5, "F1") for i, p in enumerate(rng.uniform(0, 20, (400, 2)))]
+    path = tmp_path / "m.npz"
+    build_radio_map(refs, site=SITE, params=BuildParams()).save(path)
+    return path.read_bytes(), reading
+
+
+def test_locate_workers_answer_byte_for_byte_as_the_locate_thread(tmp_path):
+    """``serve --locate-workers``: the answers (FIX messages and the fixes stored) are the locate
+    thread's, byte for byte; a worker killed mid-run is answered for in-process and counted, and the
+    next group goes to a new pool; a new map version reaches the workers."""
+    rng = np.random.default_rng(3)
+    blob, reading = _synthetic_map(tmp_path, rng)
+    scans = [RfScan(100.0 + i, "wifi", reading(p), age_s={"a1": 0.5}) for i, p in enumerate(rng.uniform(0, 20, (40, 2)))]
+    scans.append(RfScan(200.0, "wifi", {"zz": -60.0}))  # no known transmitter: "no fix" with its reason
+    here = Server(f"unixsock-stream/{tmp_path}/a.sock", str(tmp_path / "a.db"))
+    pooled = Server(f"unixsock-stream/{tmp_path}/b.sock", str(tmp_path / "b.db"), locate_workers=2)
+    try:
+        for srv in (here, pooled):
+            assert srv.load_map(SITE, blob) == 1
+        want = here._answer_site(SITE, scans)
+        got = pooled._answer_site(SITE, scans)
+        assert [g[0] for g in got] == [w[0] for w in want]  # the messages, byte for byte
+        for (_, a), (_, b) in zip(got, want):
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert (
+                    a.pos_enu.tobytes() == b.pos_enu.tobytes()
+                    and a.cov.tobytes() == b.cov.tobytes()
+                    and (a.floor, a.floor_prob) == (b.floor, b.floor_prob)
+                )
+        assert got[-1][1] is None and b"no known transmitter" in got[-1][0]
+        assert pooled.counts["locate-pool-failures"] == 0
+        # a worker killed: this group is answered here (the same answers), the next by a new pool
+        for p in list(pooled._pool._executor()._processes.values()):
+            p.kill()
+            p.join(5.0)
+        assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in want]
+        assert pooled.counts["locate-pool-failures"] == 1 and pooled._pool.restarts == 1
+        assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in want]
+        assert pooled.counts["locate-pool-failures"] == 1
+        # a new map version (labels moved 3 m east): the workers answer from it
+        import io
+
+        from hybridloc.radio.radiomap import RadioMap
+
+        moved = RadioMap.load(io.BytesIO(blob))
+        moved.references = [dataclasses.replace(r, pos_enu=np.asarray(r.pos_enu) + [3.0, 0.0]) for r in moved.references]
+        moved.save(tmp_path / "m2.npz")
+        for srv in (here, pooled):
+            assert srv.load_map(SITE, (tmp_path / "m2.npz").read_bytes()) == 2
+        v2 = here._answer_site(SITE, scans)
+        assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in v2] != [w[0] for w in want]
+        assert pooled._answer_site("othersite", scans[:1])[0][1] is None  # no map there: "no radio map"
+    finally:
+        here.stop()
+        pooled.stop()

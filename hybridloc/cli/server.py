@@ -69,6 +69,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         def dashboard(server):
             return _start_dashboard(args, server.session, server.store, access, query)
 
+    if args.locate_workers < 0:
+        raise BadInput(f"--locate-workers must be >= 0, got {args.locate_workers}")
     slam_sites, slam_options = [], None
     if args.slam is not False and args.site:
         from ..server.slam_worker import SlamOptions
@@ -89,6 +91,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         slam_options=slam_options,
         sites=args.site,
         connect=args.connect,
+        locate_workers=args.locate_workers,
     )
     for spec in args.map or []:
         site, _, path = spec.partition("=")
@@ -290,6 +293,12 @@ def register(sub) -> None:
         help="join another server's router (repeatable): processes serving different sites on one mesh",
     )
     sv.add_argument("--method", choices=("knn", "prob"), help="positioning method of the locate service (default knn)")
+    sv.add_argument(
+        "--locate-workers",
+        type=int,
+        metavar="N",
+        help="worker processes that answer the stored scans beside ingest (default 0: the server's own locate thread)",
+    )
     sv.add_argument("--users", help="user:password dictionary file (enables authentication)")
     sv.add_argument("--user", help="with --connect under authentication: the server user this process presents to the other routers")
     sv.add_argument("--password", help="... and its password")
@@ -320,6 +329,7 @@ def register(sub) -> None:
             "db": "db",
             "site": "site[]",
             "method": "method",
+            "locate_workers": "locate_workers",
             "users": "security.users",
             "acl_devices": "security.acl_devices",
             "tls_cert": "security.tls_cert",
