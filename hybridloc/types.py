@@ -425,6 +425,9 @@ class AbsoluteFix:
             object.__setattr__(fix, name, value)
         return fix
 
+    def __reduce__(self):  # unpickled (from a worker process) frozen as made, without the checks again
+        return (AbsoluteFix.trusted, (self.t, self.pos_enu, self.cov, self.source, self.floor, self.floor_prob))
+
     @property
     def sigma(self) -> np.ndarray:
         """Per-axis standard deviations, m."""

@@ -11,8 +11,11 @@ same locator (:func:`make_locator`) on the same map, the same conversion (:func:
 
 Maps reach the workers as files: each map version the server loads is written once into a temporary
 folder, and a request names (site, version, path); a worker loads a version the first time it is asked
-for it. A worker that dies (killed, out of memory) breaks the pool: :class:`PoolBroken` tells the
-server, which answers that group in-process and starts a new pool for the next one.
+for it. A version's file is removed only when no request can still name it (at the next call: the
+locate thread is the only caller, and it waits for each call's answers). A worker that dies (killed,
+out of memory), fails (a map it cannot read) or takes longer than ``timeout_s``: :class:`PoolBroken`
+tells the server, which answers that group in-process; a dead or stuck pool is replaced for the next
+group. After :meth:`LocatePool.close` every group is answered in-process.
 
 Workers are spawned (never forked: the server has Zenoh's threads), run one BLAS thread at a lower CPU
 priority than ingest (an acknowledgement never waits on a fix), and exit when the server is gone.
@@ -108,17 +111,21 @@ def _answer_in_worker(site: str, version: int, path: str, scans: list[RfScan]) -
 class LocatePool:
     """``workers`` processes answering groups of scans (module docstring)."""
 
-    def __init__(self, workers: int, method: str = "knn"):
+    def __init__(self, workers: int, method: str = "knn", timeout_s: float = 60.0):
         if workers < 1:
             raise ValueError(f"a locate pool needs at least one worker, got {workers}")
-        self.workers, self.method = workers, method
+        self.workers, self.method, self.timeout_s = workers, method, timeout_s
         self._dir = Path(tempfile.mkdtemp(prefix="hybridloc-locate-"))
         self._maps: dict[str, tuple[int, str]] = {}  # site -> (version, file)
+        self._stale: list[str] = []  # files of replaced versions, removed at the next call
         self._lock = threading.Lock()
         self._ex: ProcessPoolExecutor | None = None
+        self._closed = False
         self.restarts = 0
 
     def _executor(self) -> ProcessPoolExecutor:
+        if self._closed:
+            raise RuntimeError("the locate pool is closed")
         if self._ex is None:
             import multiprocessing as mp
 
@@ -137,16 +144,21 @@ class LocatePool:
         with self._lock:
             old = self._maps.get(site)
             self._maps[site] = (version, str(path))
-        if old is not None and old[1] != str(path):
-            # a worker still loading the old file holds it open (removal on POSIX keeps it readable)
-            Path(old[1]).unlink(missing_ok=True)
+            if old is not None and old[1] != str(path):
+                self._stale.append(old[1])  # a request made before this one may still name it
 
     def answer(self, site: str, scans: list[RfScan]) -> list[tuple[bytes, AbsoluteFix | None]] | None:
         """(FIX message, fix or None) of each scan, in order; None when the site has no map here.
         The scans are split over the workers. PoolBroken when a worker died meanwhile (a new pool is
         made for the next call)."""
         with self._lock:
+            if self._closed:
+                return None
             held = self._maps.get(site)
+            # every earlier call has returned (the locate thread waits for each): no request names these
+            stale, self._stale = self._stale, []
+        for f in stale:
+            Path(f).unlink(missing_ok=True)
         if held is None:
             return None
         if not scans:
@@ -157,19 +169,36 @@ class LocatePool:
         try:
             ex = self._executor()
             futs = [ex.submit(_answer_in_worker, site, version, path, scans[i : i + size]) for i in range(0, len(scans), size)]
-            return [x for f in futs for x in f.result()]
-        except BrokenProcessPool as exc:
+            deadline = time.monotonic() + self.timeout_s
+            return [x for f in futs for x in f.result(timeout=max(0.0, deadline - time.monotonic()))]
+        except (BrokenProcessPool, TimeoutError) as exc:
+            # dead, or stuck: this pool is replaced (its processes ended) for the next group
             self._restart()
-            raise PoolBroken(str(exc) or "a locate worker process died") from exc
+            raise PoolBroken(f"{type(exc).__name__}: {exc}" if str(exc) else "a locate worker process died or took too long") from exc
+        except Exception as exc:
+            # a worker's own failure (a map it cannot read, memory): the pool still works
+            raise PoolBroken(f"{type(exc).__name__}: {exc}") from exc
 
     def _restart(self) -> None:
         self.restarts += 1
         ex, self._ex = self._ex, None
         if ex is not None:
+            procs = list(getattr(ex, "_processes", {}).values())
             ex.shutdown(wait=False, cancel_futures=True)
+            for p in procs:  # a stuck worker would otherwise live on
+                if p.is_alive():
+                    p.kill()
 
     def close(self) -> None:
+        with self._lock:
+            self._closed = True
         ex, self._ex = self._ex, None
         if ex is not None:
-            ex.shutdown(wait=True, cancel_futures=True)
+            procs = list(getattr(ex, "_processes", {}).values())
+            ex.shutdown(wait=False, cancel_futures=True)
+            for p in procs:  # idle workers exit at once; a stuck one is ended
+                p.join(5.0)
+                if p.is_alive():
+                    p.kill()
+                    p.join(5.0)
         shutil.rmtree(self._dir, ignore_errors=True)

@@ -223,7 +223,7 @@ class Server:
                 got = self._pool.answer(site, scans)
             except PoolBroken as exc:
                 self.counts["locate-pool-failures"] += 1
-                log.error("a locate worker died (%s): %d scans answered here, a new pool for the next ones", exc, len(scans))
+                log.error("the locate workers failed (%s): %d scans answered here", exc, len(scans))
             else:
                 if got is not None:
                     return got

@@ -1,6 +1,7 @@
 """Radio maps, survey labelling, positioning, similarity: synthetic worlds with known truth + real data."""
 
 import dataclasses
+import gc
 import json
 import math
 
@@ -120,6 +121,14 @@ def test_knn_memo_relabel_and_fixes_without_regions_answer_as_a_fresh_search(wor
     for a, b in zip(re.locate_many(tests), plain.locate_many(tests)):
         if a.fix is not None:
             np.testing.assert_allclose(a.fix.pos_enu, np.asarray(b.fix.pos_enu) + [4.0, 0.0], atol=1e-9)
+    # the memo holds no scan: an entry leaves with its scan
+    extra = [dataclasses.replace(s) for s in tests[:5]]
+    before = len(memo._memo)
+    memo.nearest(extra)
+    assert len(memo._memo) == before + 5
+    del extra
+    gc.collect()
+    assert len(memo._memo) == before
     # other scans (one reference fewer, or another scan object) are not relabelled
     assert memo.relabel(moved[1:]) is None
     assert memo.relabel([dataclasses.replace(moved[0], scan=dataclasses.replace(moved[0].scan))] + moved[1:]) is None

@@ -481,6 +481,18 @@ def test_locate_workers_answer_byte_for_byte_as_the_locate_thread(tmp_path):
         v2 = here._answer_site(SITE, scans)
         assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in v2] != [w[0] for w in want]
         assert pooled._answer_site("othersite", scans[:1])[0][1] is None  # no map there: "no radio map"
+        # versions replaced before any worker read them (fresh workers load lazily): the newest answers,
+        # the replaced files are removed at the next call, none too early
+        pooled._pool._restart()
+        for srv in (here, pooled):
+            assert srv.load_map(SITE, blob) == 3
+            assert srv.load_map(SITE, (tmp_path / "m2.npz").read_bytes()) == 4
+        assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in v2]
+        assert pooled.counts["locate-pool-failures"] == 1
+        assert sorted(p.name for p in pooled._pool._dir.iterdir()) == [f"{SITE}-4.npz"]
+        # a closed pool answers nothing: the server answers in-process
+        pooled._pool.close()
+        assert [g[0] for g in pooled._answer_site(SITE, scans)] == [w[0] for w in v2]
     finally:
         here.stop()
         pooled.stop()

@@ -1,5 +1,6 @@
 import dataclasses
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -144,6 +145,10 @@ def test_trusted_absolute_fix_is_the_checked_one_without_the_checks():
         assert not f.pos_enu.flags.writeable and not f.cov.flags.writeable
         with pytest.raises(dataclasses.FrozenInstanceError):
             f.t = 3.0  # type: ignore[misc]
+        back = pickle.loads(pickle.dumps(f))  # from a worker process: the same fix, still frozen
+        assert (back.t, back.source, back.floor, back.floor_prob) == (f.t, f.source, f.floor, f.floor_prob)
+        assert back.pos_enu.tobytes() == f.pos_enu.tobytes() and back.cov.tobytes() == f.cov.tobytes()
+        assert not back.pos_enu.flags.writeable and not back.cov.flags.writeable
 
 
 def test_absolute_fix_symmetry_test_is_numpys_allclose():

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import math
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -329,7 +330,7 @@ class KnnLocator:
         else:
             self._nn = NearestNeighbors(n_neighbors=self.k).fit(X)
 
-    #: Entries a memo holds before it starts again (~0.5 kB each at k = 30)
+    #: Entries a memo holds before it starts again (~1 kB each at k = 30; the scans are not held)
     MEMO_MAX = 200_000
 
     def _set_labels(self, refs: list[LabelledScan]) -> None:
@@ -358,7 +359,7 @@ class KnnLocator:
             X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
             return *self.neighbours(self._rep(X)), (X > MISSING_DBM).sum(axis=1)
         got = [memo.get(id(s)) for s in scans]
-        miss = [i for i, (s, g) in enumerate(zip(scans, got)) if g is None or g[0] is not s]
+        miss = [i for i, (s, g) in enumerate(zip(scans, got)) if g is None or g[0]() is not s]
         if miss:
             X = fingerprint_matrix([scans[i] for i in miss], self.tx_index, max_age_s=self.max_age_s)
             dist, idx = self.neighbours(self._rep(X))
@@ -366,8 +367,10 @@ class KnnLocator:
             if len(memo) + len(miss) > self.MEMO_MAX:
                 memo.clear()
             for j, i in enumerate(miss):
-                # the scan itself is held beside its result, so its id is not reused while the entry lives
-                got[i] = memo[id(scans[i])] = (scans[i], dist[j], idx[j], known[j])
+                # a weak reference to the scan: its entry leaves the memo when the scan dies (before its
+                # id can name another scan), and the memo keeps no scan alive
+                key = id(scans[i])
+                got[i] = memo[key] = (weakref.ref(scans[i], lambda _, key=key: memo.pop(key, None)), dist[j], idx[j], known[j])
         k = self.k
         if not scans:
             return np.empty((0, k)), np.empty((0, k), dtype=np.int64), np.zeros(0, dtype=np.int64)
