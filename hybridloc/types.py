@@ -418,9 +418,7 @@ class AbsoluteFix:
         checked constructor does; nothing is checked again (the kNN locator builds one per located scan
         and its covariance is PD by its floor term, so the checks cost as much as the rest of a fix)."""
         fix = object.__new__(cls)
-        p, c = np.array(pos_enu, dtype=float, copy=True), np.array(cov, dtype=float, copy=True)
-        p.setflags(write=False)
-        c.setflags(write=False)
+        p, c = _frozen_array(pos_enu), _frozen_array(cov)
         for name, value in (("t", t), ("pos_enu", p), ("cov", c), ("source", source), ("floor", floor), ("floor_prob", floor_prob)):
             object.__setattr__(fix, name, value)
         return fix

@@ -38,6 +38,8 @@ from hybridloc.radio.radiomap import RadioMap
 from hybridloc.types import AbsoluteFix, Fix, RfScan
 from hybridloc.wire import codecs as C
 
+from .child_process import yield_to_server
+
 log = logging.getLogger("hybridloc.server")
 
 
@@ -79,24 +81,10 @@ _LOCATORS: dict[str, tuple[int, object]] = {}  # site -> (map version, locator),
 _METHOD = "knn"
 
 
-def _watch_parent(parent_pid: int) -> None:
-    while True:
-        if os.getppid() != parent_pid:
-            os._exit(1)  # the server is gone (SIGKILL): nothing of ours is left to answer
-        time.sleep(0.5)
-
-
 def _init(parent_pid: int, method: str) -> None:
     global _METHOD
     _METHOD = method
-    try:
-        os.nice(5)
-    except OSError:  # not permitted here: the same priority as ingest
-        pass
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-    threading.Thread(target=_watch_parent, args=(parent_pid,), name="hybridloc-locate-watch", daemon=True).start()
+    yield_to_server(parent_pid, 5, "hybridloc-locate-watch")
 
 
 def _answer_in_worker(site: str, version: int, path: str, scans: list[RfScan]) -> list[tuple[bytes, AbsoluteFix | None]]:

@@ -99,8 +99,7 @@ class Server:
         self.method = method
         if locate_workers < 0:
             raise ValueError(f"locate_workers must be >= 0, got {locate_workers}")
-        #: worker processes answering the stored scans (:mod:`.locate_pool`); 0: the locate thread itself
-        self.locate_workers = locate_workers
+        #: worker processes answering the stored scans (:mod:`.locate_pool`); None: the locate thread itself
         self._pool: LocatePool | None = LocatePool(locate_workers, method) if locate_workers else None
 
     # ------------------------------------------------------------ lifecycle

@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
-import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -33,6 +31,7 @@ from hybridloc.wire.codecs import TRACK
 from hybridloc.wire.messages import Track
 
 from . import db as m
+from .child_process import yield_to_server
 from .slam_batch import load_radio_map, load_site, result_of, run_batch
 from .store import Store
 
@@ -178,13 +177,6 @@ CALLS: dict[str, Callable[..., Any]] = {"add_walk": add_walk, "provisional": pro
 
 
 # ------------------------------------------------------------------------------------------ the process
-def _watch_parent(parent_pid: int) -> None:
-    while True:
-        if os.getppid() != parent_pid:
-            os._exit(1)  # the server is gone (SIGKILL): stop solving; the checkpoints are safe
-        time.sleep(0.5)
-
-
 def child_main(req_q, resp_q, parent_pid: int, db_url: str, hook: str | None, hook_arg: str, log_level: int) -> None:
     """The child's loop: (call id, name, kwargs) in, ("result", id, ok, value or traceback) and
     ("progress", id, (stage, floor, done, total)) out; None ends it."""
@@ -193,11 +185,7 @@ def child_main(req_q, resp_q, parent_pid: int, db_url: str, hook: str | None, ho
     # the solver yields to the server: a lower CPU priority, and one BLAS thread (OpenBLAS takes every
     # core by default; on 2 cores the acks' p99 was then 117 ms while the child solved against 36 ms
     # idle; with this, p50 27 ms either way, p99 93 / 67 ms: benchmarks/bench_slam_worker.py)
-    os.nice(10)
-    from threadpoolctl import threadpool_limits
-
-    threadpool_limits(1)
-    threading.Thread(target=_watch_parent, args=(parent_pid,), name="hybridloc-slam-watch", daemon=True).start()
+    yield_to_server(parent_pid, 10, "hybridloc-slam-watch")
     if hook:
         mod, _, fn = hook.partition(":")
         _HOOK = (getattr(importlib.import_module(mod), fn), hook_arg)

@@ -354,16 +354,18 @@ class KnnLocator:
     def _search(self, scans: list[RfScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(distances, indices, readings known) of each scan: from the memo where it holds the scan, the
         others searched together (:meth:`neighbours`; the same rows as a search of all of them)."""
+
+        def searched(some: list[RfScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            X = fingerprint_matrix(some, self.tx_index, max_age_s=self.max_age_s)
+            return *self.neighbours(self._rep(X)), (X > MISSING_DBM).sum(axis=1)
+
         memo = self._memo
         if memo is None:
-            X = fingerprint_matrix(scans, self.tx_index, max_age_s=self.max_age_s)
-            return *self.neighbours(self._rep(X)), (X > MISSING_DBM).sum(axis=1)
+            return searched(scans)
         got = [memo.get(id(s)) for s in scans]
         miss = [i for i, (s, g) in enumerate(zip(scans, got)) if g is None or g[0]() is not s]
         if miss:
-            X = fingerprint_matrix([scans[i] for i in miss], self.tx_index, max_age_s=self.max_age_s)
-            dist, idx = self.neighbours(self._rep(X))
-            known = (X > MISSING_DBM).sum(axis=1)
+            dist, idx, known = searched([scans[i] for i in miss])
             if len(memo) + len(miss) > self.MEMO_MAX:
                 memo.clear()
             for j, i in enumerate(miss):
