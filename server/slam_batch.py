@@ -39,7 +39,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from hybridloc.errors import BadInput, ComputationFailed, MissingData
-from hybridloc.slam.online import CrowdSlam, build_crowd_maps, labels_from_tracks
+from hybridloc.slam.online import CrowdSlam, build_crowd_maps, labels_from_marks, labels_from_tracks
 from hybridloc.types import CorrectedTrack, WalkEnd
 
 from . import db as m
@@ -414,11 +414,12 @@ class CrowdMapBuilt:
 
 def crowd_map(walks: list, tracks: dict[int, CorrectedTrack], site: str, plan) -> CrowdMapBuilt:
     """The labels of every walk's absolute track and the crowd radio maps built from them (pure: no
-    database; ``walks`` in the order of ``tracks``; on one BLAS thread, as :func:`solve_floor`)."""
+    database; ``walks``: those of ``tracks`` in its order, then the survey walks without a track, which
+    are labelled by their marks, :func:`labels_from_marks`; on one BLAS thread, as :func:`solve_floor`)."""
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        labels = labels_from_tracks(walks, tracks)
+        labels = labels_from_tracks(walks, tracks) + labels_from_marks(walks, tracks)
         maps = build_crowd_maps(labels, site, plan)
     rmap = maps.get("wifi")
     per_walk = Counter(int(ls.source) for ls in labels)
@@ -432,6 +433,12 @@ def crowd_map(walks: list, tracks: dict[int, CorrectedTrack], site: str, plan) -
         survey,
         int(sum(len(by_id[w].marks) for w in survey)),
     )
+
+
+def survey_walks(store: Store, site: str) -> list[int]:
+    """The site's solvable walks (ended, not quarantined) with survey marks."""
+    solvable = set(store.slam.solvable_walks(site))
+    return [w.walk_id for w in store.walks(site, ended_only=True) if w.n_marks > 0 and w.walk_id in solvable]
 
 
 def run_tracks_for_map(store: Store, site: str, run_id: int, run_floors: set[str]) -> dict[int, CorrectedTrack]:
@@ -468,7 +475,10 @@ def finish(
     say("map", "", 0, 1)
     tracks = run_tracks_for_map(store, site, run_id, set(todo))
     walks = {wid: walk_of(wid) for wid in tracks}
-    built = build([walks[w] for w in tracks], tracks)
+    # surveys ended since the run began (or held without an absolute track): their marks label them, so
+    # the crowd map never serves fewer survey labels than the survey map it replaces
+    untracked = [wid for wid in survey_walks(store, site) if wid not in tracks]
+    built = build([walks[w] for w in tracks] + [walk_of(w) for w in untracked], tracks)
     labelled = sorted(built.labels_per_walk)
     coverage = _coverage(store, site, built.labels_per_walk)
     provenance = {

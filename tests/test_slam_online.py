@@ -24,6 +24,7 @@ from hybridloc.slam.online import (
     build_crowd_maps,
     check_track,
     label_time,
+    labels_from_marks,
     labels_from_tracks,
 )
 from hybridloc.slam.pipeline import MARKS, RELATIVE, SlamConfig, run_slam
@@ -321,6 +322,33 @@ def test_labels_coverage_and_crowd_maps(sample, replay):
     for tech, rm in maps.items():
         assert rm.technology == tech and "F1" in rm.floors
         assert len(rm.references) == sum(1 for ls in labels if ls.scan.technology.value == tech)
+
+
+def test_surveys_without_an_absolute_track_are_labelled_by_their_marks(sample, replay):
+    """A survey ended after a batch began has no track in it: the crowd map labels its scans from its marks,
+    exactly as the survey map does (PDR bridged between marks); a survey with an absolute track is
+    labelled from the track only, a relative or missing track falls back to the marks."""
+    walks, _, _ = sample
+    cs, *_ = replay
+    surveys = [w for w in walks if w.marks]
+    crowd_walk = next(w for w in walks if not w.marks)
+    tracks = {wid: t for wid, t in cs.tracks.items() if t is not None}
+    absolute = {wid for wid, t in tracks.items() if t.anchored != RELATIVE}
+    assert {w.walk_id for w in surveys} <= absolute  # every survey of the replay is mark-anchored
+    assert labels_from_marks(walks, tracks) == []  # nothing to add: every survey has its track
+    late, relative = surveys[0], surveys[1]
+    without = {wid: t for wid, t in tracks.items() if wid != late.walk_id}
+    without[relative.walk_id] = dataclasses.replace(tracks[relative.walk_id], anchored=RELATIVE)
+    got = labels_from_marks(walks, without)
+    assert {ls.source for ls in got} == {str(late.walk_id), str(relative.walk_id)}
+    for w in (late, relative):
+        wp = Waypoints(np.array([m.t for m in w.marks]), np.array([[m.x, m.y] for m in w.marks]), w.marks[0].floor)
+        want = label_scans([s for s in w.scans if len(s)], list(w.steps), wp, w.t_start, source=str(w.walk_id))
+        mine = [ls for ls in got if ls.source == str(w.walk_id)]
+        assert want and len(mine) == len(want)
+        assert all(a.scan is b.scan and np.array_equal(a.pos_enu, b.pos_enu) and a.floor == b.floor == "F1" for a, b in zip(mine, want))
+    # a phone walk (no marks) without a track is not labelled, whatever its track
+    assert labels_from_marks([crowd_walk], {}) == []
 
 
 def test_a_batch_on_a_crowd_map_keeps_the_survey_labels(sample, replay):

@@ -247,6 +247,45 @@ def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
         st.close()
 
 
+# ------------------------------------------------------------------------------------------ late surveys
+def test_a_survey_ended_during_a_run_is_in_its_crowd_map(tmp_path, walks):
+    """A survey that ends while a batch run solves is not in the run's graph; the run's crowd map still
+    carries its labels (from its marks), so a crowd map never replaces a survey map with fewer survey
+    labels (the demo's outlier: a client fused 27 m off, served such a map)."""
+    from hybridloc.radio.radiomap import RadioMap
+
+    db = _filled(tmp_path, walks, False, n=10)  # walks 0, 3, 6, 9 are surveys
+    late = walks[12]
+    assert late.marks
+
+    def hook(floor: str) -> None:
+        st = Store(db)
+        try:
+            store_walks(st, [late], prefix="late")
+        finally:
+            st.close()
+
+    out = run_batch(db, SITE, floor_hook=hook)
+    st = Store(db)
+    try:
+        (lw,) = st.walks(SITE, device="late00")
+        assert lw.walk_id not in st.slam.walk_states(SITE)  # not solved by the run that began before it
+        with Session(st.engine) as s:
+            prov = s.execute(select(m.RadioMapVersion.provenance).where(m.RadioMapVersion.version == out.map_version)).scalar_one()
+        assert lw.walk_id in prov["survey_walks"] and lw.walk_id in prov["walks"]
+        (tmp_path / "v.npz").write_bytes(st.load_map(SITE)[1])
+        rmap = RadioMap.load(tmp_path / "v.npz")
+        mine = [r for r in rmap.references if r.source == str(lw.walk_id)]
+        assert mine
+        # its labels lie on its marks' path: within the survey labelling's reach of a mark
+        mk = np.array([[k.x, k.y] for k in late.marks])
+        d = np.min(np.linalg.norm(np.array([r.pos_enu for r in mine])[:, None, :] - mk[None], axis=2), axis=1)
+        gap = np.max(np.linalg.norm(np.diff(mk, axis=0), axis=1))
+        assert np.all(d <= gap)
+    finally:
+        st.close()
+
+
 # ------------------------------------------------------------------------------------------ quarantine
 def test_a_walk_with_impossible_steps_is_quarantined_and_the_map_stays(tmp_path, walks):
     from hybridloc.clients.uplink import Uplink
