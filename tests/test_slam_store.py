@@ -209,3 +209,52 @@ def test_a_walk_across_floors_keeps_every_floors_points(st):
     state = st.slam.walk_states("s1")[w[0]]
     assert (state.status, state.n_points) == (CORRECTED, len(a) + len(upper))
     assert got.anchored == "loops" and got.scale == a.scale and got.heading_bias == a.heading_bias
+
+
+@pytest.mark.parametrize(
+    ("solved", "added", "every", "share", "due"),
+    [
+        (0, 24, 25, 0.25, False),  # no batch yet: the count alone
+        (0, 25, 25, 0.25, True),
+        (80, 25, 25, 0.25, True),  # below every / share = 100 walks solved: the count alone
+        (200, 25, 25, 0.25, False),  # a site of 200 walks waits for a quarter of it
+        (200, 49, 25, 0.25, False),
+        (200, 50, 25, 0.25, True),
+        (200, 25, 25, 0.0, True),  # share 0: every 25 walks, as before
+        (200, 60, 0, 0.25, False),  # not by count at all
+    ],
+)
+def test_batch_schedule_by_count_and_share(db_url, solved, added, every, share, due):
+    """A batch re-solve is due after max(batch_every_walks, batch_share x the walks the last batch solved)
+    walks added since it (the interval and a request aside): batches at geometrically spaced site sizes."""
+    from sqlalchemy.orm import Session
+
+    from hybridloc.server import db as m
+    from hybridloc.server.slam_worker import SlamOptions, SlamWorker
+
+    st = Store(db_url)
+    try:
+        with Session(st.engine) as s, s.begin():
+            s.add(m.Site(id="sched"))
+            s.flush()
+            if solved:
+                s.add(
+                    m.SlamRun(
+                        site_id="sched",
+                        kind="batch",
+                        status="complete",
+                        finished_at=m.utcnow(),
+                        stats={"walks": {"corrected": solved - 3, "relative": 3}},
+                    )
+                )
+                s.flush()
+            for _ in range(added):
+                s.add(m.SlamRun(site_id="sched", kind="walk", status="complete", finished_at=m.utcnow()))
+        w = SlamWorker(db_url, "sched", lambda *_: None, SlamOptions(batch_every_walks=every, batch_share=share, batch_interval_s=0))
+        try:
+            assert w._since_last_batch()[0::2] == (added, solved)
+            assert w._batch_due() is due
+        finally:
+            w.store.close()
+    finally:
+        st.close()

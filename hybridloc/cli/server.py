@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -80,8 +81,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 raise BadInput(f"{name} must be >= 0 s, got {v:g}")
         if args.slam_batch_every < 0:
             raise BadInput(f"--slam-batch-every must be >= 0, got {args.slam_batch_every}")
+        if not math.isfinite(args.slam_batch_share) or not 0.0 <= args.slam_batch_share <= 10.0:
+            raise BadInput(f"--slam-batch-share must be a share between 0 and 10, got {args.slam_batch_share:g}")
         slam_sites = list(args.site)
-        slam_options = SlamOptions(idle_timeout_s=args.slam_idle, batch_every_walks=args.slam_batch_every, batch_interval_s=args.slam_interval)
+        slam_options = SlamOptions(
+            idle_timeout_s=args.slam_idle,
+            batch_every_walks=args.slam_batch_every,
+            batch_share=args.slam_batch_share,
+            batch_interval_s=args.slam_interval,
+        )
     server = Server(
         args.endpoint,
         args.db,
@@ -315,6 +323,12 @@ def register(sub) -> None:
     sv.add_argument("--no-slam", dest="slam", action="store_const", const=False, help="no crowd-SLAM worker for the --site sites")
     sv.add_argument("--slam-idle", type=float, metavar="S", help="a walk whose device sent nothing for S seconds is finished (default 180)")
     sv.add_argument("--slam-batch-every", type=int, metavar="N", help="re-solve the site in batch after N new walks (default 25; 0: not by count)")
+    sv.add_argument(
+        "--slam-batch-share",
+        type=float,
+        metavar="F",
+        help="... and at least F times the walks the last batch solved (default 0.25: batches at geometrically spaced site sizes; 0: N alone)",
+    )
     sv.add_argument("--slam-interval", type=float, metavar="S", help="... or S seconds after the last batch run (default 3600; 0: not by time)")
     _add_http_options(sv, serve=True)
     sv.set_defaults(
@@ -337,6 +351,7 @@ def register(sub) -> None:
             "slam": "slam.enabled",
             "slam_idle": "slam.idle_s",
             "slam_batch_every": "slam.batch_every",
+            "slam_batch_share": "slam.batch_share",
             "slam_interval": "slam.interval_s",
         },
     )
