@@ -436,9 +436,10 @@ def crowd_map(walks: list, tracks: dict[int, CorrectedTrack], site: str, plan) -
 
 
 def survey_walks(store: Store, site: str) -> list[int]:
-    """The site's solvable walks (ended, not quarantined) with survey marks."""
-    solvable = set(store.slam.solvable_walks(site))
-    return [w.walk_id for w in store.walks(site, ended_only=True) if w.n_marks > 0 and w.walk_id in solvable]
+    """The site's walks with survey marks, ended or still open (``map rebuild`` labels an open survey's
+    scans too), but not the quarantined ones."""
+    states = store.slam.walk_states(site)
+    return [w.walk_id for w in store.walks(site) if w.n_marks > 0 and ((st := states.get(w.walk_id)) is None or st.status != QUARANTINED)]
 
 
 def run_tracks_for_map(store: Store, site: str, run_id: int, run_floors: set[str]) -> dict[int, CorrectedTrack]:
@@ -475,8 +476,8 @@ def finish(
     say("map", "", 0, 1)
     tracks = run_tracks_for_map(store, site, run_id, set(todo))
     walks = {wid: walk_of(wid) for wid in tracks}
-    # surveys ended since the run began (or held without an absolute track): their marks label them, so
-    # the crowd map never serves fewer survey labels than the survey map it replaces
+    # surveys ended since the run began, still open, or held without an absolute track: their marks label
+    # them, so the crowd map never serves fewer survey labels than a survey map it replaces
     untracked = [wid for wid in survey_walks(store, site) if wid not in tracks]
     built = build([walks[w] for w in tracks] + [walk_of(w) for w in untracked], tracks)
     labelled = sorted(built.labels_per_walk)

@@ -43,7 +43,9 @@ from hybridloc.server.slam_batch import lease_is_stale, run_batch
 from hybridloc.server.slam_store import CORRECTED, FAILED, QUARANTINED, SlamBusy
 from hybridloc.server.slam_worker import SlamOptions
 from hybridloc.server.store import Store
+from hybridloc.types import RfScan, StepEvent, SurveyMark, WalkEnd
 from hybridloc.wire.codecs import MAP_VERSION, PROGRESS, TRACK
+from hybridloc.wire.messages import Batch
 from hybridloc.wire.zconfig import client_config, free_port
 
 from .slam_helpers import SITE, sample_plan, sample_walks, store_walks, straight_steps, stretched
@@ -258,10 +260,24 @@ def test_a_survey_ended_during_a_run_is_in_its_crowd_map(tmp_path, walks):
     late = walks[12]
     assert late.marks
 
+    still = walks[15]  # a survey still walking when the run finishes: no end-of-walk marker yet
+    assert still.marks
+
     def hook(floor: str) -> None:
         st = Store(db)
         try:
             store_walks(st, [late], prefix="late")
+            recs = sorted([*still.steps, *still.scans, *(SurveyMark(k.t, k.x, k.y, "F1") for k in still.marks)], key=lambda r: r.t)
+            batch = Batch(
+                SITE,
+                "open00",
+                1,
+                still.device_model,
+                [r for r in recs if isinstance(r, StepEvent)],
+                [r for r in recs if isinstance(r, RfScan)],
+                [r for r in recs if isinstance(r, SurveyMark)],
+            )
+            st.persist([batch])
         finally:
             st.close()
 
@@ -269,10 +285,13 @@ def test_a_survey_ended_during_a_run_is_in_its_crowd_map(tmp_path, walks):
     st = Store(db)
     try:
         (lw,) = st.walks(SITE, device="late00")
+        (ow,) = st.walks(SITE, device="open00")
+        assert ow.end == WalkEnd.OPEN
         assert lw.walk_id not in st.slam.walk_states(SITE)  # not solved by the run that began before it
         with Session(st.engine) as s:
             prov = s.execute(select(m.RadioMapVersion.provenance).where(m.RadioMapVersion.version == out.map_version)).scalar_one()
         assert lw.walk_id in prov["survey_walks"] and lw.walk_id in prov["walks"]
+        assert ow.walk_id in prov["survey_walks"]
         (tmp_path / "v.npz").write_bytes(st.load_map(SITE)[1])
         rmap = RadioMap.load(tmp_path / "v.npz")
         mine = [r for r in rmap.references if r.source == str(lw.walk_id)]
