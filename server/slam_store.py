@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from sqlalchemy import delete, func, insert, select
+from sqlalchemy import delete, func, insert, select, update
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
@@ -344,8 +344,17 @@ class SlamStore:
             held = (run.stats or {}).get("lease") or {}
             if held.get("token") != token:
                 return False
-            run.stats = dict(run.stats or {}, lease=dict(held, heartbeat=heartbeat))
-            return True
+            return self._set_running_stats(s, run_id, dict(run.stats or {}, lease=dict(held, heartbeat=heartbeat)))
+
+    @staticmethod
+    def _set_running_stats(s: Session, run_id: int, stats: dict) -> bool:
+        """Write a run's stats only while it is still running, in one statement: the stats were read before
+        (outside a write lock: SQLite's driver begins its transaction at the first write), and
+        :meth:`finish_run` may have ended the run since, writing its own. A plain write of the object
+        then put the old stats back over them (seen: a complete batch run whose stats held only its
+        lease, so the worker's schedule read it as solving no walk)."""
+        done = s.execute(update(m.SlamRun).where(m.SlamRun.id == run_id, m.SlamRun.status == RUNNING).values(stats=stats))
+        return done.rowcount == 1
 
     def release_lease(self, run_id: int, token: str) -> None:
         """Give a running run up for someone else to resume at once (an interrupted ``slam rebuild``)."""
@@ -354,7 +363,7 @@ class SlamStore:
             if run is not None and run.status == RUNNING and ((run.stats or {}).get("lease") or {}).get("token") == token:
                 st = dict(run.stats or {})
                 st.pop("lease", None)
-                run.stats = st
+                self._set_running_stats(s, run_id, st)
 
     def write_floor(self, run_id: int, floor: str, results: Sequence[WalkResult], loops: Sequence = (), stats: dict | None = None) -> None:
         """A floor of a running batch run: its walks' points, its loops and its checkpoint, in one transaction

@@ -258,3 +258,28 @@ def test_batch_schedule_by_count_and_share(db_url, solved, added, every, share, 
             w.store.close()
     finally:
         st.close()
+
+
+def test_a_heartbeat_never_puts_back_the_stats_of_a_finished_run(st, monkeypatch):
+    """The lease's heartbeat reads a run's stats, the run finishes (writing its own stats), then the
+    heartbeat writes: its write must not land on the finished run (it put the lease-only stats back over
+    the finished run's, seen in an eval crowd run: the worker's batch schedule then read 0 walks solved)."""
+    import hybridloc.server.slam_store as ss
+
+    lease = {"token": "t", "host": "h", "pid": 1, "heartbeat": 0.0}
+    run, _, _ = st.slam.claim_batch("race", None, lease, lambda held: False)
+    fired = []
+
+    class Racing(ss.Session):
+        def get(self, *a, **k):
+            obj = super().get(*a, **k)
+            if not fired:
+                fired.append(True)
+                st.slam.finish_run(run, None, stats={"walks": {"corrected": 7}})  # another session, between read and write
+            return obj
+
+    monkeypatch.setattr(ss, "Session", Racing)
+    assert st.slam.renew_lease(run, "t", 1.0) is False
+    monkeypatch.undo()
+    (info,) = [r for r in st.slam.runs("race") if r.run_id == run]
+    assert info.status == "complete" and info.stats["walks"] == {"corrected": 7}
