@@ -29,7 +29,7 @@ line's own, so no file and no variable change nothing). Example file::
     enabled = true
     idle_s = 180                       # a walk silent this long (s) is finished
     batch_every = 25                   # a batch re-solve after this many new walks
-    batch_share = 0.25                 # ... and this share of the walks the last batch solved
+    batch_share = 0.0                  # ... and this share of the walks the last batch solved
     interval_s = 3600                  # ... or this long after the last one (s)
 
 Environment variables are the keys in capitals, a section's keys prefixed by its name:
@@ -87,7 +87,7 @@ class SlamSettings:
     enabled: bool = True  # a worker for every --site
     idle_s: float = 180.0  # an open walk whose device sent nothing for this long, s, is finished
     batch_every: int = 25  # a batch re-solve after this many walks added since the last (0: not by count)
-    batch_share: float = 0.25  # ... and at least this share of the walks the last batch solved (0: the count alone)
+    batch_share: float = 0.0  # ... and at least this share of the walks the last batch solved (0: the count alone)
     interval_s: float = 3600.0  # ... or this long after the last one when walks were added, s (0: not by time)
 
 

@@ -74,7 +74,7 @@ def test_slam_section_from_file_and_environment(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text("[slam]\nenabled = false\nidle_s = 60\nbatch_every = 10\n")
     s = load_settings(f, {})
-    assert (s.slam.enabled, s.slam.idle_s, s.slam.batch_every, s.slam.batch_share, s.slam.interval_s) == (False, 60.0, 10, 0.25, 3600.0)
+    assert (s.slam.enabled, s.slam.idle_s, s.slam.batch_every, s.slam.batch_share, s.slam.interval_s) == (False, 60.0, 10, 0.0, 3600.0)
     assert load_settings(None, {"HYBRIDLOC_SLAM_BATCH_SHARE": "0.5"}).slam.batch_share == 0.5
     assert isinstance(s.slam.idle_s, float) and isinstance(s.slam.batch_every, int)
     s = load_settings(f, {"HYBRIDLOC_SLAM_ENABLED": "true", "HYBRIDLOC_SLAM_BATCH_EVERY": "5"})

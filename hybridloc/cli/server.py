@@ -327,7 +327,7 @@ def register(sub) -> None:
         "--slam-batch-share",
         type=float,
         metavar="F",
-        help="... and at least F times the walks the last batch solved (default 0.25: batches at geometrically spaced site sizes; 0: N alone)",
+        help="... and at least F times the walks the last batch solved (default 0: N alone; 0.25: batches at geometrically spaced site sizes)",
     )
     sv.add_argument("--slam-interval", type=float, metavar="S", help="... or S seconds after the last batch run (default 3600; 0: not by time)")
     _add_http_options(sv, serve=True)
