@@ -73,8 +73,8 @@ class SlamOptions:
     #: so at a fixed count each added walk costs ever more batch work as a site grows; at a share of the
     #: site that work per added walk stays bounded (the batches come at geometrically spaced site sizes;
     #: below batch_every_walks / share walks the count alone decides). Off by default: on site1's eval
-    #: crowd, 0.25 cut the time from 2009 to 1632 / 1442 s (two runs) but the last third of the crowd
-    #: learned less (27 / 23 % against 28 / 35 % at a fixed 25) on the staler maps it served them.
+    #: crowd, 0.25 cut the time to 1632 / 1442 s (two runs; a fixed 25: 2009 / 1956 s) but the last third
+    #: of the crowd learned less on the staler maps served to it (27 / 23 % against 28 / 35 / 26 %).
     batch_share: float = 0.0
     #: a batch re-solve this long after the last one when walks were added since (s; 0: not by time)
     batch_interval_s: float = 3600.0
