@@ -46,11 +46,13 @@ def floor_of(i: int, two_floors: bool, floors: tuple[str, ...] | None = None) ->
     return "F2" if two_floors and i % 2 else "F1"
 
 
-def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str = "dev", floors: tuple[str, ...] | None = None) -> list[str]:
+def store_walks(
+    store, walks: list[Walk], two_floors: bool = False, prefix: str = "dev", floors: tuple[str, ...] | None = None, ended: bool = True
+) -> list[str]:
     """Each walk as one device's ended walk (batches of at most 500 records, the last with the end-of-walk
-    marker); a walk without marks names its floor through a fix, as the server does when it answers a
-    scan. Walk i is on ``floors[i % len(floors)]`` (default F1, or F1 / F2 alternately with
-    ``two_floors``). Returns the device ids."""
+    marker; with ``ended`` False none: the walk is still open); a walk without marks names its floor
+    through a fix, as the server does when it answers a scan. Walk i is on ``floors[i % len(floors)]``
+    (default F1, or F1 / F2 alternately with ``two_floors``). Returns the device ids."""
     devices = []
     for i, w in enumerate(walks):
         dev = f"{prefix}{i:02d}"
@@ -69,7 +71,7 @@ def store_walks(store, walks: list[Walk], two_floors: bool = False, prefix: str 
                     [r for k, r in ch if k == "s"],
                     [r for k, r in ch if k == "c"],
                     [r for k, r in ch if k == "m"],
-                    end_of_walk=seq == len(chunks),
+                    end_of_walk=ended and seq == len(chunks),
                 )
             )
         store.persist(batches)

@@ -43,9 +43,8 @@ from hybridloc.server.slam_batch import lease_is_stale, run_batch
 from hybridloc.server.slam_store import CORRECTED, FAILED, QUARANTINED, SlamBusy
 from hybridloc.server.slam_worker import SlamOptions
 from hybridloc.server.store import Store
-from hybridloc.types import RfScan, StepEvent, SurveyMark, WalkEnd
+from hybridloc.types import WalkEnd
 from hybridloc.wire.codecs import MAP_VERSION, PROGRESS, TRACK
-from hybridloc.wire.messages import Batch
 from hybridloc.wire.zconfig import client_config, free_port
 
 from .slam_helpers import SITE, sample_plan, sample_walks, store_walks, straight_steps, stretched
@@ -267,17 +266,7 @@ def test_a_survey_ended_during_a_run_is_in_its_crowd_map(tmp_path, walks):
         st = Store(db)
         try:
             store_walks(st, [late], prefix="late")
-            recs = sorted([*still.steps, *still.scans, *(SurveyMark(k.t, k.x, k.y, "F1") for k in still.marks)], key=lambda r: r.t)
-            batch = Batch(
-                SITE,
-                "open00",
-                1,
-                still.device_model,
-                [r for r in recs if isinstance(r, StepEvent)],
-                [r for r in recs if isinstance(r, RfScan)],
-                [r for r in recs if isinstance(r, SurveyMark)],
-            )
-            st.persist([batch])
+            store_walks(st, [still], prefix="open", ended=False)
         finally:
             st.close()
 
