@@ -312,6 +312,14 @@ def _start_server(endpoint: str, db: str, site: str, slam: bool = True):
     return server, _Slam(server, site, on=True)
 
 
+def _slam_processes() -> int:
+    """The processes the server's batch re-solves spread their groups of floors over (the worker's default)."""
+    from .server.slam_batch import usable_cores
+    from .server.slam_worker import SlamOptions
+
+    return SlamOptions().batch_processes or usable_cores()
+
+
 def _wait_until(cond, timeout: float, poll: float = 0.1) -> tuple[bool, float]:
     """Poll ``cond()`` until true or ``timeout`` s; (true?, seconds waited). Never hangs."""
     t0 = time.monotonic()
@@ -733,6 +741,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "survey_fraction": None,  # filled by the caller (the options)
         "seed": None,
         "concurrency": run.concurrency,
+        "slam_processes": _slam_processes() if run.slam_on else None,
         "session_close_errors": run.close_errors,
         "seconds_surveys": s.get("surveys"),
         "seconds_clients": s.get("clients"),

@@ -31,6 +31,7 @@ line's own, so no file and no variable change nothing). Example file::
     batch_every = 25                   # a batch re-solve after this many new walks
     batch_share = 0.0                  # ... and this share of the walks the last batch solved
     interval_s = 3600                  # ... or this long after the last one (s)
+    processes = 0                      # a batch's groups of floors side by side (0: the usable cores)
 
 Environment variables are the keys in capitals, a section's keys prefixed by its name:
 ``HYBRIDLOC_SITE``, ``HYBRIDLOC_ENDPOINT``, ``HYBRIDLOC_SECURITY_PASSWORD``, ``HYBRIDLOC_FILTER_KIND``...
@@ -82,13 +83,14 @@ class FilterSettings:
 
 @dataclass(frozen=True)
 class SlamSettings:
-    """The server's crowd-SLAM worker (``serve --no-slam/--slam-idle/--slam-batch-every/--slam-batch-share/--slam-interval``)."""
+    """The server's crowd-SLAM worker (``serve --no-slam/--slam-idle/--slam-batch-every/--slam-batch-share/--slam-interval/--slam-processes``)."""
 
     enabled: bool = True  # a worker for every --site
     idle_s: float = 180.0  # an open walk whose device sent nothing for this long, s, is finished
     batch_every: int = 25  # a batch re-solve after this many walks added since the last (0: not by count)
     batch_share: float = 0.0  # ... and at least this share of the walks the last batch solved (0: the count alone)
     interval_s: float = 3600.0  # ... or this long after the last one when walks were added, s (0: not by time)
+    processes: int = 0  # a batch re-solve's connected groups of floors solved side by side in this many processes (0: the usable cores)
 
 
 @dataclass(frozen=True)

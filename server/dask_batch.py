@@ -47,12 +47,11 @@ import hashlib
 import io
 import json
 import logging
-import os
 import queue
 import time
 import uuid
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -69,8 +68,10 @@ from .slam_batch import (
     _Tally,
     crowd_map,
     finish,
+    floor_groups,
     hold_order,
     solve_floor,
+    usable_cores,
     write_floor,
 )
 from .store import Store
@@ -79,14 +80,6 @@ log = logging.getLogger("hybridloc.server.dask")
 
 #: how often the waiting loop passes the workers' progress events on, s
 POLL_S = 0.25
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity, else the machine's count)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return max(1, os.cpu_count() or 1)
 
 
 @contextlib.contextmanager
@@ -204,31 +197,6 @@ class _Events:
 
 
 # ------------------------------------------------------------------------------------------ slam: groups
-def floor_groups(walk_floors: Iterable[Iterable[str]], floors: Iterable[str]) -> list[list[str]]:
-    """The connected groups of ``floors`` (each sorted; groups in the order of their first floor):
-    two floors are in one group when some walk names both (``walk_floors``: each walk's floors; a walk's
-    pieces lie on floors it names, so this is the pieces' grouping or a coarser one)."""
-    names = sorted(set(floors))
-    parent = {f: f for f in names}
-
-    def root(f: str) -> str:
-        while parent[f] != f:
-            parent[f] = parent[parent[f]]
-            f = parent[f]
-        return f
-
-    for fl in walk_floors:
-        on = [f for f in fl if f in parent]
-        for f in on[1:]:
-            a, b = root(on[0]), root(f)
-            if a != b:
-                parent[max(a, b)] = min(a, b)
-    groups: dict[str, list[str]] = {}
-    for f in names:
-        groups.setdefault(root(f), []).append(f)
-    return sorted(groups.values(), key=lambda g: g[0])
-
-
 # ------------------------------------------------------------------------------------------ slam: tasks
 class GroupSolver:
     """A Dask actor (lives on one worker): the CrowdSlam of one connected group of floors - the group's

@@ -22,13 +22,16 @@ resumes after them; the previous map stays in service meanwhile.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import socket
 import tempfile
 import threading
 import time
 import uuid
+import warnings
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
@@ -256,6 +259,39 @@ def _map_bytes(rmap) -> bytes:
 
 
 # ------------------------------------------------------------------------------------------ the run
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def floor_groups(walk_floors: Iterable[Iterable[str]], floors: Iterable[str]) -> list[list[str]]:
+    """The connected groups of ``floors`` (each sorted; groups in the order of their first floor):
+    two floors are in one group when some walk names both (``walk_floors``: each walk's floors; a walk's
+    pieces lie on floors it names, so this is the pieces' grouping or a coarser one)."""
+    names = sorted(set(floors))
+    parent = {f: f for f in names}
+
+    def root(f: str) -> str:
+        while parent[f] != f:
+            parent[f] = parent[parent[f]]
+            f = parent[f]
+        return f
+
+    for fl in walk_floors:
+        on = [f for f in fl if f in parent]
+        for f in on[1:]:
+            a, b = root(on[0]), root(f)
+            if a != b:
+                parent[max(a, b)] = min(a, b)
+    groups: dict[str, list[str]] = {}
+    for f in names:
+        groups.setdefault(root(f), []).append(f)
+    return sorted(groups.values(), key=lambda g: g[0])
+
+
 def run_batch(
     db: str | Store,
     site: str,
@@ -265,6 +301,7 @@ def run_batch(
     lease_s: float = LEASE_S,
     floor_hook: Callable[[str], None] | None = None,
     client=None,
+    processes: int = 1,
 ) -> BatchSummary:
     """Re-solve ``floors`` (None: every floor of the site's walks) of ``site`` from the database ``db``
     (a URL or an open :class:`Store`) and store the result atomically (module docstring).
@@ -275,7 +312,9 @@ def run_batch(
     from the database. ``floor_hook(floor)`` runs before each floor is solved (tests: slow a run down).
     ``client``: a :class:`distributed.Client`: the floors are solved as Dask tasks, a chain per connected
     group of floors (:mod:`.dask_batch`), and written here as they come (not with ``slam`` or
-    ``floor_hook``); None: in this process, one floor after another.
+    ``floor_hook``); None: in this process, one floor after another, or with ``processes`` > 1 the
+    connected groups of floors spread over this process and ``processes - 1`` forked copies of it
+    (:func:`_solve_groups`; not with ``floor_hook``). Every path stores the same results.
 
     :class:`MissingData` for a site without ended walks, :class:`BadInput` for a floor none of its walks
     names, :class:`SlamBusy` while another process solves the site, :class:`ComputationFailed` when a
@@ -303,7 +342,7 @@ def run_batch(
         try:
             with _Heartbeat(store, site, run_id, lease, lease_s) as hb:
                 if client is None:
-                    summary = _solve_run(store, site, run_id, todo, done_before, say, slam, hb, floor_hook)
+                    summary = _solve_run(store, site, run_id, todo, done_before, say, slam, hb, floor_hook, processes)
                 else:
                     from .dask_batch import solve_run_on_dask
 
@@ -538,8 +577,10 @@ def _solve_run(
     slam: CrowdSlam | None,
     hb: _Heartbeat,
     floor_hook: Callable[[str], None] | None,
+    processes: int = 1,
 ) -> BatchSummary:
-    """The serial path: one CrowdSlam of the whole site in this process, the floors one after another."""
+    """The serial path: one CrowdSlam of the whole site in this process, the floors one after another
+    (with ``processes`` > 1, groups of them in forked copies of this process: :func:`_solve_groups`)."""
     plan = store.load_floor_plan(site)
     if slam is None:
         slam = load_site(store, site)
@@ -556,15 +597,19 @@ def _solve_run(
     tally = _Tally()
     n = len(todo)
     finished = len(done_before & set(todo))
-    for fl in todo:
-        if fl in done_before:
-            continue
-        say("floors", fl, finished, n)
-        if floor_hook is not None:
-            floor_hook(fl)
-        write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
-        finished += 1
-        say("floors", fl, finished, n)
+    left = [fl for fl in todo if fl not in done_before]
+    groups = floor_groups(slam.held_walk_floors().values(), left) if processes > 1 and floor_hook is None and hasattr(os, "fork") else [left]
+    groups = [[fl for fl in left if fl in g] for g in groups]  # each group's floors in the run's order
+    if len(groups) > 1:
+        _solve_groups(store, run_id, slam, groups, fold_walks, say, tally, hb, finished, n, processes)
+    else:
+        for fl in left:
+            say("floors", fl, finished, n)
+            if floor_hook is not None:
+                floor_hook(fl)
+            write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
+            finished += 1
+            say("floors", fl, finished, n)
     return finish(
         store,
         site,
@@ -577,6 +622,174 @@ def _solve_run(
         lambda wid: slam.walks[wid] if wid in slam.walks else store.read_walk(wid),
         lambda walks, tracks: crowd_map(walks, tracks, site, plan),
     )
+
+
+def _split(groups: list[list[str]], parts: int) -> list[list[list[str]]]:
+    """``groups`` dealt to ``parts`` processes: the first group to this one, each other one to the forked
+    process with the fewest floors so far (a floor's cost is not known before its solve)."""
+    out: list[list[list[str]]] = [[groups[0]]] + [[] for _ in range(max(1, min(parts, len(groups))) - 1)]
+    for g in groups[1:]:
+        min(out[1:] or out, key=lambda p: sum(len(x) for x in p)).append(g)
+    return [p for p in out if p]
+
+
+class _Fork:
+    """A copy of this process made by ``os.fork`` (not ``multiprocessing``: the server's SLAM child is a
+    daemonic process, which multiprocessing does not let have children) and the pipe it answers on."""
+
+    def __init__(self, target: Callable[..., None], *args):
+        import multiprocessing as mp
+
+        self.conn, send = mp.Pipe(duplex=False)
+        self.exitcode: int | None = None
+        with warnings.catch_warnings():
+            # Python 3.12+ warns on a fork beside threads: the copy runs the solve alone (the pure library,
+            # the pipe) and leaves by os._exit, never touching the database, Zenoh or another thread's lock
+            warnings.simplefilter("ignore", DeprecationWarning)
+            self.pid = os.fork()
+        if self.pid == 0:  # the copy: run, answer, and leave without running the parent's exit handlers
+            code = 1
+            try:
+                self.conn.close()
+                target(*args, send)
+                code = 0
+            finally:
+                os._exit(code)
+        send.close()
+
+    def alive(self) -> bool:
+        if self.exitcode is None:
+            pid, status = os.waitpid(self.pid, os.WNOHANG)
+            if pid == self.pid:
+                self.exitcode = os.waitstatus_to_exitcode(status)
+        return self.exitcode is None
+
+    def end(self) -> None:
+        """Kill it if it still runs, and reap it."""
+        self.conn.close()
+        if self.alive():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGKILL)
+            _, status = os.waitpid(self.pid, 0)
+            self.exitcode = os.waitstatus_to_exitcode(status)
+
+
+def _forked_main(slam: CrowdSlam, groups: list[list[str]], fold_walks: list[int], mark, parent_pid: int, conn) -> None:
+    """A forked copy of the batch's process: solve ``groups`` (in order) on the inherited CrowdSlam and
+    send back each floor's result, then the state delta (None when the solves touched a floor of another
+    process); on an exception, its text. It ends with the process that forked it."""
+    from .child_process import _watch_parent
+
+    threading.Thread(target=_watch_parent, args=(parent_pid,), name="hybridloc-slam-fork-watch", daemon=True).start()
+    try:
+        done = []
+        for g in groups:
+            for fl in g:
+                done.append(solve_floor(slam, fl, fold_walks, lambda *a: conn.send(("progress", a))))
+        bad = slam.outside_changed(mark)
+        conn.send(("done", done, None if bad else slam.floors_delta(mark), bad))
+    except BaseException as exc:  # noqa: BLE001 - reported to the process that forked this one
+        import traceback
+
+        conn.send(("error", f"{type(exc).__name__}: {exc}", traceback.format_exc()))
+    finally:
+        conn.close()
+
+
+def _solve_groups(
+    store: Store,
+    run_id: int,
+    slam: CrowdSlam,
+    groups: list[list[str]],
+    fold_walks: list[int],
+    say: ProgressFn,
+    tally: _Tally,
+    hb: _Heartbeat,
+    finished: int,
+    n: int,
+    processes: int,
+) -> None:
+    """Connected groups of floors (:func:`floor_groups`: no walk is held on two of them) solved side by
+    side: the first group here, the others in ``processes - 1`` forked copies of this process, which
+    share the site's CrowdSlam copy-on-write (no reload, no copy sent) and send back each floor's result
+    and what the solves changed (:meth:`CrowdSlam.floors_delta`); each floor is written here as its
+    result comes, and the copies' deltas are adopted after this process's own floors
+    (:meth:`CrowdSlam.adopt_floors`), so the state equals the serial order's. The results equal the
+    serial path's (tests/test_slam_fork.py): each group's solve reads only its own floors and walks.
+
+    A copy that fails (an exception, a crash, a walk re-added by its fingerprints onto a floor of
+    another group), or whose floors this process changed meanwhile, is discarded and its floors are
+    solved here after this process's own, as the serial path does; its floors' results are written
+    only once the copy is known to be good, so a discarded copy never leaves a checkpoint."""
+    parts = _split(groups, processes)
+    mine = parts[0]
+    forks = []
+    for part in parts[1:]:
+        floors = [fl for g in part for fl in g]
+        mark = slam.mark_floors(floors)
+        proc = _Fork(_forked_main, slam, part, fold_walks, mark, os.getpid())
+        forks.append({"floors": floors, "mark": mark, "conn": proc.conn, "proc": proc, "msg": None})
+    announced: set[str] = set()
+    try:
+
+        def drain() -> None:
+            for fk in forks:
+                while fk["msg"] is None and fk["conn"].poll():
+                    try:
+                        msg = fk["conn"].recv()
+                    except (EOFError, OSError):  # it ended without its result
+                        deadline = time.monotonic() + 5.0
+                        while fk["proc"].alive() and time.monotonic() < deadline:
+                            time.sleep(0.01)
+                        fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+                        break
+                    if msg[0] == "progress":
+                        if msg[1][1] not in announced:  # a floor the fork began: "floors" before it, as here
+                            announced.add(msg[1][1])
+                            say("floors", msg[1][1], finished, n)
+                        say(*msg[1])
+                    else:
+                        fk["msg"] = msg
+
+        def mine_say(stage: str, floor: str, done: int, total: int) -> None:
+            say(stage, floor, done, total)
+            drain()
+
+        for g in mine:
+            for fl in g:
+                say("floors", fl, finished, n)
+                write_floor(store, run_id, solve_floor(slam, fl, fold_walks, mine_say), tally, hb)
+                finished += 1
+                say("floors", fl, finished, n)
+        redo: list[str] = []
+        for fk in forks:
+            while fk["msg"] is None:
+                if not fk["conn"].poll(0.25):
+                    if not fk["proc"].alive() and not fk["conn"].poll():
+                        fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+                    continue
+                drain()
+            msg = fk["msg"]
+            touched = slam.touched(fk["mark"])
+            if msg[0] != "done" or msg[2] is None or touched:
+                why = msg[1] if msg[0] == "error" else f"floors outside its own changed ({', '.join(msg[3] or touched)})"
+                log.warning("floors %s: the forked solve is not used (%s); solving them here", ", ".join(fk["floors"]), why)
+                redo += fk["floors"]
+                continue
+            for fd in msg[1]:
+                write_floor(store, run_id, fd, tally, hb)
+                finished += 1
+                say("floors", fd.floor, finished, n)
+            slam.adopt_floors(fk["mark"], msg[2])
+        for fl in redo:
+            say("floors", fl, finished, n)
+            write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
+            finished += 1
+            say("floors", fl, finished, n)
+    finally:
+        slam.end_mark()
+        for fk in forks:
+            fk["proc"].end()
 
 
 def _coverage(store: Store, site: str, labels_per_walk: dict[int, int]) -> float | None:

@@ -138,11 +138,21 @@ def provisional(store: Store, site: str, walk_id: int, progress=None) -> dict:
     }
 
 
-def batch(store: Store, site: str, floors: list[str] | None = None, online: list[str] | None = None, lease_s: float = 60.0, progress=None) -> dict:
-    """A batch re-solve (:func:`~.slam_batch.run_batch`) with the CrowdSlam kept here; the track messages
-    of the newest changed walk of each device in ``online``."""
+def batch(
+    store: Store,
+    site: str,
+    floors: list[str] | None = None,
+    online: list[str] | None = None,
+    lease_s: float = 60.0,
+    processes: int = 1,
+    progress=None,
+) -> dict:
+    """A batch re-solve (:func:`~.slam_batch.run_batch`) with the CrowdSlam kept here, its groups of floors
+    spread over ``processes`` (this one and forked copies; one process under a test's hook, which runs
+    before each floor); the track messages of the newest changed walk of each device in ``online``."""
     slam = site_slam(store, site)
-    summary = run_batch(store, site, floors, progress, slam=slam, lease_s=lease_s, floor_hook=lambda f: _hook("floor", site, f))
+    hook = (lambda f: _hook("floor", site, f)) if _HOOK is not None else None
+    summary = run_batch(store, site, floors, progress, slam=slam, lease_s=lease_s, floor_hook=hook, processes=processes)
     c = _SITES.get(site)
     if c is not None:
         if summary.resumed:

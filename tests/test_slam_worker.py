@@ -511,7 +511,9 @@ def test_server_killed_during_a_batch_run_resumes_and_loses_nothing(tmp_path, wa
     db = _filled(tmp_path, walks, True, n=33)
     run_batch(db, SITE)  # the site solved once: map version 1, every walk held
     ep = f"tcp/127.0.0.1:{free_port()}"
-    argv = [*CLI, "serve", "--endpoint", ep, "--db", db, "--site", SITE, "--slam-batch-every", "2", "--slam-interval", "0"]
+    # one process for the batch: the kill must fall between its floors' checkpoints (with the floors side by
+    # side, F2 is solved beside F1 and checkpointed right after it; test_slam_fork.py covers that path)
+    argv = [*CLI, "serve", "--endpoint", ep, "--db", db, "--site", SITE, "--slam-batch-every", "2", "--slam-interval", "0", "--slam-processes", "1"]
     out: list[str] = []
 
     def serve():

@@ -83,12 +83,15 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             raise BadInput(f"--slam-batch-every must be >= 0, got {args.slam_batch_every}")
         if not math.isfinite(args.slam_batch_share) or not 0.0 <= args.slam_batch_share <= 10.0:
             raise BadInput(f"--slam-batch-share must be a share between 0 and 10, got {args.slam_batch_share:g}")
+        if args.slam_processes < 0:
+            raise BadInput(f"--slam-processes must be >= 0 (0: the usable cores), got {args.slam_processes}")
         slam_sites = list(args.site)
         slam_options = SlamOptions(
             idle_timeout_s=args.slam_idle,
             batch_every_walks=args.slam_batch_every,
             batch_share=args.slam_batch_share,
             batch_interval_s=args.slam_interval,
+            batch_processes=args.slam_processes,
         )
     server = Server(
         args.endpoint,
@@ -330,6 +333,12 @@ def register(sub) -> None:
         help="... and at least F times the walks the last batch solved (default 0: N alone; 0.25: batches at geometrically spaced site sizes)",
     )
     sv.add_argument("--slam-interval", type=float, metavar="S", help="... or S seconds after the last batch run (default 3600; 0: not by time)")
+    sv.add_argument(
+        "--slam-processes",
+        type=int,
+        metavar="N",
+        help="a batch re-solve's connected groups of floors solved side by side in N processes (default 0: the usable cores; same results)",
+    )
     _add_http_options(sv, serve=True)
     sv.set_defaults(
         func=_cmd_serve,
@@ -353,6 +362,7 @@ def register(sub) -> None:
             "slam_batch_every": "slam.batch_every",
             "slam_batch_share": "slam.batch_share",
             "slam_interval": "slam.interval_s",
+            "slam_processes": "slam.processes",
         },
     )
 

@@ -351,6 +351,35 @@ class KnnLocator:
         out._set_labels(refs)
         return out
 
+    def memo_keys(self) -> set[int]:
+        """The keys (scan ids) the memo of searches holds now (empty without a memo)."""
+        return set(self._memo or ())
+
+    def memo_since(self, keys: set[int]) -> dict[int, tuple]:
+        """The memo's entries not under ``keys`` (:meth:`memo_keys` of an earlier moment), without their
+        weak references: (distances, indices, readings known) by scan id, picklable. A process forked
+        from this one searched them; its scans that existed before the fork have the same ids here."""
+        return {k: v[1:] for k, v in (self._memo or {}).items() if k not in keys}
+
+    def memo_adopt(self, entries: dict[int, tuple], scans) -> int:
+        """Take the entries of :meth:`memo_since` for those of ``scans`` (this process's objects) whose id
+        they name: each search row depends only on its scan and on this locator's references, so a row
+        searched by a forked copy of this locator is this one's. Returns how many were taken."""
+        memo = self._memo
+        if memo is None or not entries:
+            return 0
+        n = 0
+        for s in scans:
+            key = id(s)
+            got = entries.get(key)
+            if got is None or key in memo:
+                continue
+            if len(memo) >= self.MEMO_MAX:
+                break
+            memo[key] = (weakref.ref(s, lambda _, key=key: memo.pop(key, None)), *got)
+            n += 1
+        return n
+
     def _search(self, scans: list[RfScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(distances, indices, readings known) of each scan: from the memo where it holds the scan, the
         others searched together (:meth:`neighbours`; the same rows as a search of all of them)."""

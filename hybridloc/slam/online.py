@@ -172,6 +172,53 @@ class FloorOutcome:
     stats: dict
 
 
+class _Token:
+    """A named singleton that stays itself through pickling (it pickles as a reference to the module's
+    global of its name)."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def __reduce__(self) -> str:
+        return self.name
+
+    def __repr__(self) -> str:
+        return self.name
+
+
+_ABSENT = _Token("_ABSENT")  # a walk without an entry in one of the site's per-walk dictionaries (FloorsMark)
+_SAME_WALK = _Token("_SAME_WALK")  # FloorsDelta: the walk's own Walk object (not sent back)
+
+
+@dataclass
+class FloorsMark:
+    """References to a group of floors' state and to their walks' entries at one moment
+    (:meth:`CrowdSlam.mark_floors`)."""
+
+    names: frozenset[str]
+    walks: set[int]
+    held: dict[str, dict]
+    solutions: dict[str, dict]
+    detectors: dict[str, Any]
+    rows: dict[str, dict]
+    walk_values: dict[str, dict[int, Any]]
+    outside: dict[str, frozenset]
+    memo_keys: set[int]
+    next_frame: int
+
+
+@dataclass
+class FloorsDelta:
+    """What re-solving a mark's floors changed (:meth:`CrowdSlam.floors_delta`): per floor, per walk
+    dictionary, the walks dropped, the served map's new search rows, the next frame id."""
+
+    floors: dict[str, dict]
+    walks: dict[str, dict]
+    dropped: set[int]
+    memo: dict[int, tuple]
+    next_frame: int
+
+
 # ------------------------------------------------------------------------------------------ held state
 @dataclass
 class _Held:
@@ -331,6 +378,8 @@ class CrowdSlam:
         self._gate = math.inf
         #: the map the floor vote reads (set_vote_map), when not the served one: (locator, gate, technology)
         self._vote: tuple[Any, float, str] | None = None
+        #: walks dropped since :meth:`mark_floors` (None: not counted)
+        self._dropped: set[int] | None = None
 
     # -------------------------------------------------------------- map
     def set_map(self, radio_map) -> None:
@@ -468,6 +517,8 @@ class CrowdSlam:
         return floor if top >= cfg.floor_vote_share * n else None
 
     def _drop(self, walk_id: int) -> None:
+        if self._dropped is not None:
+            self._dropped.add(walk_id)
         for f in self._floors.values():
             f.drop_walk(walk_id)
         self.walks.pop(walk_id, None)
@@ -928,6 +979,176 @@ class CrowdSlam:
                 log.exception("walk %s: checking its batch solution failed", wid)
                 out[wid] = (f"error: {type(exc).__name__}: {exc}", None)
         return out
+
+    # -------------------------------------------------------------- floors solved in another process
+    def mark_floors(self, names) -> FloorsMark:
+        """References to the state of floors ``names`` and of the walks held on them, now (no copy).
+
+        With it, floors that share no walk are re-solved in a process forked from this one and only what
+        the solves changed comes back (:meth:`floors_delta` there, :meth:`adopt_floors` here): a fork
+        shares the site's state copy-on-write, and nothing but the floor's walks and their scans' search
+        rows changes in :meth:`rebuild_floor` of a closed group of floors (a walk held on one of them has
+        every piece on one of them; the EM folds come from ``fold_walks``). The mark is taken before the
+        fork, so both processes hold it."""
+        names = frozenset(names)
+        self._dropped = set()  # the walks dropped from now on (both processes count their own)
+        floors = {n: self._floors[n] for n in names if n in self._floors}
+        wids = {k[0] for fl in floors.values() for k in fl.held}
+        dicts = self._walk_dicts()
+        return FloorsMark(
+            names=names,
+            walks=wids,
+            held={n: dict(fl.held) for n, fl in floors.items()},
+            solutions={n: {k: (h.pos, h.cov, h.nuisance, h.status, h.frame) for k, h in fl.held.items()} for n, fl in floors.items()},
+            detectors={n: fl.detector for n, fl in floors.items()},
+            rows={n: dict(fl._rows) for n, fl in floors.items()},
+            walk_values={name: {w: d.get(w, _ABSENT) for w in wids} for name, d in dicts.items()},
+            outside={n: frozenset(fl.held) for n, fl in self._floors.items() if n not in names},
+            memo_keys=self._locator.memo_keys() if self._locator is not None else set(),
+            next_frame=self._next_frame,
+        )
+
+    def _walk_dicts(self) -> dict[str, dict]:
+        """The site's per-walk dictionaries a batch re-solve changes, by name."""
+        return {
+            "walks": self.walks,
+            "tracks": self.tracks,
+            "quarantined": self.quarantined,
+            "_quarantined_walks": self._quarantined_walks,
+            "_pieces": self._pieces,
+            "_scan_floor": self._scan_floor,
+            "floor_moves": self.floor_moves,
+        }
+
+    def held_walk_floors(self) -> dict[int, set[str]]:
+        """The floors each held walk has a piece on."""
+        out: dict[int, set[str]] = {}
+        for n, fl in self._floors.items():
+            for k in fl.held:
+                out.setdefault(k[0], set()).add(n)
+        return out
+
+    def touched(self, mark: FloorsMark) -> list[str]:
+        """The mark's floors whose held pieces are not those of the mark (something else than their own
+        re-solve put a walk on them or took one off)."""
+        return sorted(n for n in mark.names if frozenset(self._floors[n].held if n in self._floors else ()) != frozenset(mark.held.get(n, ())))
+
+    def outside_changed(self, mark: FloorsMark) -> list[str]:
+        """The floors outside ``mark``'s whose held pieces are not those of the mark (a walk the batch
+        could not fit was re-added onto one of them by its fingerprints): a process that solved the
+        mark's floors then also changed floors it does not own, and its delta must not be adopted."""
+        now = {n: frozenset(fl.held) for n, fl in self._floors.items() if n not in mark.names}
+        return sorted(n for n in set(now) | set(mark.outside) if now.get(n, frozenset()) != mark.outside.get(n, frozenset()))
+
+    def floors_delta(self, mark: FloorsMark) -> FloorsDelta:
+        """What re-solving the mark's floors changed since the mark (in the process that solved them),
+        picklable and without what did not change: the held solutions by piece (a piece put again, by a
+        walk dropped and re-added, whole), each floor's order of pieces, loop audit, front end and
+        fingerprint rows, the walks' per-walk entries, the served map's new search rows, and the frame
+        ids taken."""
+        floors: dict[str, dict] = {}
+        for n in mark.names:
+            fl = self._floors.get(n)
+            if fl is None:
+                continue
+            before, sols = mark.held.get(n, {}), mark.solutions.get(n, {})
+            solved, new = {}, {}
+            for k, h in fl.held.items():
+                if before.get(k) is h:
+                    now = (h.pos, h.cov, h.nuisance, h.status, h.frame)
+                    if any(a is not b for a, b in zip(now, sols[k])):
+                        solved[k] = now
+                else:
+                    new[k] = (h, fl.scans.get(k))
+            rows0 = mark.rows.get(n, {})
+            floors[n] = {
+                "order": list(fl.held),
+                "scans_order": list(fl.scans),
+                "solved": solved,
+                "new": new,
+                "serial": fl.serial,
+                "loops": fl.loops,
+                "detector": (fl.detector, fl.fit_pieces) if fl.detector is not mark.detectors.get(n) else None,
+                "rows": {k: v for k, v in fl._rows.items() if rows0.get(k) is not v},
+                "rows_order": list(fl._rows),
+                "col": dict(fl._col),
+            }
+        walks: dict[str, dict] = {}
+        for name, d in self._walk_dicts().items():
+            was = mark.walk_values[name]
+            changed = {}
+            for w in mark.walks:
+                v = d.get(w, _ABSENT)
+                if v is not was[w]:
+                    changed[w] = _SAME_WALK if name == "_quarantined_walks" and v is mark.walk_values["walks"][w] else v
+            # the order of the mark's walks in the dictionary: a walk dropped and added again moved to its end
+            walks[name] = {"changed": changed, "order": [w for w in d if w in mark.walks]}
+        memo = self._locator.memo_since(mark.memo_keys) if self._locator is not None else {}
+        return FloorsDelta(floors, walks, set(self._dropped or ()) & mark.walks, memo, self._next_frame)
+
+    def adopt_floors(self, mark: FloorsMark, delta: FloorsDelta) -> None:
+        """Take the delta of the mark's floors solved in another process (:meth:`floors_delta`) as this
+        process's state, as if they had been solved here after whatever was solved here since the mark:
+        frame ids the other process took are moved past the ones taken here (a frame id is only ever
+        compared for equality), and walks dropped and added again there go to the end of the per-walk
+        dictionaries here, in their order there."""
+        shift = self._next_frame - mark.next_frame
+
+        def moved(frame: int) -> int:
+            return frame + shift if frame >= mark.next_frame else frame
+
+        for n, fd in delta.floors.items():
+            fl = self._floor(n)
+            old = fl.held
+            held: dict = {}
+            for k in fd["order"]:
+                if k in fd["new"]:
+                    h = fd["new"][k][0]
+                    h.frame = moved(h.frame)
+                else:
+                    h = old[k]
+                    if k in fd["solved"]:
+                        h.pos, h.cov, h.nuisance, h.status, fr = fd["solved"][k]
+                        h.frame = moved(fr)
+                held[k] = h
+            fl.held = held
+            scans = {k: fd["new"][k][1] if k in fd["new"] else fl.scans[k] for k in fd["scans_order"]}
+            fl.scans = scans
+            fl.serial, fl.loops = fd["serial"], fd["loops"]
+            if fd["detector"] is not None:
+                fl.detector, fl.fit_pieces = fd["detector"]
+            fl._rows = {k: fd["rows"][k] if k in fd["rows"] else fl._rows[k] for k in fd["rows_order"]}
+            fl._col = fd["col"]
+        dicts = self._walk_dicts()
+        for name, wd in delta.walks.items():
+            d, was, changed = dicts[name], mark.walk_values[name], wd["changed"]
+
+            def value(w: int, d=d, was=was, changed=changed):
+                v = changed.get(w, was[w])
+                return mark.walk_values["walks"][w] if v is _SAME_WALK else v
+
+            # a walk dropped there (and maybe added again) went to the end of the dictionary there
+            for w in delta.dropped:
+                d.pop(w, None)
+            for w in mark.walks:
+                if w in delta.dropped:
+                    continue
+                v = value(w)
+                if v is _ABSENT:
+                    d.pop(w, None)
+                else:
+                    d[w] = v
+            for w in wd["order"]:
+                if w in delta.dropped and (v := value(w)) is not _ABSENT:
+                    d[w] = v
+        if self._locator is not None and delta.memo:
+            self._locator.memo_adopt(delta.memo, (s for w in mark.walks if w in self.walks for s in self.walks[w].scans))
+        self._next_frame = max(self._next_frame, delta.next_frame + shift)
+        self.end_mark()
+
+    def end_mark(self) -> None:
+        """Stop counting the walks dropped (:meth:`mark_floors`)."""
+        self._dropped = None
 
     # -------------------------------------------------------------- products
     def labels(self, floors=None) -> list[LabelledScan]:
