@@ -10,7 +10,8 @@ can be solved in parallel (a walk crossing floors joins their groups: docs/slam.
 
 For N, 2N and 4N walks: the database once, then per mode a copy of it and the two commands as the user
 runs them (subprocesses): ``hybridloc slam rebuild`` then ``hybridloc map rebuild --site S``, either
-``--serial`` or on a local Dask cluster of ``--workers`` worker processes (default 2). Measured: wall time
+``--serial``, on a local Dask cluster of ``--workers`` worker processes (default 2), or ``--serial`` with
+``slam rebuild --processes W`` (its floor groups in forked copies of the command's process, no Dask). Measured: wall time
 of each command (start-up and the cluster's included), the batch run's own time (``slam rebuild``'s JSON
 ``seconds``: from the claim to the new map), and the peak memory of the command's process tree (its RSS
 plus its worker processes', sampled every 0.1 s) and of the command's own process. The stored results of
@@ -162,14 +163,15 @@ def run_command(argv: list[str]) -> dict:
 
 
 def run_mode(pristine: str, folder: Path, mode: str, workers: int) -> dict:
-    """``slam rebuild`` then ``map rebuild`` on a copy of the database, serially or on Dask."""
+    """``slam rebuild`` then ``map rebuild`` on a copy of the database: serially, serially with the floor
+    groups of ``slam rebuild`` in ``workers`` forked processes (``--serial --processes``), or on Dask."""
     from hybridloc.server.dask_batch import stored_digest
     from hybridloc.server.store import Store
 
     db = str(folder / f"{mode}.db")
     shutil.copy(pristine, db)
-    how = ["--serial"] if mode == "serial" else ["--workers", str(workers)]
-    slam = run_command(["slam", "rebuild", "--db", db, *how])
+    how = ["--serial"] if mode in ("serial", "forked") else ["--workers", str(workers)]
+    slam = run_command(["slam", "rebuild", "--db", db, *how, *(["--processes", str(workers)] if mode == "forked" else [])])
     site = json.loads(slam["last"])["sites"][0]
     st = Store(db, migrate=False)
     try:
@@ -222,9 +224,10 @@ def main(argv: list[str] | None = None) -> dict:
             print(f"  {n} walks ({n_scans} scans) simulated and stored in {time.monotonic() - t0:.1f} s")
             serial = run_mode(pristine, folder, "serial", a.workers)
             dask = run_mode(pristine, folder, "dask", a.workers)
-            same = serial["digest"] == dask["digest"]
-            rows.append((n, serial, dask, same))
-            for name, r in (("serial", serial), (f"dask x{a.workers}", dask)):
+            forked = run_mode(pristine, folder, "forked", a.workers)
+            same = serial["digest"] == dask["digest"] == forked["digest"]
+            rows.append((n, serial, dask, same, forked))
+            for name, r in (("serial", serial), (f"dask x{a.workers}", dask), (f"fork x{a.workers}", forked)):
                 print(
                     f"    {name:8s}  slam rebuild {r['slam']['wall_s']:6.1f} s (run {r['slam_run_s']:6.1f} s), peak {r['slam']['tree_mb']:6.0f} MB "
                     f"(command {r['slam']['own_mb']:5.0f} MB); map rebuild {r['map']['wall_s']:5.1f} s, peak {r['map']['tree_mb']:5.0f} MB; "
@@ -232,7 +235,9 @@ def main(argv: list[str] | None = None) -> dict:
                 )
             print(
                 f"    serial / dask: slam rebuild {serial['slam']['wall_s'] / dask['slam']['wall_s']:.2f}x (run {serial['slam_run_s'] / dask['slam_run_s']:.2f}x), "
-                f"map rebuild {serial['map']['wall_s'] / dask['map']['wall_s']:.2f}x; stored results identical: {same}"
+                f"map rebuild {serial['map']['wall_s'] / dask['map']['wall_s']:.2f}x; serial / fork: slam rebuild "
+                f"{serial['slam']['wall_s'] / forked['slam']['wall_s']:.2f}x (run {serial['slam_run_s'] / forked['slam_run_s']:.2f}x); "
+                f"stored results identical: {same}"
             )
     s_wall = [r[1]["slam"]["wall_s"] for r in rows]
     d_wall = [r[2]["slam"]["wall_s"] for r in rows]
@@ -243,7 +248,7 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"  growth N -> 4N (slope of log time over log walks): serial run {ex_s:.2f}, dask run {ex_d:.2f}; serial peak memory {ex_mem:.2f}")
     figures: dict = {"walks_n": sizes[0], "floors": a.floors, "workers": a.workers, "identical": all(r[3] for r in rows)}
     for k, tag in enumerate(("n", "2n", "4n")):
-        n, serial, dask, _ = rows[k]
+        n, serial, dask, _, forked = rows[k]
         figures.update(
             {
                 f"serial_slam_s_{tag}": s_wall[k],
@@ -255,6 +260,10 @@ def main(argv: list[str] | None = None) -> dict:
                 f"dask_map_s_{tag}": dask["map"]["wall_s"],
                 f"serial_slam_peak_mb_{tag}": serial["slam"]["tree_mb"],
                 f"dask_slam_peak_mb_{tag}": dask["slam"]["tree_mb"],
+                f"forked_slam_s_{tag}": forked["slam"]["wall_s"],
+                f"forked_slam_run_s_{tag}": forked["slam_run_s"],
+                f"forked_slam_speedup_{tag}": s_wall[k] / forked["slam"]["wall_s"],
+                f"forked_slam_peak_mb_{tag}": forked["slam"]["tree_mb"],
             }
         )
     figures.update(growth_serial=ex_s, growth_dask=ex_d, growth_serial_memory=ex_mem)

@@ -12,8 +12,11 @@ F1 and F2 are one group (solved in the process), F3 another (solved in the fork)
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +32,7 @@ from hybridloc.types import AbsoluteFix
 from .slam_helpers import SITE, crossing_walk, sample_plan, sample_walks, store_walks
 
 FLOORS = ("F1", "F2", "F3")
+CLI = [sys.executable, "-m", "hybridloc.cli"]
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="forked floor groups need os.fork")
 
@@ -141,3 +145,27 @@ def test_a_forked_group_that_touches_another_groups_floor_is_solved_here(solved_
     stored, state = _batch(solved_once, tmp_path, "conflict", 2)
     assert stored == serial[0] and state == serial[1]
     assert "floors outside its own changed (F1)" in caplog.text
+
+
+def test_slam_rebuild_serial_with_processes_stores_what_one_process_stores(solved_once, tmp_path):
+    one = tmp_path / "one.db"
+    shutil.copy(solved_once, one)
+    st = Store(str(one), migrate=False)
+    try:
+        run_batch(st, SITE)  # slam rebuild --serial: the CrowdSlam read from the database, one process
+        want = stored_digest(st, SITE)
+    finally:
+        st.close()
+    two = tmp_path / "two.db"
+    shutil.copy(solved_once, two)
+    r = subprocess.run([*CLI, "slam", "rebuild", "--db", str(two), "--serial", "--processes", "2"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout.strip().splitlines()[-1])["executor"] == {"kind": "serial", "workers": 1, "processes": 2}
+    st = Store(str(two), migrate=False)
+    try:
+        assert stored_digest(st, SITE) == want
+    finally:
+        st.close()
+    for argv, what in ((["--processes", "2"], "it needs --serial"), (["--serial", "--processes", "0"], "at least 1")):
+        bad = subprocess.run([*CLI, "slam", "rebuild", "--db", str(two), *argv], capture_output=True, text=True, timeout=60)
+        assert bad.returncode == 2 and what in bad.stderr, bad.stderr

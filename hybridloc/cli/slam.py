@@ -201,6 +201,10 @@ def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
     from ._common import batch_client, check_batch_arguments, check_db_driver, executor_of
 
     check_batch_arguments(args)
+    if args.processes is not None and not args.serial:
+        raise BadInput("--processes spreads a --serial run's groups of floors over forked processes: it needs --serial")
+    if args.processes is not None and args.processes < 1:
+        raise BadInput(f"--processes must be at least 1 (got {args.processes})")
     check_db_driver(args.db)
     from ..server.slam_batch import site_floors, sites_with_walks
     from ..server.store import Store
@@ -223,6 +227,8 @@ def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
         with batch_client(args, "[slam rebuild]") as client:
             out = _rebuild_sites(st, sites, args, client)
             executor = executor_of(args, client)
+            if args.processes is not None:
+                executor["processes"] = args.processes
     finally:
         st.close()
     print(json.dumps({"sites": out, "executor": executor}))
@@ -248,7 +254,7 @@ def _rebuild_sites(st, sites: list[str], args: argparse.Namespace, client) -> li
             bar.update(done, floor if stage == "floors" else "")
 
         t0 = time.monotonic()
-        sm = run_batch(st, site, [args.floor] if args.floor else None, progress, client=client)
+        sm = run_batch(st, site, [args.floor] if args.floor else None, progress, client=client, processes=args.processes or 1)
         for b in bars.values():
             b.close()
         summary = st.slam.summary(site)
@@ -312,4 +318,10 @@ def register(sub) -> None:
     rb.add_argument("--site", help="the site (default: every site with ended walks)")
     rb.add_argument("--floor", help="re-solve this floor only (needs --site)")
     add_batch_arguments(rb)
+    rb.add_argument(
+        "--processes",
+        type=int,
+        metavar="N",
+        help="with --serial: the site's connected groups of floors side by side in this process and N-1 forked copies of it (the same results)",
+    )
     rb.set_defaults(func=_cmd_slam_rebuild, _parser=rb, _required=("db",), _settings={"db": "db"})
