@@ -121,3 +121,18 @@ def hook(event: str, site: str, subject, arg: str) -> None:
         (d / f"{name}.entered").write_text(str(os.getpid()))
         while not (d / f"{name}.release").exists():
             time.sleep(0.05)
+
+
+def store_three_floors_with_stairs(st) -> str:
+    """Fill the :class:`~hybridloc.server.store.Store` ``st``: three floors (F2, F3 copies of F1's plan),
+    9 sample walks on them (every third one keeping its marks), and one more walk made of two unmarked
+    sample walks, the second one floor up (a walker taking the stairs: its first scan upstairs gets a fix
+    naming F2). F1 and F2 are then one connected group of floors, F3 another. Returns the stairs device."""
+    walks = sample_walks()
+    st.save_floor_plan(SITE, sample_plan(n_floors=3))
+    store_walks(st, walks[:9], floors=("F1", "F2", "F3"))
+    cross = crossing_walk(walks[13], walks[14])
+    (dev,) = store_walks(st, [cross], prefix="stairs", floors=("F1",))
+    t_up = cross.scans[len(walks[13].scans)].t  # the first scan upstairs names F2
+    st.add_fixes([(dev, AbsoluteFix(t_up, np.zeros(2), np.eye(2), "wifi", "F2"))])
+    return dev

@@ -18,7 +18,6 @@ import time
 from pathlib import Path
 
 import dask
-import numpy as np
 import psutil
 import pytest
 from distributed import Client
@@ -28,10 +27,9 @@ from hybridloc.server.dask_batch import batch_client, floor_groups, stored_diges
 from hybridloc.server.rebuild import rebuild
 from hybridloc.server.slam_batch import run_batch
 from hybridloc.server.store import Store
-from hybridloc.types import AbsoluteFix
 from hybridloc.wire.zconfig import free_port
 
-from .slam_helpers import SITE, crossing_walk, sample_plan, sample_walks, store_walks
+from .slam_helpers import SITE, store_three_floors_with_stairs
 
 CLI = [sys.executable, "-m", "hybridloc.cli"]
 DASK = str(Path(sys.executable).with_name("dask"))
@@ -41,17 +39,10 @@ FLOORS = ("F1", "F2", "F3")
 @pytest.fixture(scope="module")
 def filled(tmp_path_factory) -> Path:
     """The database before any rebuild (copied by each test)."""
-    walks = sample_walks()
     db = tmp_path_factory.mktemp("dask") / "pristine.db"
     st = Store(str(db))
     try:
-        st.save_floor_plan(SITE, sample_plan(n_floors=3))
-        store_walks(st, walks[:9], floors=FLOORS)
-        up = walks[14]
-        cross = crossing_walk(walks[13], up)
-        (dev,) = store_walks(st, [cross], prefix="stairs", floors=("F1",))
-        t_up = cross.scans[len(walks[13].scans)].t  # the first scan upstairs names F2
-        st.add_fixes([(dev, AbsoluteFix(t_up, np.zeros(2), np.eye(2), "wifi", "F2"))])
+        dev = store_three_floors_with_stairs(st)
         assert [w.floors for w in (st.read_walk(x.walk_id) for x in st.walks(SITE, device=dev))] == [("F1", "F2")]
     finally:
         st.close()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import shutil
 import subprocess
@@ -27,9 +28,8 @@ from hybridloc.server.dask_batch import stored_digest
 from hybridloc.server.slam_batch import floor_groups, load_radio_map, load_site, run_batch
 from hybridloc.server.store import Store
 from hybridloc.slam.online import CrowdSlam
-from hybridloc.types import AbsoluteFix
 
-from .slam_helpers import SITE, crossing_walk, sample_plan, sample_walks, store_walks
+from .slam_helpers import SITE, store_three_floors_with_stairs
 
 FLOORS = ("F1", "F2", "F3")
 CLI = [sys.executable, "-m", "hybridloc.cli"]
@@ -40,17 +40,10 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="forked floor gr
 @pytest.fixture(scope="module")
 def solved_once(tmp_path_factory) -> Path:
     """The database after a first (serial) batch run (copied by each test)."""
-    walks = sample_walks()
     db = tmp_path_factory.mktemp("fork") / "once.db"
     st = Store(str(db))
     try:
-        st.save_floor_plan(SITE, sample_plan(n_floors=3))
-        store_walks(st, walks[:9], floors=FLOORS)
-        up = walks[14]
-        cross = crossing_walk(walks[13], up)
-        (dev,) = store_walks(st, [cross], prefix="stairs", floors=("F1",))
-        t_up = cross.scans[len(walks[13].scans)].t  # the first scan upstairs names F2
-        st.add_fixes([(dev, AbsoluteFix(t_up, np.zeros(2), np.eye(2), "wifi", "F2"))])
+        store_three_floors_with_stairs(st)
         assert run_batch(st, SITE).map_version == 1
     finally:
         st.close()
@@ -169,3 +162,24 @@ def test_slam_rebuild_serial_with_processes_stores_what_one_process_stores(solve
     for argv, what in ((["--processes", "2"], "it needs --serial"), (["--serial", "--processes", "0"], "at least 1")):
         bad = subprocess.run([*CLI, "slam", "rebuild", "--db", str(two), *argv], capture_output=True, text=True, timeout=60)
         assert bad.returncode == 2 and what in bad.stderr, bad.stderr
+
+
+def test_walks_the_forked_batch_drops_and_adds_again_end_as_in_the_serial_path(solved_once, tmp_path, monkeypatch, caplog):
+    # the joint solve of F3 "cannot fit" its first walks: they are dropped and added again on their own
+    # (CrowdSlam.rebuild_floor), which moves them to the end of the site's per-walk dictionaries
+    verdicts = CrowdSlam._batch_verdicts
+
+    def some_bad(self, fsl, sol, use):
+        out = verdicts(self, fsl, sol, use)
+        if fsl.floor == "F3" and not sol.em_moves:
+            out.setdefault(min(k[0] for k in use), ("the test's verdict", None))
+        return out
+
+    monkeypatch.setattr(CrowdSlam, "_batch_verdicts", some_bad)
+    caplog.set_level(logging.INFO, logger="hybridloc.slam.online")
+    serial = _batch(solved_once, tmp_path, "serial-readd", 1)
+    assert 'the batch gave "the test\'s verdict"; added on its own' in caplog.text  # the path is taken
+    caplog.clear()
+    forked = _batch(solved_once, tmp_path, "forked-readd", 2)
+    assert "the forked solve is not used" not in caplog.text  # the fork's delta was adopted
+    assert forked == serial
