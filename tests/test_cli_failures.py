@@ -90,3 +90,24 @@ def test_bad_input_is_one_line_and_exit_2(command, kind, tmp_path, capsys, monke
     assert rc == 2, (rc, err)
     assert len(lines) == 1, err
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    "option, value, says",
+    [
+        ("--slam-processes", "-1", "--slam-processes must be >= 0"),
+        ("--slam-batch-share", "11", "--slam-batch-share must be a share"),
+        ("--slam-batch-every", "-2", "--slam-batch-every must be >= 0"),
+        ("--slam-idle", "-5", "--slam-idle must be >= 0"),
+    ],
+)
+def test_serve_refuses_bad_slam_options_before_it_starts(option, value, says, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("HYBRIDLOC_CONFIG", raising=False)
+    try:
+        rc = main(["serve", "--db", str(tmp_path / "h.db"), "--site", "s1", option, value])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2 and says in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert not (tmp_path / "h.db").exists()  # refused before the server opened anything
