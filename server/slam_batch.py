@@ -633,6 +633,11 @@ def _split(groups: list[list[str]], parts: int) -> list[list[list[str]]]:
     return [p for p in out if p]
 
 
+#: a forked copy that sends nothing (no solver stage, no result) for this long is taken as hung, killed,
+#: and its floors solved in the process that forked it (a stage of a site1 floor takes up to ~60 s)
+FORK_SILENCE_S = 900.0
+
+
 class _Fork:
     """A copy of this process made by ``os.fork`` (not ``multiprocessing``: the server's SLAM child is a
     daemonic process, which multiprocessing does not let have children) and the pipe it answers on."""
@@ -728,7 +733,7 @@ def _solve_groups(
         floors = [fl for g in part for fl in g]
         mark = slam.mark_floors(floors)
         proc = _Fork(_forked_main, slam, part, fold_walks, mark, os.getpid())
-        forks.append({"floors": floors, "mark": mark, "conn": proc.conn, "proc": proc, "msg": None})
+        forks.append({"floors": floors, "mark": mark, "conn": proc.conn, "proc": proc, "msg": None, "heard": time.monotonic()})
     announced: set[str] = set()
     try:
 
@@ -743,6 +748,7 @@ def _solve_groups(
                             time.sleep(0.01)
                         fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
                         break
+                    fk["heard"] = time.monotonic()
                     if msg[0] == "progress":
                         if msg[1][1] not in announced:  # a floor the fork began: "floors" before it, as here
                             announced.add(msg[1][1])
@@ -767,6 +773,9 @@ def _solve_groups(
                 if not fk["conn"].poll(0.25):
                     if not fk["proc"].alive() and not fk["conn"].poll():
                         fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+                    elif time.monotonic() - fk["heard"] > FORK_SILENCE_S:  # hung (a lock the fork inherited held?)
+                        fk["proc"].end()
+                        fk["msg"] = ("error", f"the forked process said nothing for {FORK_SILENCE_S:g} s (killed)", "")
                     continue
                 drain()
             msg = fk["msg"]

@@ -18,6 +18,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -183,3 +184,19 @@ def test_walks_the_forked_batch_drops_and_adds_again_end_as_in_the_serial_path(s
     forked = _batch(solved_once, tmp_path, "forked-readd", 2)
     assert "the forked solve is not used" not in caplog.text  # the fork's delta was adopted
     assert forked == serial
+
+
+def test_a_forked_group_that_hangs_is_killed_and_solved_here(solved_once, serial, tmp_path, monkeypatch, caplog):
+    here = os.getpid()
+    solve = slam_batch.solve_floor
+
+    def hanging(slam, floor, fold_walks, say):
+        while os.getpid() != here:
+            time.sleep(1.0)  # the forked copy never answers
+        return solve(slam, floor, fold_walks, say)
+
+    monkeypatch.setattr(slam_batch, "solve_floor", hanging)
+    monkeypatch.setattr(slam_batch, "FORK_SILENCE_S", 3.0)
+    stored, state = _batch(solved_once, tmp_path, "hang", 2)
+    assert stored == serial[0] and state == serial[1]
+    assert "said nothing for 3 s (killed)" in caplog.text
