@@ -10,7 +10,10 @@ that the worker publishes. Progress of a batch run travels back on the same queu
 
 The child runs at a lower CPU priority with one BLAS thread, so the server's threads get the CPU
 first. It is spawned, never forked (a fork after ``zenoh.open`` breaks the child), imports no Zenoh,
-and ends itself when its parent is gone (a SIGKILLed server must not leave a solver writing on).
+and ends itself when its parent is gone (a SIGKILLed server must not leave a solver writing on). For a
+batch run it forks copies of itself in turn, one per share of the site's groups of floors
+(``SlamOptions.batch_processes``, :func:`.slam_batch._solve_groups`): it holds no Zenoh session, and a
+copy only solves and answers on its pipe, then leaves by ``os._exit`` (it ends with the child too).
 """
 
 from __future__ import annotations
