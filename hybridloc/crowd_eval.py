@@ -314,10 +314,9 @@ def _start_server(endpoint: str, db: str, site: str, slam: bool = True):
 
 def _slam_processes() -> int:
     """The processes the server's batch re-solves spread their groups of floors over (the worker's default)."""
-    from .server.slam_batch import usable_cores
     from .server.slam_worker import SlamOptions
 
-    return SlamOptions().batch_processes or usable_cores()
+    return SlamOptions().batch_process_count()
 
 
 def _wait_until(cond, timeout: float, poll: float = 0.1) -> tuple[bool, float]:

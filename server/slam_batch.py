@@ -604,12 +604,7 @@ def _solve_run(
         _solve_groups(store, run_id, slam, groups, fold_walks, say, tally, hb, finished, n, processes)
     else:
         for fl in left:
-            say("floors", fl, finished, n)
-            if floor_hook is not None:
-                floor_hook(fl)
-            write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
-            finished += 1
-            say("floors", fl, finished, n)
+            finished = _solve_here(store, run_id, slam, fl, fold_walks, say, say, tally, hb, finished, n, floor_hook)
     return finish(
         store,
         site,
@@ -622,6 +617,30 @@ def _solve_run(
         lambda wid: slam.walks[wid] if wid in slam.walks else store.read_walk(wid),
         lambda walks, tracks: crowd_map(walks, tracks, site, plan),
     )
+
+
+def _solve_here(
+    store: Store,
+    run_id: int,
+    slam: CrowdSlam,
+    fl: str,
+    fold_walks: list[int],
+    say: ProgressFn,
+    solver_say: ProgressFn,
+    tally: _Tally,
+    hb: _Heartbeat,
+    finished: int,
+    n: int,
+    floor_hook: Callable[[str], None] | None = None,
+) -> int:
+    """One floor solved in this process and written, between its two "floors" progress messages
+    (``solver_say`` gets the solver's own stages); returns the floors finished."""
+    say("floors", fl, finished, n)
+    if floor_hook is not None:
+        floor_hook(fl)
+    write_floor(store, run_id, solve_floor(slam, fl, fold_walks, solver_say), tally, hb)
+    say("floors", fl, finished + 1, n)
+    return finished + 1
 
 
 def _split(groups: list[list[str]], parts: int) -> list[list[list[str]]]:
@@ -746,7 +765,7 @@ def _solve_groups(
                         deadline = time.monotonic() + 5.0
                         while fk["proc"].alive() and time.monotonic() < deadline:
                             time.sleep(0.01)
-                        fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+                        fk["msg"] = died(fk)
                         break
                     fk["heard"] = time.monotonic()
                     if msg[0] == "progress":
@@ -757,22 +776,22 @@ def _solve_groups(
                     else:
                         fk["msg"] = msg
 
+        def died(fk: dict) -> tuple:
+            return ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+
         def mine_say(stage: str, floor: str, done: int, total: int) -> None:
             say(stage, floor, done, total)
             drain()
 
         for g in mine:
             for fl in g:
-                say("floors", fl, finished, n)
-                write_floor(store, run_id, solve_floor(slam, fl, fold_walks, mine_say), tally, hb)
-                finished += 1
-                say("floors", fl, finished, n)
+                finished = _solve_here(store, run_id, slam, fl, fold_walks, say, mine_say, tally, hb, finished, n)
         redo: list[str] = []
         for fk in forks:
             while fk["msg"] is None:
                 if not fk["conn"].poll(0.25):
                     if not fk["proc"].alive() and not fk["conn"].poll():
-                        fk["msg"] = ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+                        fk["msg"] = died(fk)
                     elif time.monotonic() - fk["heard"] > FORK_SILENCE_S:  # hung (a lock the fork inherited held?)
                         fk["proc"].end()
                         fk["msg"] = ("error", f"the forked process said nothing for {FORK_SILENCE_S:g} s (killed)", "")
@@ -791,10 +810,7 @@ def _solve_groups(
                 say("floors", fd.floor, finished, n)
             slam.adopt_floors(fk["mark"], msg[2])
         for fl in redo:
-            say("floors", fl, finished, n)
-            write_floor(store, run_id, solve_floor(slam, fl, fold_walks, say), tally, hb)
-            finished += 1
-            say("floors", fl, finished, n)
+            finished = _solve_here(store, run_id, slam, fl, fold_walks, say, say, tally, hb, finished, n)
     finally:
         slam.end_mark()
         for fk in forks:

@@ -83,6 +83,13 @@ class SlamOptions:
     #: cores. While a batch runs it then takes that many cores, at the child's lower priority. Site1's
     #: eval crowd database (305 walks, three floors): 105 s against 196-255 s in one process, 2 cores
     batch_processes: int = 0
+
+    def batch_process_count(self) -> int:
+        """The processes a batch re-solve uses (:attr:`batch_processes`, 0 resolved to the usable cores)."""
+        from .slam_batch import usable_cores
+
+        return self.batch_processes or usable_cores()
+
     #: the loop's pause when there is nothing to do, s
     poll_s: float = 1.0
     #: a walk whose solve failed this many times is marked failed (the next batch run retries it)
@@ -451,18 +458,18 @@ class SlamWorker:
             return True
         return bool(o.batch_interval_s) and (m.utcnow() - since).total_seconds() >= o.batch_interval_s
 
-    def _batch_processes(self) -> int:
-        from .slam_batch import usable_cores
-
-        return self.options.batch_processes or usable_cores()
-
     def _batch(self) -> None:
         self._batch_asked.clear()
         self.busy = "batch"
         t0 = time.monotonic()
         try:
             out = self._call(
-                "batch", site=self.site, floors=None, online=sorted(self.online()), lease_s=self.options.lease_s, processes=self._batch_processes()
+                "batch",
+                site=self.site,
+                floors=None,
+                online=sorted(self.online()),
+                lease_s=self.options.lease_s,
+                processes=self.options.batch_process_count(),
             )
         except (ChildError, ChildCrashed) as exc:
             self._retry_batch_at = time.monotonic() + self.options.retry_s

@@ -1028,17 +1028,20 @@ class CrowdSlam:
                 out.setdefault(k[0], set()).add(n)
         return out
 
+    def _pieces_changed(self, names, before: dict[str, Any]) -> list[str]:
+        """Those of floors ``names`` whose held pieces (keys) are not the keys of ``before[floor]``."""
+        return sorted(n for n in names if frozenset(self._floors[n].held if n in self._floors else ()) != frozenset(before.get(n, ())))
+
     def touched(self, mark: FloorsMark) -> list[str]:
         """The mark's floors whose held pieces are not those of the mark (something else than their own
         re-solve put a walk on them or took one off)."""
-        return sorted(n for n in mark.names if frozenset(self._floors[n].held if n in self._floors else ()) != frozenset(mark.held.get(n, ())))
+        return self._pieces_changed(mark.names, mark.held)
 
     def outside_changed(self, mark: FloorsMark) -> list[str]:
         """The floors outside ``mark``'s whose held pieces are not those of the mark (a walk the batch
         could not fit was re-added onto one of them by its fingerprints): a process that solved the
         mark's floors then also changed floors it does not own, and its delta must not be adopted."""
-        now = {n: frozenset(fl.held) for n, fl in self._floors.items() if n not in mark.names}
-        return sorted(n for n in set(now) | set(mark.outside) if now.get(n, frozenset()) != mark.outside.get(n, frozenset()))
+        return self._pieces_changed((set(self._floors) | set(mark.outside)) - mark.names, mark.outside)
 
     def floors_delta(self, mark: FloorsMark) -> FloorsDelta:
         """What re-solving the mark's floors changed since the mark (in the process that solved them),
@@ -1112,8 +1115,7 @@ class CrowdSlam:
                         h.frame = moved(fr)
                 held[k] = h
             fl.held = held
-            scans = {k: fd["new"][k][1] if k in fd["new"] else fl.scans[k] for k in fd["scans_order"]}
-            fl.scans = scans
+            fl.scans = {k: fd["new"][k][1] if k in fd["new"] else fl.scans[k] for k in fd["scans_order"]}
             fl.serial, fl.loops = fd["serial"], fd["loops"]
             if fd["detector"] is not None:
                 fl.detector, fl.fit_pieces = fd["detector"]
