@@ -37,6 +37,7 @@ bounded by a timeout that is counted and reported.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import json
 import math
 import re
 import shutil
@@ -173,19 +174,24 @@ def thirds(n: int) -> list[np.ndarray]:
 
 
 # ------------------------------------------------------------------------------------------ scoring
-def live_errors(poses, wp_t, wp_xy) -> np.ndarray:
-    """Causal scoring of a live track at EVERY waypoint: the error of the newest pose row (t, x, y, ...)
-    at or before the waypoint's time (at equal times the later row), as the phone showed it then; NaN
-    at a waypoint before the first row (the filter starts from the client's first fix: not scored)."""
+def live_positions(poses, wp_t) -> np.ndarray:
+    """(n, 2) the live position the phone showed at each waypoint time: the newest pose row (t, x, y,
+    ...) at or before it (at equal times the later row); NaN before the first row."""
     wp_t = np.asarray(wp_t, float)
-    out = np.full(len(wp_t), np.nan)
+    xy = np.full((len(wp_t), 2), np.nan)
     # held_rows scores the waypoints after the first; a leading sentinel makes every waypoint one
     idx = held_rows(poses, np.concatenate([[-np.inf], wp_t]))
     ok = idx >= 0
     if ok.any():
-        xy = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]], float)
-        out[ok] = np.linalg.norm(xy - np.asarray(wp_xy, float)[ok], axis=1)
-    return out
+        xy[ok] = np.array([[poses[i][1], poses[i][2]] for i in idx[ok]], float)
+    return xy
+
+
+def live_errors(poses, wp_t, wp_xy) -> np.ndarray:
+    """Causal scoring of a live track at EVERY waypoint: the error of :func:`live_positions` there, as
+    the phone showed it then; NaN at a waypoint before the first row (the filter starts from the
+    client's first fix: not scored)."""
+    return np.linalg.norm(live_positions(poses, wp_t) - np.asarray(wp_xy, float).reshape(-1, 2), axis=1)
 
 
 def track_errors(tracks, wp_t, wp_xy) -> np.ndarray:
@@ -222,6 +228,7 @@ class ClientScore:
     wall: tuple[float, float] = (0.0, 0.0)  # (start, end) of its replay, time.monotonic()
     tracks_received: int = 0  # corrected tracks of the crowd SLAM the client heard while it walked
     tracks_applied: int = 0  # ... and re-anchored its filter with (its live rows after that include them)
+    live_xy: np.ndarray | None = None  # (n, 2) the live position scored at each waypoint (NaN before the first fix)
 
     @property
     def waypoints(self) -> int:
@@ -392,6 +399,7 @@ class CrowdRun:
     final_coverages: list = field(default_factory=list)  # the server's coverage after each batch re-solve after the crowd
     concurrency: int = 1
     close_errors: int = 0  # client sessions whose close failed (their walks count)
+    out: Path | None = None  # the run's folder (server.db, spool/, clients.jsonl)
 
     @property
     def final_batches(self) -> int:
@@ -443,7 +451,7 @@ def run_crowd(
     skipped: list[tuple[CrowdWalk, str]] = []
     scores: list[ClientScore] = []
     secs: dict = {}
-    run = CrowdRun(plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency)
+    run = CrowdRun(plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency, out=out)
     try:
         server.store.save_floor_plan(plan.site, fp)  # the operator's `floorplan import`
         # ------------------------------------------------------------------ phase 1: the surveys
@@ -553,18 +561,21 @@ def run_crowd(
         server.stop()
     scores.sort(key=lambda c: c.order)
     secs["total"] = time.monotonic() - t0
+    write_clients(run, out / "clients.jsonl")
     return run
 
 
 def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: int | None) -> ClientScore:
     r = rep.result
     wp = rep.waypoints
+    wp_xy = np.asarray(wp.pos_enu, float).reshape(-1, 2)
+    live_xy = live_positions(r.poses, wp.t)
     return ClientScore(
         rep.walk,
         order,
         np.asarray(wp.t, float),
-        np.asarray(wp.pos_enu, float).reshape(-1, 2),
-        live_errors(r.poses, wp.t, wp.pos_enu),
+        wp_xy,
+        np.linalg.norm(live_xy - wp_xy, axis=1),
         walk_ids=walk_ids,
         map_version=version,
         fixes_received=r.fixes_received,
@@ -573,7 +584,58 @@ def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: 
         wall=rep.wall,
         tracks_received=r.tracks_received,
         tracks_applied=r.tracks_applied,
+        live_xy=live_xy,
     )
+
+
+def _num(v) -> float | None:
+    v = float(v)
+    return round(v, 3) if math.isfinite(v) else None
+
+
+def write_clients(run: CrowdRun, path: str | Path) -> Path:
+    """``OUT/clients.jsonl``: one JSON object per client in time order, what the report sums up, per
+    waypoint: the truth (t, x, y), the live position the phone showed then and its error, the corrected
+    track's error after the final batches and before them (``null`` where unscored). Where a mean
+    hides its outliers, this file names them (which client, which third, which map version)."""
+    path = Path(path)
+    cuts = thirds(len(run.clients))
+    third = {int(i): k for k, part in enumerate(cuts) for i in part}
+    with path.open("w") as f:
+        for i, c in enumerate(run.clients):
+            nan = np.full(c.waypoints, np.nan)
+            lx = c.live_xy if c.live_xy is not None else np.full((c.waypoints, 2), np.nan)
+            cor = c.corrected if c.corrected is not None else nan
+            inc = c.incremental if c.incremental is not None else nan
+            rec = {
+                "order": c.order,
+                "third": ("first", "middle", "last")[third.get(i, 0)],
+                "device": c.walk.device,
+                "recording": c.walk.path.name,
+                "floor": c.walk.floor,
+                "walk_ids": list(c.walk_ids),
+                "slam_status": c.slam_status,
+                "map_version": c.map_version,
+                "fixes_received": c.fixes_received,
+                "fixes_accepted": c.fixes_accepted,
+                "tracks_received": c.tracks_received,
+                "tracks_applied": c.tracks_applied,
+                "waypoints": [
+                    {
+                        "t": float(c.wp_t[k]),
+                        "x": _num(c.wp_xy[k, 0]),
+                        "y": _num(c.wp_xy[k, 1]),
+                        "live_x": _num(lx[k, 0]),
+                        "live_y": _num(lx[k, 1]),
+                        "live_m": _num(c.live[k]),
+                        "corrected_m": _num(cor[k]),
+                        "incremental_m": _num(inc[k]),
+                    }
+                    for k in range(c.waypoints)
+                ],
+            }
+            f.write(json.dumps(rec) + "\n")
+    return path
 
 
 def usable_track(track, state) -> bool:
@@ -765,6 +827,7 @@ def run_crowd_eval(
     """``hybridloc eval crowd``: run (:func:`run_crowd`), print the report, return the JSON line's figures."""
     run = run_crowd(site_dir, survey_fraction, seed, floors, out, concurrency, speed, wait_timeout, slam=slam)
     head = crowd_report(run)
+    print(f"  per client and waypoint (live and corrected errors, live positions): {Path(out) / 'clients.jsonl'}")
     head.update(survey_fraction=survey_fraction, seed=seed)
     return head
 
@@ -777,9 +840,11 @@ __all__ = [
     "CrowdWalk",
     "crowd_report",
     "live_errors",
+    "live_positions",
     "plan_crowd",
     "run_crowd",
     "run_crowd_eval",
     "thirds",
     "track_errors",
+    "write_clients",
 ]

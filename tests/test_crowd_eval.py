@@ -146,6 +146,24 @@ def test_every_other_walk_is_a_client_scored_in_time_order(crowd):
         assert not scored[:k].any() and scored[k:].all()
 
 
+def test_clients_jsonl_holds_each_client_and_waypoint_as_scored(crowd):
+    rows = [json.loads(ln) for ln in (crowd.out / "clients.jsonl").read_text().splitlines()]
+    C = crowd.clients
+    assert [r["order"] for r in rows] == [c.order for c in C] and [r["device"] for r in rows] == [c.walk.device for c in C]
+    cuts = thirds(len(C))
+    assert [r["third"] for r in rows] == ["first"] * len(cuts[0]) + ["middle"] * len(cuts[1]) + ["last"] * len(cuts[2])
+    for r, c in zip(rows, C):
+        assert r["walk_ids"] == list(c.walk_ids) and r["map_version"] == c.map_version and len(r["waypoints"]) == c.waypoints
+        live = np.array([np.nan if w["live_m"] is None else w["live_m"] for w in r["waypoints"]])
+        np.testing.assert_array_equal(np.isnan(live), np.isnan(c.live))
+        np.testing.assert_allclose(live[np.isfinite(live)], c.live[np.isfinite(c.live)], atol=1e-3)  # written to the mm
+        for w in r["waypoints"]:
+            if w["live_m"] is not None:  # the error is the distance of the live position from the truth
+                assert math.isclose(math.hypot(w["live_x"] - w["x"], w["live_y"] - w["y"]), w["live_m"], abs_tol=3e-3)
+            else:
+                assert w["live_x"] is None and w["live_y"] is None
+
+
 def test_the_thirds_follow_each_other(crowd):
     C = crowd.clients
     first, middle, last = (C[int(p[0]) : int(p[-1]) + 1] for p in thirds(len(C)))

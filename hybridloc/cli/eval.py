@@ -901,7 +901,11 @@ def register(sub) -> None:
     )
     ecr.add_argument("--seed", type=int, default=0, help="seed of the survey draw (default 0)")
     ecr.add_argument("--floors", metavar="F1,F2", help="floors to evaluate (default all of the site)")
-    ecr.add_argument("--out", default="out/eval-crowd", help="folder of the server database and the clients' spools")
+    ecr.add_argument(
+        "--out",
+        default="out/eval-crowd",
+        help="folder of the server database, the clients' spools and clients.jsonl (per client and waypoint: live and corrected errors)",
+    )
     ecr.add_argument("--concurrency", type=int, default=3, help="clients replayed at a time, in time order (default 3)")
     ecr.add_argument("--speed", type=float, default=0.0, help="replay speed K x real time; 0 (default) as fast as the lock-step allows")
     ecr.add_argument(
