@@ -154,3 +154,43 @@ def test_anchor_points_refuses_a_shape_that_fits_nowhere():
     )
     a = anchor_points(sq, f)
     assert a.ambiguous and a.mean_fit < -0.5
+
+
+def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would():
+    """The search is a pure function of its arguments, so the field remembers it: asked again with the
+    same points it answers what a fresh search gives (a new field has nothing remembered), a copy the
+    caller may change, and any changed argument (a point, the weights, a setting) searches anew."""
+    from hybridloc.slam import anchoring
+
+    f = WalkableField.from_floor(_l_world(), resolution=H)
+    walk = np.column_stack([np.arange(0.5, 40.0), np.full(40, 5.2)]) + [3.0, -7.0]
+    a = anchor_points(walk, f)
+    calls = []
+    real = anchoring._search
+
+    def counting(*args):
+        calls.append(1)
+        return real(*args)
+
+    anchoring._search = counting
+    try:
+        b = anchor_points(walk.copy(), f)
+        assert calls == []  # remembered
+        fresh = anchor_points(walk, WalkableField.from_floor(_l_world(), resolution=H))
+        assert len(calls) == 1
+        for x in (a, b):
+            np.testing.assert_array_equal(x.T, fresh.T)
+            np.testing.assert_array_equal(x.t, fresh.t)
+            assert (x.score, x.runner_up, x.ambiguous, x.mean_fit) == (fresh.score, fresh.runner_up, fresh.ambiguous, fresh.mean_fit)
+        b.t += 100.0  # the caller's copy: the remembered answer does not move
+        np.testing.assert_array_equal(anchor_points(walk, f).t, a.t)
+        moved = walk.copy()
+        moved[3, 1] += 0.01
+        anchor_points(moved, f)
+        anchor_points(walk, f, weights=np.full(len(walk), 2.0))
+        anchor_points(walk, f, min_log_ratio=5.0)
+        assert len(calls) == 4
+    finally:
+        anchoring._search = real
+    # bounded: the oldest searches are dropped first
+    assert len(f._anchor_memo) <= anchoring.MEMO_SIZE

@@ -163,9 +163,18 @@ class WalkableField:
 
     def log_likelihood_raster(self, step: float, sigma: float = 1.0, floor: float = -8.0) -> tuple[np.ndarray, float, float]:
         """The log-likelihood on a coarser grid of nodes ``step`` m apart over the same box: (L (ny, nx),
-        x0, y0), node (j, i) at ``(x0 + i step, y0 + j step)`` (what a correlation search slides over)."""
+        x0, y0), node (j, i) at ``(x0 + i step, y0 + j step)`` (what a correlation search slides over).
+        Computed once per (step, sigma, floor) and kept; the array is read-only."""
+        cache = self.__dict__.setdefault("_raster_cache", {})
+        key = (float(step), float(sigma), float(floor))
+        if key not in cache:
+            cache[key] = self._log_likelihood_raster(step, sigma, floor)
+        return cache[key]
+
+    def _log_likelihood_raster(self, step: float, sigma: float, floor: float) -> tuple[np.ndarray, float, float]:
         nx = int(np.floor((self.x1 - self.x0) / step)) + 1
         ny = int(np.floor((self.y1 - self.y0) / step)) + 1
         X, Y = np.meshgrid(self.x0 + step * np.arange(nx), self.y0 + step * np.arange(ny))
         L = self.log_likelihood(np.column_stack([X.ravel(), Y.ravel()]), sigma, floor).reshape(ny, nx)
+        L.flags.writeable = False
         return L, self.x0, self.y0
