@@ -568,3 +568,36 @@ def test_a_walk_is_held_on_the_floor_its_fingerprints_name(sample):
     bare.set_map(smap)
     assert bare.revote_floors() == [900] and bare._pieces[900][0].floor == "F1" and bare.floor_moves[900] == ("F9", "F1")
     assert bare.revote_floors() == []  # nothing left to move
+
+
+def test_em_goes_on_while_a_round_anchors_more_pieces(sample, monkeypatch):
+    """The EM stop (labels moved less than em_stop_m) measures only the pieces already anchored, so it
+    does not end EM while a round still anchors more of them (SlamConfig.em_while_anchoring). With the
+    stop made certain (em_stop_m huge), EM runs exactly until the first round that anchored no more,
+    at most em_rounds; with the rule off, one round."""
+    from hybridloc.slam import online
+
+    walks, plan, smap = sample
+    grew: list[bool] = []
+    real = online.anchored_more
+
+    def watched(old, new):
+        grew.append(real(old, new))
+        return grew[-1]
+
+    monkeypatch.setattr(online, "anchored_more", watched)
+    rounds = {}
+    for rule in (True, False):
+        grew.clear()
+        cs = CrowdSlam("site1", plan, SlamConfig(em_stop_m=1e9, em_while_anchoring=rule))
+        cs.set_map(smap)
+        for w in walks:
+            cs.hold(w, None)
+        out = cs.rebuild_floor("F1")
+        rounds[rule] = out.stats["em_rounds"]
+        if rule:
+            # every round but the last anchored more; the last anchored no more, or was the last allowed
+            assert len(grew) == rounds[rule] >= 1 and all(grew[:-1]), (grew, rounds)
+            assert not grew[-1] or rounds[rule] == SlamConfig().em_rounds
+        else:
+            assert grew == [] and rounds[rule] == 1

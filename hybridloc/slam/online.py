@@ -116,6 +116,7 @@ from .pipeline import (
     _labels,
     _similarity_fit,
     _walkable_points,
+    anchored_more,
     locate_pieces,
     mapped_distance_gate,
     set_em_fixes,
@@ -872,8 +873,9 @@ class CrowdSlam:
                 both = np.isfinite(sol.pos[:, 0]) & np.isfinite(new.pos[:, 0]) & (fsl.node_status(sol.status) != RELATIVE)
                 med = float(np.median(np.linalg.norm(new.pos[both] - sol.pos[both], axis=1))) if both.any() else 0.0
                 new.em_moves = sol.em_moves + [med]
+                grew = cfg.em_while_anchoring and anchored_more(sol, new)
                 sol = new
-                if med < cfg.em_stop_m:
+                if med < cfg.em_stop_m and not grew:
                     break
             if sol.em_moves:  # a walk that fails only after EM: quarantined, no other solve
                 bad.update(self._batch_verdicts(fsl, sol, use))

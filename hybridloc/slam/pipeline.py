@@ -96,6 +96,13 @@ class SlamConfig:
     em_rounds: int = 5
     em_folds: int = 5
     em_stop_m: float = 0.5
+    #: ... but not while a round anchors more pieces than the one before: the stop measures how far the
+    #: labels of pieces that were already anchored moved, and says nothing of the pieces EM is still
+    #: bringing in. Without this, site1's live batch re-solves of F1 split in two (eval crowd, one run):
+    #: 4-5 rounds anchored 63-74 walks by the map, while a first round that happened to move the few
+    #: anchored ones less than em_stop_m ended EM there with 35-36 (49-67 relative), so coverage swung
+    #: 82.0 -> 71.3 % between two final batches over the same walks
+    em_while_anchoring: bool = True
     #: technologies a crowd map is built for
     technologies: tuple[str, ...] = ("wifi", "ble")
     #: kNN locator settings of the EM fixes (the server's: k = 5, readings up to 8 s old)
@@ -749,6 +756,12 @@ def set_em_fixes(
     return True
 
 
+def anchored_more(old: FloorSolution, new: FloorSolution) -> bool:
+    """Whether ``new`` (an EM round's solution of the same pieces) holds more pieces absolutely placed
+    than ``old`` (:attr:`SlamConfig.em_while_anchoring`)."""
+    return sum(s != RELATIVE for s in new.status) > sum(s != RELATIVE for s in old.status)
+
+
 def _walkable_points(floor, n: int, rng: np.random.Generator) -> np.ndarray | None:
     """n uniform random points of the floor's walkable area (rejection sampling in its bounds)."""
     import shapely
@@ -826,6 +839,7 @@ def run_slam(
         if not set_em_fixes(slams.values(), labels, label_walk, lambda w: int(folds[w]), cfg, em_cache):
             break
         moves = []
+        prev = dict(floors)
         for n_done, (fname, fsl) in enumerate(sorted(slams.items())):
             if progress:
                 progress(f"em {rnd + 1}", fname, n_done, total)
@@ -838,7 +852,7 @@ def run_slam(
             new.em_moves = old.em_moves + [float(np.median(moves[-1])) if moves and both.any() else 0.0]
             floors[fname] = new
         med = float(np.median(np.concatenate(moves))) if moves else 0.0
-        if med < cfg.em_stop_m:
+        if med < cfg.em_stop_m and not (cfg.em_while_anchoring and any(anchored_more(prev[f], floors[f]) for f in floors)):
             break
     labels, label_walk = _all_labels(floors, walk_of)
     if progress:
