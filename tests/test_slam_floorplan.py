@@ -194,3 +194,9 @@ def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would():
         anchoring._search = real
     # bounded: the oldest searches are dropped first
     assert len(f._anchor_memo) <= anchoring.MEMO_SIZE
+    # a pickled field (to a Dask worker) leaves its caches behind and searches alike
+    import pickle
+
+    g = pickle.loads(pickle.dumps(f))
+    assert not hasattr(g, "_anchor_memo") and not hasattr(g, "_raster_cache")
+    np.testing.assert_array_equal(anchor_points(walk, g).t, a.t)

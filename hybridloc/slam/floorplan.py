@@ -95,6 +95,12 @@ class WalkableField:
         inside = shapely.contains_xy(area, X, Y) if not area.is_empty else np.zeros(X.shape, bool)
         return cls(inside, x0, y0, resolution, floor.walls, area)
 
+    def __getstate__(self) -> dict:
+        # caches stay behind when a field is pickled (to a Dask worker, a forked copy's pipe): the
+        # remembered anchoring searches (.anchoring.anchor_points) and log-likelihood rasters are
+        # made again where they are needed
+        return {k: v for k, v in self.__dict__.items() if k not in ("_anchor_memo", "_raster_cache")}
+
     # ------------------------------------------------------------------------------------------
     def __call__(self, p) -> tuple[np.ndarray, np.ndarray]:
         """Distance outside the walkable area (0 inside), m, and its gradient, for points ``p`` (m, 2)."""
