@@ -1,7 +1,9 @@
 """Where do eval crowd's live outliers walk (issue #21, learning)? For each client of a run, how far
 its hidden waypoints lie from the nearest reference of the radio map the server served when it
 started (same floor), split into the clients whose mean live error exceeds --big (default 25 m) and
-the others.
+the others. Then the corrected side: the clients whose corrected track is more than --big-corrected
+(default 20 m) off on average, their share of the summed corrected error and how their walks were
+anchored, and the net change the final batches made against the walks as added (incremental).
 
 Usage: python scripts/probe_live_outliers.py OUT_DIR [--big M]
 (OUT_DIR: the folder an ``hybridloc eval crowd --out OUT_DIR`` run leaves: server.db and clients.jsonl).
@@ -24,6 +26,7 @@ from hybridloc.server.store import Store
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("out_dir")
 ap.add_argument("--big", type=float, default=25.0, help="a client's mean live error above this, m, is an outlier")
+ap.add_argument("--big-corrected", type=float, default=20.0, help="a corrected track's mean error above this, m, is badly placed")
 args = ap.parse_args()
 out = Path(args.out_dir)
 clients = [json.loads(ln) for ln in (out / "clients.jsonl").read_text().splitlines()]
@@ -36,7 +39,6 @@ with Session(store.engine) as s:
             by_floor.setdefault(r.floor, []).append(r.pos_enu[:2])
         for f, pts in by_floor.items():
             trees[(row.version, f)] = cKDTree(np.asarray(pts, float))
-store.close()
 
 rows = []
 for c in clients:
@@ -64,4 +66,46 @@ for third in ("first", "middle", "last"):
     print(f"{third} third: {len(big)} of {len(t)} clients are outliers, holding {share:.0%} of the third's summed live error")
     head[f"{third}_outliers"] = len(big)
     head[f"{third}_outlier_error_share"] = round(share, 3)
+
+# the corrected side: badly placed walks, and what the final batches changed
+anchored: dict[int, str] = {}
+with Session(store.engine) as s:
+    for row in s.execute(select(m.WalkSlam)).scalars():
+        anchored[row.walk_id] = row.anchored
+per, delta, n_both = [], 0.0, 0
+for c in clients:
+    cor = [w["corrected_m"] for w in c["waypoints"] if w["corrected_m"] is not None]
+    if cor:
+        survey = trees.get((1, c["floor"]))  # version 1: the survey map, the live SLAM child's fixes
+        d1 = float(np.median(survey.query([[w["x"], w["y"]] for w in c["waypoints"]])[0])) if survey is not None else float("nan")
+        per.append((float(np.mean(cor)), len(cor), anchored.get(c["walk_ids"][0], "?"), d1))
+    pairs = [(w["corrected_m"], w["incremental_m"]) for w in c["waypoints"] if w["corrected_m"] is not None and w["incremental_m"] is not None]
+    delta += sum(a - b for a, b in pairs)
+    n_both += len(pairs)
+if per:
+    total = sum(p[0] * p[1] for p in per)
+    bad = [p for p in per if p[0] > args.big_corrected]
+    kinds: dict[str, int] = {}
+    for p in bad:
+        kinds[p[2]] = kinds.get(p[2], 0) + 1
+    rest = [p for p in per if p[0] <= args.big_corrected]
+    rest_mean = sum(p[0] * p[1] for p in rest) / max(sum(p[1] for p in rest), 1)
+    bad_d1 = float(np.median([p[3] for p in bad])) if bad else float("nan")
+    rest_d1 = float(np.median([p[3] for p in rest])) if rest else float("nan")
+    print(
+        f"corrected: {len(bad)} of {len(per)} clients more than {args.big_corrected:g} m off on average, holding "
+        f"{sum(p[0] * p[1] for p in bad) / total:.0%} of the summed corrected error (anchored: {kinds}); the others' mean {rest_mean:.2f} m; "
+        f"their waypoints lie a median {bad_d1:.1f} m from the survey map's nearest reference (the others' {rest_d1:.1f} m); "
+        f"the final batches changed the error by {delta / max(n_both, 1):+.2f} m per waypoint against the walks as added"
+    )
+    head.update(
+        corrected_bad_clients=len(bad),
+        corrected_bad_error_share=round(sum(p[0] * p[1] for p in bad) / total, 3),
+        corrected_bad_survey_dist_m=round(bad_d1, 2),
+        corrected_rest_survey_dist_m=round(rest_d1, 2),
+        corrected_bad_anchored=kinds,
+        corrected_rest_mean_m=round(rest_mean, 3),
+        final_batches_change_m=round(delta / max(n_both, 1), 3),
+    )
 print(json.dumps(head))
+store.close()
