@@ -27,6 +27,11 @@ ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("out_dir")
 ap.add_argument("--big", type=float, default=25.0, help="a client's mean live error above this, m, is an outlier")
 ap.add_argument("--big-corrected", type=float, default=20.0, help="a corrected track's mean error above this, m, is badly placed")
+ap.add_argument(
+    "--fixes",
+    action="store_true",
+    help="also count each map-anchored corrected walk's fixes from the survey map (version 1, the live SLAM child's) that pass its gate (loads the site's SLAM state: slower)",
+)
 args = ap.parse_args()
 out = Path(args.out_dir)
 clients = [json.loads(ln) for ln in (out / "clients.jsonl").read_text().splitlines()]
@@ -107,5 +112,30 @@ if per:
         corrected_rest_mean_m=round(rest_mean, 3),
         final_batches_change_m=round(delta / max(n_both, 1), 3),
     )
+if args.fixes:
+    # were the badly placed walks anchored by the survey map's fixes, or by EM's crowd-map fixes?
+    from hybridloc.server.slam_batch import load_site
+
+    with Session(store.engine) as s:
+        site = s.execute(select(m.RadioMapVersion.site_id)).scalars().first()
+        survey = s.execute(select(m.RadioMapVersion).where(m.RadioMapVersion.version == 1)).scalars().first()
+    slam = load_site(store, site)
+    slam.set_map(RadioMap.load(io.BytesIO(survey.data)))
+    counts: dict[str, list[int]] = {"bad": [], "good": []}
+    for c in clients:
+        cor = [w["corrected_m"] for w in c["waypoints"] if w["corrected_m"] is not None]
+        wid = c["walk_ids"][0]
+        if not cor or anchored.get(wid) != "map" or wid not in slam.walks:
+            continue
+        n_fix = sum(len(v) for v in slam._map_fixes(slam._walk_pieces(slam.walks[wid])).values())
+        counts["bad" if np.mean(cor) > args.big_corrected else "good"].append(n_fix)
+    for name, v in counts.items():
+        if v:
+            a = np.asarray(v)
+            print(
+                f"map-anchored, {name}: {len(a)} walks; survey-map fixes passing the gate: median {np.median(a):.0f}, fewer than 3 for {np.mean(a < 3):.0%}"
+            )
+            head[f"{name}_survey_fixes_median"] = float(np.median(a))
+            head[f"{name}_few_survey_fixes_share"] = round(float(np.mean(a < 3)), 3)
 print(json.dumps(head))
 store.close()
