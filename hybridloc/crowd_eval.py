@@ -441,6 +441,7 @@ def run_crowd(
     db = out / "server.db"
     for suffix in ("", "-wal", "-shm"):
         Path(str(db) + suffix).unlink(missing_ok=True)
+    (out / "clients.jsonl").unlink(missing_ok=True)  # an earlier run's: written again only when this one completes
     say = (lambda *a: print(*a, flush=True)) if progress else (lambda *a: None)
     ep = f"tcp/127.0.0.1:{free_port()}"
     server, slam = _start_server(ep, str(db), plan.site, slam)
@@ -622,7 +623,7 @@ def write_clients(run: CrowdRun, path: str | Path) -> Path:
                 "tracks_applied": c.tracks_applied,
                 "waypoints": [
                     {
-                        "t": float(c.wp_t[k]),
+                        "t": float(c.wp_t[k]) if math.isfinite(c.wp_t[k]) else None,
                         "x": _num(c.wp_xy[k, 0]),
                         "y": _num(c.wp_xy[k, 1]),
                         "live_x": _num(lx[k, 0]),

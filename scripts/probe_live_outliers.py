@@ -5,11 +5,12 @@ the others. Then the corrected side: the clients whose corrected track is more t
 (default 20 m) off on average, their share of the summed corrected error and how their walks were
 anchored, and the net change the final batches made against the walks as added (incremental).
 
-Usage: python scripts/probe_live_outliers.py OUT_DIR [--big M]
+Usage: python scripts/probe_live_outliers.py OUT_DIR [--big M] [--big-corrected M] [--fixes]
 (OUT_DIR: the folder an ``hybridloc eval crowd --out OUT_DIR`` run leaves: server.db and clients.jsonl).
 Prints a line per group and per third; the last line is one JSON object."""
 
 import argparse
+import atexit
 import io
 import json
 from pathlib import Path
@@ -30,15 +31,19 @@ ap.add_argument("--big-corrected", type=float, default=20.0, help="a corrected t
 ap.add_argument(
     "--fixes",
     action="store_true",
-    help="also count each map-anchored corrected walk's fixes from the survey map (version 1, the live SLAM child's) that pass its gate (loads the site's SLAM state: slower)",
+    help="also count each map-anchored corrected walk's fixes from the first survey map (the live SLAM child's) that pass its gate (loads the site's SLAM state: slower)",
 )
 args = ap.parse_args()
 out = Path(args.out_dir)
 clients = [json.loads(ln) for ln in (out / "clients.jsonl").read_text().splitlines()]
 store = Store(f"sqlite:///{out / 'server.db'}", migrate=False)
+atexit.register(store.close)
 trees: dict = {}  # (map version, floor) -> KD-tree of its references
+survey_version = None  # the first survey map: the one the live SLAM child takes its fixes from
 with Session(store.engine) as s:
-    for row in s.execute(select(m.RadioMapVersion)).scalars():
+    for row in s.execute(select(m.RadioMapVersion).order_by(m.RadioMapVersion.version)).scalars():
+        if survey_version is None and row.source == "survey":
+            survey_version = row.version
         by_floor: dict = {}
         for r in RadioMap.load(io.BytesIO(row.data)).references:
             by_floor.setdefault(r.floor, []).append(r.pos_enu[:2])
@@ -81,9 +86,9 @@ per, delta, n_both = [], 0.0, 0
 for c in clients:
     cor = [w["corrected_m"] for w in c["waypoints"] if w["corrected_m"] is not None]
     if cor:
-        survey = trees.get((1, c["floor"]))  # version 1: the survey map, the live SLAM child's fixes
+        survey = trees.get((survey_version, c["floor"]))
         d1 = float(np.median(survey.query([[w["x"], w["y"]] for w in c["waypoints"]])[0])) if survey is not None else float("nan")
-        per.append((float(np.mean(cor)), len(cor), anchored.get(c["walk_ids"][0], "?"), d1))
+        per.append((float(np.mean(cor)), len(cor), "/".join(sorted({anchored.get(w, "?") for w in c["walk_ids"]})), d1))
     pairs = [(w["corrected_m"], w["incremental_m"]) for w in c["waypoints"] if w["corrected_m"] is not None and w["incremental_m"] is not None]
     delta += sum(a - b for a, b in pairs)
     n_both += len(pairs)
@@ -118,14 +123,16 @@ if args.fixes:
 
     with Session(store.engine) as s:
         site = s.execute(select(m.RadioMapVersion.site_id)).scalars().first()
-        survey = s.execute(select(m.RadioMapVersion).where(m.RadioMapVersion.version == 1)).scalars().first()
+        survey = s.execute(select(m.RadioMapVersion).where(m.RadioMapVersion.version == survey_version)).scalars().first()
     slam = load_site(store, site)
     slam.set_map(RadioMap.load(io.BytesIO(survey.data)))
     counts: dict[str, list[int]] = {"bad": [], "good": []}
     for c in clients:
         cor = [w["corrected_m"] for w in c["waypoints"] if w["corrected_m"] is not None]
+        if not cor or not c["walk_ids"]:
+            continue
         wid = c["walk_ids"][0]
-        if not cor or anchored.get(wid) != "map" or wid not in slam.walks:
+        if anchored.get(wid) != "map" or wid not in slam.walks:
             continue
         n_fix = sum(len(v) for v in slam._map_fixes(slam._walk_pieces(slam.walks[wid])).values())
         counts["bad" if np.mean(cor) > args.big_corrected else "good"].append(n_fix)
@@ -138,4 +145,3 @@ if args.fixes:
             head[f"{name}_survey_fixes_median"] = float(np.median(a))
             head[f"{name}_few_survey_fixes_share"] = round(float(np.mean(a < 3)), 3)
 print(json.dumps(head))
-store.close()

@@ -157,6 +157,11 @@ def test_clients_jsonl_holds_each_client_and_waypoint_as_scored(crowd):
         live = np.array([np.nan if w["live_m"] is None else w["live_m"] for w in r["waypoints"]])
         np.testing.assert_array_equal(np.isnan(live), np.isnan(c.live))
         np.testing.assert_allclose(live[np.isfinite(live)], c.live[np.isfinite(c.live)], atol=1e-3)  # written to the mm
+        for key, mine in (("corrected_m", c.corrected), ("incremental_m", c.incremental)):
+            got = np.array([np.nan if w[key] is None else w[key] for w in r["waypoints"]])
+            want = np.full(c.waypoints, np.nan) if mine is None else np.asarray(mine, float)
+            np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+            np.testing.assert_allclose(got[np.isfinite(got)], want[np.isfinite(want)], atol=1e-3)
         for w in r["waypoints"]:
             if w["live_m"] is not None:  # the error is the distance of the live position from the truth
                 assert math.isclose(math.hypot(w["live_x"] - w["x"], w["live_y"] - w["y"]), w["live_m"], abs_tol=3e-3)

@@ -156,7 +156,7 @@ def test_anchor_points_refuses_a_shape_that_fits_nowhere():
     assert a.ambiguous and a.mean_fit < -0.5
 
 
-def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would():
+def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would(monkeypatch):
     """The search is a pure function of its arguments, so the field remembers it: asked again with the
     same points it answers what a fresh search gives (a new field has nothing remembered), a copy the
     caller may change, and any changed argument (a point, the weights, a setting) searches anew."""
@@ -192,8 +192,25 @@ def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would():
         assert len(calls) == 4
     finally:
         anchoring._search = real
-    # bounded: the oldest searches are dropped first
+    # bounded: the least recently used search is dropped first
     assert len(f._anchor_memo) <= anchoring.MEMO_SIZE
+    small = WalkableField.from_floor(_l_world(), resolution=H)
+    monkeypatch.setattr(anchoring, "MEMO_SIZE", 2)
+    anchor_points(walk, small)
+    anchor_points(moved, small)
+    anchor_points(walk, small)  # used again: now the most recent
+    anchor_points(walk + 1.0, small)  # a third: `moved` goes
+    assert len(small._anchor_memo) == 2
+    calls.clear()
+    anchoring._search = counting
+    try:
+        anchor_points(walk, small)
+        anchor_points(walk + 1.0, small)
+        assert calls == []
+        anchor_points(moved, small)
+        assert len(calls) == 1
+    finally:
+        anchoring._search = real
     # a pickled field (to a Dask worker) leaves its caches behind and searches alike
     import pickle
 

@@ -96,9 +96,9 @@ class WalkableField:
         return cls(inside, x0, y0, resolution, floor.walls, area)
 
     def __getstate__(self) -> dict:
-        # caches stay behind when a field is pickled (to a Dask worker, a forked copy's pipe): the
-        # remembered anchoring searches (.anchoring.anchor_points) and log-likelihood rasters are
-        # made again where they are needed
+        # caches stay behind should a field be pickled (today no path ships one: Dask workers and
+        # forked copies build or inherit theirs): the remembered anchoring searches
+        # (.anchoring.anchor_points) and log-likelihood rasters are made again where they are needed
         return {k: v for k, v in self.__dict__.items() if k not in ("_anchor_memo", "_raster_cache")}
 
     # ------------------------------------------------------------------------------------------

@@ -15,7 +15,8 @@ Per floor (slam.md 4.3-4.7):
 5. every scan of an anchored walk is labelled with its node's position and marginal covariance;
 6. EM (slam.md 4.7): the crowd radio map is built from the labels with each walk's fold left out,
    every scan of the fold is located against it, the fixes enter as Cauchy-robust anchors, and the
-   floor is solved again, while the labels still move (median > ``em_stop_m``).
+   floor is solved again, while the labels still move (median > ``em_stop_m``) or a round anchors
+   more pieces than the one before (``em_while_anchoring``).
 """
 
 from __future__ import annotations
