@@ -756,6 +756,9 @@ def _solve_groups(
     announced: set[str] = set()
     try:
 
+        def died(fk: dict) -> tuple:
+            return ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
+
         def drain() -> None:
             for fk in forks:
                 while fk["msg"] is None and fk["conn"].poll():
@@ -775,9 +778,6 @@ def _solve_groups(
                         say(*msg[1])
                     else:
                         fk["msg"] = msg
-
-        def died(fk: dict) -> tuple:
-            return ("error", f"the forked process died (exit code {fk['proc'].exitcode})", "")
 
         def mine_say(stage: str, floor: str, done: int, total: int) -> None:
             say(stage, floor, done, total)

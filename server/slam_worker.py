@@ -83,13 +83,6 @@ class SlamOptions:
     #: cores. While a batch runs it then takes that many cores, at the child's lower priority. Site1's
     #: eval crowd database (305 walks, three floors): 105 s against 196-255 s in one process, 2 cores
     batch_processes: int = 0
-
-    def batch_process_count(self) -> int:
-        """The processes a batch re-solve uses (:attr:`batch_processes`, 0 resolved to the usable cores)."""
-        from .slam_batch import usable_cores
-
-        return self.batch_processes or usable_cores()
-
     #: the loop's pause when there is nothing to do, s
     poll_s: float = 1.0
     #: a walk whose solve failed this many times is marked failed (the next batch run retries it)
@@ -108,6 +101,12 @@ class SlamOptions:
     #: a slow, failing or crashing solve; see tests/slam_helpers.py)
     child_hook: str | None = None
     child_hook_arg: str = ""
+
+    def batch_process_count(self) -> int:
+        """The processes a batch re-solve uses (:attr:`batch_processes`, 0 resolved to the usable cores)."""
+        from .slam_batch import usable_cores
+
+        return self.batch_processes or usable_cores()
 
 
 class ChildError(RuntimeError):
