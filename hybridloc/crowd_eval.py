@@ -37,6 +37,7 @@ bounded by a timeout that is counted and reported.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import io
 import json
 import math
 import re
@@ -229,6 +230,10 @@ class ClientScore:
     tracks_received: int = 0  # corrected tracks of the crowd SLAM the client heard while it walked
     tracks_applied: int = 0  # ... and re-anchored its filter with (its live rows after that include them)
     live_xy: np.ndarray | None = None  # (n, 2) the live position scored at each waypoint (NaN before the first fix)
+    #: the survey-only baseline (:func:`survey_baseline`): per waypoint, m, the same client replayed offline
+    #: with fixes from the survey map only, and with the map version it was served (NaN before its first fix)
+    survey_only: np.ndarray | None = None
+    replayed: np.ndarray | None = None
 
     @property
     def waypoints(self) -> int:
@@ -400,6 +405,8 @@ class CrowdRun:
     concurrency: int = 1
     close_errors: int = 0  # client sessions whose close failed (their walks count)
     out: Path | None = None  # the run's folder (server.db, spool/, clients.jsonl)
+    axes: dict = field(default_factory=dict)  # the floors' corridor axes the clients' filters use
+    baseline: bool = False  # the survey-only baseline was replayed (ClientScore.survey_only / replayed)
 
     @property
     def final_batches(self) -> int:
@@ -418,8 +425,10 @@ def run_crowd(
     wait_timeout: float = 600.0,
     progress: bool = True,
     slam: bool = True,
+    baseline: bool = True,
 ) -> CrowdRun:
-    """Replay the site as a crowd (module docstring) and score every client; returns the run."""
+    """Replay the site as a crowd (module docstring) and score every client; returns the run.
+    ``baseline``: also replay every client offline against the survey map only (:func:`survey_baseline`)."""
     from . import geo
     from .io.msft import read_ilc_site
     from .progress import Progress
@@ -452,7 +461,7 @@ def run_crowd(
     skipped: list[tuple[CrowdWalk, str]] = []
     scores: list[ClientScore] = []
     secs: dict = {}
-    run = CrowdRun(plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency, out=out)
+    run = CrowdRun(plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency, out=out, axes=axes)
     try:
         server.store.save_floor_plan(plan.site, fp)  # the operator's `floorplan import`
         # ------------------------------------------------------------------ phase 1: the surveys
@@ -561,6 +570,11 @@ def run_crowd(
     finally:
         server.stop()
     scores.sort(key=lambda c: c.order)
+    if baseline and run.map_version_survey is not None:
+        t4 = time.monotonic()
+        say(f"[eval crowd] survey-only baseline: {len(scores)} clients replayed offline with the survey map and with the maps served")
+        survey_baseline(run, f"sqlite:///{db}")
+        secs["baseline"] = time.monotonic() - t4
     secs["total"] = time.monotonic() - t0
     write_clients(run, out / "clients.jsonl")
     return run
@@ -589,6 +603,106 @@ def _score_live(rep: _Replayed, order: int, walk_ids: tuple[int, ...], version: 
     )
 
 
+# ------------------------------------------------------------------------- the survey-only baseline
+#: a worker's kNN locators: role ("survey", "served") -> ((database, site, map version), locator). One map
+#: per role is held: the clients come in time order, so the versions they were served come in order too
+_BASE_LOCATORS: dict[str, tuple] = {}
+
+
+def _baseline_locator(db_url: str, site: str, version: int, role: str):
+    """The server's locator (:func:`hybridloc.server.locate_pool.make_locator`, kNN) of one stored map
+    version, read from the run's database; None when the version is not stored."""
+    from .radio.radiomap import RadioMap
+    from .server.locate_pool import make_locator
+    from .server.store import Store
+
+    key = (db_url, site, version)
+    for held in _BASE_LOCATORS.values():
+        if held[0] == key:
+            _BASE_LOCATORS[role] = held
+            return held[1]
+    store = Store(db_url, migrate=False)
+    try:
+        data = store.map_version(site, version)
+    finally:
+        store.close()
+    _BASE_LOCATORS[role] = (key, None if data is None else make_locator(RadioMap.load(io.BytesIO(data)), "knn"))
+    return _BASE_LOCATORS[role][1]
+
+
+def replay_offline(path: str | Path, wp_t, wp_xy, axes: dict, locators: list) -> list[np.ndarray]:
+    """One phone recording replayed offline, once per locator of ``locators``: the phone PDR the client
+    runs (:class:`~hybridloc.pdr.phone.PhonePdr`, default settings), a fix for every WiFi scan from the
+    locator (the server's answer; None: no fixes), the client's Kalman filter
+    (:class:`~hybridloc.fusion.LocalFusion` with the floors' corridor ``axes``) with each fix at its scan's
+    time, as the lock-step replay delivers it; the causal error at every waypoint (:func:`live_errors`,
+    NaN before the first fix)."""
+    from .fusion import LocalFusion, run_fusion
+    from .io.msft import read_ilc_trace
+    from .pdr.phone import PhonePdr
+    from .server.locate_pool import answers
+    from .types import RfScan, Technology
+
+    tr = read_ilc_trace(Path(path))
+    imu = tr.imu
+    nan = np.full(len(wp_t), np.nan)
+    if imu is None or len(imu.t) < 2:
+        return [nan.copy() for _ in locators]
+    pdr = PhonePdr(imu.rate_hz)
+    steps: list = []
+    acc, gyr, ts = imu.accel_body.tolist(), imu.gyro_body.tolist(), imu.t.tolist()
+    mag = imu.mag_body.tolist() if imu.mag_body is not None else None
+    for k in range(len(ts)):
+        steps += pdr.update(ts[k], acc[k], gyr[k], mag[k] if mag is not None else None)
+    # the readings and ages the phone client sends (replay_phone)
+    scans = [RfScan(sc.t, Technology.WIFI, sc.rssi_dbm, age_s=sc.age_s) for sc in tr.scans if sc.technology is Technology.WIFI]
+    out = []
+    for loc in locators:
+        if loc is None or not steps:
+            out.append(nan.copy())
+            continue
+        fixes = [f.fix for f in answers(loc, scans) if f.fix is not None] if scans else []
+        est = run_fusion(LocalFusion(corridor_axes=axes), steps, fixes)
+        out.append(live_errors([(e.t, float(e.pos[0]), float(e.pos[1]), e.floor) for e in est], wp_t, wp_xy))
+    return out
+
+
+def _baseline_client(job: tuple) -> tuple[np.ndarray, np.ndarray]:
+    db_url, site, survey_v, served_v, path, wp_t, wp_xy, axes = job
+    survey = _baseline_locator(db_url, site, survey_v, "survey")
+    served = _baseline_locator(db_url, site, served_v, "served") if served_v is not None else None
+    a, b = replay_offline(path, wp_t, wp_xy, axes, [survey, served])
+    return a, b
+
+
+def survey_baseline(run: CrowdRun, db_url: str, processes: int | None = None) -> None:
+    """The plain method beside the crowd (``eval crowd`` prints both): every client of ``run`` replayed
+    offline (:func:`replay_offline`) with fixes from the survey map only (version
+    ``run.map_version_survey``: what the clients would get with no crowd SLAM), and with the map version
+    the server served it when it started (the check that the offline replay is the live one: their
+    per-third means agree with the live run's within a few tenths of a metre on site1). Fills each
+    client's ``survey_only`` and ``replayed``; the clients spread over ``processes`` (default: the usable
+    cores; each worker holds two maps)."""
+    import multiprocessing as mp
+
+    from .server.slam_batch import usable_cores
+
+    C = run.clients
+    if not C or run.map_version_survey is None:
+        return
+    jobs = [(db_url, run.plan.site, run.map_version_survey, c.map_version, str(c.walk.path), c.wp_t, c.wp_xy, run.axes) for c in C]
+    n = max(1, min(processes or usable_cores(), len(C)))
+    if n == 1:
+        res = [_baseline_client(j) for j in jobs]
+        _BASE_LOCATORS.clear()
+    else:
+        with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as ex:
+            res = list(ex.map(_baseline_client, jobs, chunksize=max(1, len(jobs) // (4 * n))))
+    for c, (a, b) in zip(C, res):
+        c.survey_only, c.replayed = a, b
+    run.baseline = True
+
+
 def _num(v) -> float | None:
     v = float(v)
     return round(v, 3) if math.isfinite(v) else None
@@ -608,6 +722,8 @@ def write_clients(run: CrowdRun, path: str | Path) -> Path:
             lx = c.live_xy if c.live_xy is not None else np.full((c.waypoints, 2), np.nan)
             cor = c.corrected if c.corrected is not None else nan
             inc = c.incremental if c.incremental is not None else nan
+            so = c.survey_only if c.survey_only is not None else nan
+            rp = c.replayed if c.replayed is not None else nan
             rec = {
                 "order": c.order,
                 "third": ("first", "middle", "last")[third.get(i, 0)],
@@ -631,6 +747,8 @@ def write_clients(run: CrowdRun, path: str | Path) -> Path:
                         "live_m": _num(c.live[k]),
                         "corrected_m": _num(cor[k]),
                         "incremental_m": _num(inc[k]),
+                        "survey_only_m": _num(so[k]),
+                        "replayed_m": _num(rp[k]),
                     }
                     for k in range(c.waypoints)
                 ],
@@ -655,6 +773,34 @@ def _corrected_errors(c: ClientScore, tracks: dict, states: dict) -> tuple[np.nd
 
 
 # ------------------------------------------------------------------------------------------- report
+def _baseline_figures(run: CrowdRun, parts: list[np.ndarray]) -> dict | None:
+    """Per third: the survey-only and replayed means (each on its own scored waypoints), the survey-only
+    learning, and the served maps' gain over the survey map on the waypoints both scored."""
+    C = run.clients
+    if not run.baseline or not C:
+        return None
+
+    def gain(a: np.ndarray, b: np.ndarray) -> float:
+        both = np.isfinite(a) & np.isfinite(b)
+        return _gain(float(b[both].mean()), float(a[both].mean())) if both.any() else float("nan")
+
+    with_both = [c for c in C if c.survey_only is not None and c.replayed is not None]
+    sv, rp, g = [], [], []
+    for part in parts:
+        mine = [C[i] for i in part if C[i].survey_only is not None and C[i].replayed is not None]
+        a, b = _cat(c.survey_only for c in mine), _cat(c.replayed for c in mine)
+        sv.append(_stats(a)["mean"])
+        rp.append(_stats(b)["mean"])
+        g.append(gain(a, b))
+    return {
+        "survey_only": sv,
+        "replayed": rp,
+        "gain": g,
+        "gain_all": gain(_cat(c.survey_only for c in with_both), _cat(c.replayed for c in with_both)),
+        "survey_only_learning": _gain(sv[2], sv[0]) if len(sv) == 3 else float("nan"),
+    }
+
+
 def crowd_report(run: CrowdRun, out=None) -> dict:
     """Print the report of a run and return the headline figures (the JSON line)."""
     out = out if out is not None else sys.stdout
@@ -757,6 +903,24 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
             return "undefined"
         return f"{100 * v:.0f} % below" if v >= 0 else f"{-100 * v:.0f} % ABOVE"
 
+    base = _baseline_figures(run, parts)
+    if base:
+        sv, rp = base["survey_only"], base["replayed"]
+        p(
+            f"  survey-only baseline (the plain method: each client replayed offline with the same PDR and filter, fixes from the survey map "
+            f"v{run.map_version_survey} only): first third {sv[0]:.2f} m, middle {sv[1]:.2f}, last {sv[2]:.2f}: the last third "
+            f"{gain_txt(base['survey_only_learning'])} the first with no crowd at all (what the thirds' own floors and routes make of the learning figure)"
+        )
+        p(
+            f"    the same replay with the maps the server served: {rp[0]:.2f} / {rp[1]:.2f} / {rp[2]:.2f} m "
+            f"(the live run: {live3[0]['mean']:.2f} / {live3[1]['mean']:.2f} / {live3[2]['mean']:.2f} m)"
+        )
+        g = base["gain"]
+        p(
+            f"    the maps served against the survey map on the same waypoints: first third {gain_txt(g[0])}, middle {gain_txt(g[1])}, "
+            f"last {gain_txt(g[2])}; all clients {gain_txt(base['gain_all'])}"
+        )
+
     cov_txt = "undefined" if cov is None else f"{100 * cov:.0f} %"
     p(
         f"  goals: last third's live mean {gain_txt(learning)} the first third's (goal >= {100 * GOALS['learning_gain']:.0f} % below); "
@@ -779,6 +943,15 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "live_mean_same_waypoints_m": live_same["mean"] if run.slam_on else nan,
         "corrected_mean_same_waypoints_m": corr_same["mean"] if run.slam_on else nan,
         "learning_gain": learning,
+        "survey_only_mean_first_third_m": base["survey_only"][0] if base else nan,
+        "survey_only_mean_middle_third_m": base["survey_only"][1] if base else nan,
+        "survey_only_mean_last_third_m": base["survey_only"][2] if base else nan,
+        "survey_only_learning_gain": base["survey_only_learning"] if base else nan,
+        "replayed_mean_first_third_m": base["replayed"][0] if base else nan,
+        "replayed_mean_last_third_m": base["replayed"][2] if base else nan,
+        "crowd_map_gain": base["gain_all"] if base else nan,
+        "crowd_map_gain_first_third": base["gain"][0] if base else nan,
+        "crowd_map_gain_last_third": base["gain"][2] if base else nan,
         "correction_gain": correction if run.slam_on else nan,
         "coverage": cov if cov is not None else nan,
         "walks_quarantined": sm.get("walks_quarantined"),
@@ -809,6 +982,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "seconds_clients": s.get("clients"),
         "seconds_waiting_for_slam": s.get("waiting_for_slam"),
         "seconds_correction": s.get("correction"),
+        "seconds_baseline": s.get("baseline"),
         "seconds": s.get("total"),
     }
     return head

@@ -521,6 +521,14 @@ class Store:
             q = select(m.RadioMapVersion.version, m.RadioMapVersion.source, m.RadioMapVersion.data).where(m.RadioMapVersion.site_id == site)
             return [(int(v), str(src), bytes(d)) for v, src, d in s.execute(q.order_by(m.RadioMapVersion.version)).all()]
 
+    def map_version(self, site: str, version: int) -> bytes | None:
+        """The file bytes of one stored radio map version of ``site`` (None when it is not stored)."""
+        with Session(self.engine) as s:
+            row = s.execute(
+                select(m.RadioMapVersion.data).where(m.RadioMapVersion.site_id == site, m.RadioMapVersion.version == int(version))
+            ).first()
+            return None if row is None else bytes(row[0])
+
     def load_map(self, site: str) -> tuple[int, bytes] | None:
         with Session(self.engine) as s:
             row = (

@@ -157,7 +157,12 @@ def test_clients_jsonl_holds_each_client_and_waypoint_as_scored(crowd):
         live = np.array([np.nan if w["live_m"] is None else w["live_m"] for w in r["waypoints"]])
         np.testing.assert_array_equal(np.isnan(live), np.isnan(c.live))
         np.testing.assert_allclose(live[np.isfinite(live)], c.live[np.isfinite(c.live)], atol=1e-3)  # written to the mm
-        for key, mine in (("corrected_m", c.corrected), ("incremental_m", c.incremental)):
+        for key, mine in (
+            ("corrected_m", c.corrected),
+            ("incremental_m", c.incremental),
+            ("survey_only_m", c.survey_only),
+            ("replayed_m", c.replayed),
+        ):
             got = np.array([np.nan if w[key] is None else w[key] for w in r["waypoints"]])
             want = np.full(c.waypoints, np.nan) if mine is None else np.asarray(mine, float)
             np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
@@ -167,6 +172,34 @@ def test_clients_jsonl_holds_each_client_and_waypoint_as_scored(crowd):
                 assert math.isclose(math.hypot(w["live_x"] - w["x"], w["live_y"] - w["y"]), w["live_m"], abs_tol=3e-3)
             else:
                 assert w["live_x"] is None and w["live_y"] is None
+
+
+def test_the_survey_only_baseline_replays_every_client_with_the_survey_map_and_with_the_map_served(crowd):
+    C = crowd.clients
+    assert crowd.baseline and all(c.survey_only is not None and c.replayed is not None for c in C)
+    for c in C:
+        for e in (c.survey_only, c.replayed):
+            assert e.shape == (c.waypoints,)
+            scored = np.isfinite(e)
+            # scored from the first fix on: unscored waypoints are a leading run, as in the live scoring
+            k = int((~scored).sum())
+            assert not scored[:k].any() and scored[k:].all() and np.all(e[scored] >= 0)
+        if c.map_version == crowd.map_version_survey:
+            # served the survey map: the two replays are one computation
+            np.testing.assert_array_equal(c.survey_only, c.replayed)
+    # the figures printed are those of the arrays (per third, each on its own scored waypoints)
+    buf = io.StringIO()
+    head = crowd_report(crowd, out=buf)
+    assert "survey-only baseline" in buf.getvalue() and "the same replay with the maps the server served" in buf.getvalue()
+    cuts = thirds(len(C))
+    sv = [np.nanmean(np.concatenate([C[i].survey_only for i in part])) for part in cuts]
+    assert math.isclose(head["survey_only_mean_first_third_m"], sv[0], rel_tol=1e-9)
+    assert math.isclose(head["survey_only_mean_last_third_m"], sv[2], rel_tol=1e-9)
+    assert math.isclose(head["survey_only_learning_gain"], 1 - sv[2] / sv[0], rel_tol=1e-9)
+    a = np.concatenate([c.survey_only for c in C])
+    b = np.concatenate([c.replayed for c in C])
+    both = np.isfinite(a) & np.isfinite(b)
+    assert math.isclose(head["crowd_map_gain"], 1 - b[both].mean() / a[both].mean(), rel_tol=1e-9, abs_tol=1e-12)
 
 
 def test_the_thirds_follow_each_other(crowd):

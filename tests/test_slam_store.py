@@ -191,6 +191,15 @@ def test_map_versions_from_concurrent_writers_never_collide(db_url):
     assert sorted(got) == list(range(1, 31))
 
 
+def test_one_map_version_is_read_by_its_number(st):
+    _fill(st, 1)
+    v1 = st.save_map("s1", b"survey", 1, source="survey")
+    v2 = st.save_map("s1", b"slam", 2, source="slam")
+    assert (v1, v2) == (1, 2)
+    assert st.map_version("s1", 1) == b"survey" and st.map_version("s1", 2) == b"slam"
+    assert st.map_version("s1", 3) is None and st.map_version("other-site", 1) is None
+
+
 def test_a_walk_across_floors_keeps_every_floors_points(st):
     """A walk solved on two floors of one batch run has a checkpoint entry on each (each with that floor's
     points only): the run keeps both pieces, their count, the corrected state of the floor where it was
