@@ -7,7 +7,9 @@ from __future__ import annotations
 import io
 import json
 import math
+import sys
 from contextlib import redirect_stdout
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -200,6 +202,22 @@ def test_the_survey_only_baseline_replays_every_client_with_the_survey_map_and_w
     b = np.concatenate([c.replayed for c in C])
     both = np.isfinite(a) & np.isfinite(b)
     assert math.isclose(head["crowd_map_gain"], 1 - b[both].mean() / a[both].mean(), rel_tol=1e-9, abs_tol=1e-12)
+
+
+def test_probe_learning_replays_the_run_as_eval_crowd_does(crowd):
+    """scripts/probe_learning.py's ``served`` and ``survey`` variants are the report's two replays."""
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "probe_learning.py"
+    argv = [sys.executable, str(script), str(crowd.out), str(ILC_SITE1_F1), "--survey-fraction", "0.2", "--variants", "served,survey"]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    fig = json.loads(done.stdout.strip().splitlines()[-1])
+    head = crowd_report(crowd, out=io.StringIO())
+    assert math.isclose(fig["survey"]["first_m"], head["survey_only_mean_first_third_m"], abs_tol=1e-3)
+    assert math.isclose(fig["survey"]["last_m"], head["survey_only_mean_last_third_m"], abs_tol=1e-3)
+    assert math.isclose(fig["served"]["first_m"], head["replayed_mean_first_third_m"], abs_tol=1e-3)
+    assert math.isclose(fig["served"]["last_m"], head["replayed_mean_last_third_m"], abs_tol=1e-3)
 
 
 def test_the_thirds_follow_each_other(crowd):
