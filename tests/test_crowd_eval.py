@@ -262,7 +262,9 @@ def test_the_report_ends_with_the_json_line_of_the_issue(crowd):
 
 
 def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, capsys):
-    argv = ["eval", "crowd", str(ILC_SITE1_F1), "--survey-fraction", "0.6", "--seed", "3", "--floors", "F1"]
+    # the options reach the run; --no-slam: a server without crowd SLAM (the fixture's run has it), so
+    # nothing is corrected, the corrected figures are null, and the survey-only baseline still prints
+    argv = ["eval", "crowd", str(ILC_SITE1_F1), "--survey-fraction", "0.6", "--seed", "3", "--floors", "F1", "--no-slam"]
     rc = main([*argv, "--out", str(tmp_path), "--concurrency", "4"])
     out = capsys.readouterr().out
     assert rc == 0
@@ -270,4 +272,9 @@ def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, ca
     assert set(ISSUE_KEYS) <= set(fig)
     assert fig["survey_fraction"] == 0.6 and fig["seed"] == 3 and fig["survey_walks"] == 21 and fig["clients"] == 14
     assert math.isfinite(fig["live_mean_m"])
+    assert "crowd SLAM off" in out and "corrected: undefined" in out
+    assert fig["corrected_mean_m"] is None and fig["correction_gain"] is None and fig["coverage"] is None
+    # every client was served the survey map: the replay with it is the survey-only baseline
+    assert fig["map_versions"] == 1 and fig["crowd_map_gain"] == 0.0
+    assert math.isfinite(fig["survey_only_mean_first_third_m"]) and "survey-only baseline" in out
     assert (tmp_path / "server.db").is_file()
