@@ -648,12 +648,7 @@ def replay_offline(path: str | Path, wp_t, wp_xy, axes: dict, locators: list) ->
     nan = np.full(len(wp_t), np.nan)
     if imu is None or len(imu.t) < 2:
         return [nan.copy() for _ in locators]
-    pdr = PhonePdr(imu.rate_hz)
-    steps: list = []
-    acc, gyr, ts = imu.accel_body.tolist(), imu.gyro_body.tolist(), imu.t.tolist()
-    mag = imu.mag_body.tolist() if imu.mag_body is not None else None
-    for k in range(len(ts)):
-        steps += pdr.update(ts[k], acc[k], gyr[k], mag[k] if mag is not None else None)
+    steps = PhonePdr(imu.rate_hz).process(imu)  # the samples in order, as replay_phone feeds them
     # the readings and ages the phone client sends (replay_phone)
     scans = [RfScan(sc.t, Technology.WIFI, sc.rssi_dbm, age_s=sc.age_s) for sc in tr.scans if sc.technology is Technology.WIFI]
     out = []

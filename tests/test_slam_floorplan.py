@@ -172,26 +172,23 @@ def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would(mon
         calls.append(1)
         return real(*args)
 
-    anchoring._search = counting
-    try:
-        b = anchor_points(walk.copy(), f)
-        assert calls == []  # remembered
-        fresh = anchor_points(walk, WalkableField.from_floor(_l_world(), resolution=H))
-        assert len(calls) == 1
-        for x in (a, b):
-            np.testing.assert_array_equal(x.T, fresh.T)
-            np.testing.assert_array_equal(x.t, fresh.t)
-            assert (x.score, x.runner_up, x.ambiguous, x.mean_fit) == (fresh.score, fresh.runner_up, fresh.ambiguous, fresh.mean_fit)
-        b.t += 100.0  # the caller's copy: the remembered answer does not move
-        np.testing.assert_array_equal(anchor_points(walk, f).t, a.t)
-        moved = walk.copy()
-        moved[3, 1] += 0.01
-        anchor_points(moved, f)
-        anchor_points(walk, f, weights=np.full(len(walk), 2.0))
-        anchor_points(walk, f, min_log_ratio=5.0)
-        assert len(calls) == 4
-    finally:
-        anchoring._search = real
+    monkeypatch.setattr(anchoring, "_search", counting)  # counts every search below; restored after the test
+    b = anchor_points(walk.copy(), f)
+    assert calls == []  # remembered
+    fresh = anchor_points(walk, WalkableField.from_floor(_l_world(), resolution=H))
+    assert len(calls) == 1
+    for x in (a, b):
+        np.testing.assert_array_equal(x.T, fresh.T)
+        np.testing.assert_array_equal(x.t, fresh.t)
+        assert (x.score, x.runner_up, x.ambiguous, x.mean_fit) == (fresh.score, fresh.runner_up, fresh.ambiguous, fresh.mean_fit)
+    b.t += 100.0  # the caller's copy: the remembered answer does not move
+    np.testing.assert_array_equal(anchor_points(walk, f).t, a.t)
+    moved = walk.copy()
+    moved[3, 1] += 0.01
+    anchor_points(moved, f)
+    anchor_points(walk, f, weights=np.full(len(walk), 2.0))
+    anchor_points(walk, f, min_log_ratio=5.0)
+    assert len(calls) == 4
     # bounded: the least recently used search is dropped first
     assert len(f._anchor_memo) <= anchoring.MEMO_SIZE
     small = WalkableField.from_floor(_l_world(), resolution=H)
@@ -202,15 +199,11 @@ def test_anchor_points_remembers_a_search_and_answers_it_as_the_search_would(mon
     anchor_points(walk + 1.0, small)  # a third: `moved` goes
     assert len(small._anchor_memo) == 2
     calls.clear()
-    anchoring._search = counting
-    try:
-        anchor_points(walk, small)
-        anchor_points(walk + 1.0, small)
-        assert calls == []
-        anchor_points(moved, small)
-        assert len(calls) == 1
-    finally:
-        anchoring._search = real
+    anchor_points(walk, small)
+    anchor_points(walk + 1.0, small)
+    assert calls == []
+    anchor_points(moved, small)
+    assert len(calls) == 1
     # a pickled field (to a Dask worker) leaves its caches behind and searches alike
     import pickle
 
