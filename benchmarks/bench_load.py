@@ -1,6 +1,7 @@
 """Live load: many phone clients at their real step and scan rates through real Zenoh on loopback.
 
     python -m benchmarks.bench_load [--clients 1000] [--minutes 10] [--db sqlite|postgres|URL] [--sessions N] [--window S] [--locate-workers N]
+        [--ingest-workers N]
 
 The server is ``hybridloc serve`` in its own process, serving a real radio map of site1 F1 built from
 the bundled sample's surveys (``hybridloc/data/ilc_site1_F1``), so every scan costs a real locate.
@@ -249,6 +250,7 @@ def run(
     faults: list[tuple[str, int, float]] = (),  # type: ignore[assignment]
     drop_fraction: float = 0.2,
     locate_workers: int = 0,
+    ingest_workers: int = 0,
 ) -> dict:
     import zenoh
 
@@ -274,7 +276,17 @@ def run(
     ep = f"tcp/127.0.0.1:{free_port()}"
     if any(k == "db-outage" for k, _, _ in faults) and pg is None:
         raise ValueError("a db-outage fault needs --db postgres (the benchmark's own PostgreSQL server)")
-    serve_args = ("--map", f"{SITE}={map_file}", "--site", SITE, "--no-slam", "--locate-workers", str(locate_workers))
+    serve_args = (
+        "--map",
+        f"{SITE}={map_file}",
+        "--site",
+        SITE,
+        "--no-slam",
+        "--locate-workers",
+        str(locate_workers),
+        "--ingest-workers",
+        str(ingest_workers),
+    )
     server = {"proc": _serve(ep, url, *serve_args), "rss": 0.0}
     devices = [f"load{i:05d}" for i in range(clients)]
     n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
@@ -453,6 +465,7 @@ def run(
         "resends": load.resends,
         "fixed_resend": fixed_resend,
         "locate_workers": locate_workers,
+        "ingest_workers": ingest_workers,
         "misrouted": load.misrouted,
         "server_peak_rss_mb": round(rss, 1),
         "wall_s": round(wall, 1),
@@ -525,6 +538,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument(
         "--locate-workers", type=int, default=0, help="the server's locate worker processes (serve --locate-workers; 0: its locate thread)"
     )
+    ap.add_argument(
+        "--ingest-workers",
+        type=int,
+        default=0,
+        help="the server's ingest worker processes, for the live load and the ceiling (serve --ingest-workers; 0: its ingest thread)",
+    )
     ap.add_argument("--ceiling-batches", type=int, default=40, help="batches of 1,000 steps + 100 scans per device for the ceiling")
     ap.add_argument("--ceiling-only", action="store_true", help="only the large-batch ceiling and the raw insert rate (no live load)")
     ap.add_argument(
@@ -546,15 +565,15 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error("a fault's SECOND must fall inside the run (< --minutes x 60)")
     if any(k == "db-outage" for k, _, _ in faults) and args.db != "postgres":
         ap.error("a db-outage fault needs --db postgres (the benchmark pauses its own PostgreSQL server)")
+    if args.locate_workers < 0 or args.ingest_workers < 0:
+        ap.error("--locate-workers and --ingest-workers must be >= 0")
     if args.ceiling_only and (args.no_ceiling or faults):
         ap.error("--ceiling-only runs no live load: it takes neither --no-ceiling nor --fault")
     if args.ceiling_only:
-        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True}
-        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps)
+        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True, "ingest_workers": args.ingest_workers}
+        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps, args.ingest_workers)
         print(json.dumps(r))
         return r
-    if args.locate_workers < 0:
-        raise SystemExit("--locate-workers must be >= 0")
     r = run(
         args.clients,
         args.minutes,
@@ -566,6 +585,7 @@ def main(argv: list[str] | None = None) -> dict:
         faults,
         args.drop_fraction,
         args.locate_workers,
+        args.ingest_workers,
     )
     held = r["realtime_factor"] >= 1.0 and r["lost"] == 0 and r["doubled"] == 0
     print(
@@ -581,17 +601,18 @@ def main(argv: list[str] | None = None) -> dict:
             f"first ack {f['first_ack_s']} s after it ended, every batch sent before its end acknowledged after {f['caught_up_s']} s"
         )
     if not args.no_ceiling:
-        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps)
+        _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps, args.ingest_workers)
     print(json.dumps(r))
     return r
 
 
-def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str) -> None:
+def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str, ingest_workers: int = 0) -> None:
     """Run :func:`ceiling` into ``r`` and print its lines."""
-    r.update(ceiling(db, n_batches, step_form))
+    r.update(ceiling(db, n_batches, step_form, ingest_workers))
     print(
         f"ceiling on {r['db']}: {r['ceiling_steps_per_s']:,.0f} steps/s + {r['ceiling_scans_per_s']:,.0f} scans/s stored end to end "
         f"(2 devices, batches of 1,000 steps as {step_form} + 100 scans through Zenoh, decoding, validation and the database, "
+        f"{'the server ingesting in ' + str(r['ceiling_ingest_workers']) + ' worker processes' if r['ceiling_ingest_workers'] else 'the server ingesting in its ingest thread'}, "
         f"{'zero loss' if r['ceiling_lossless'] else 'LOSS'}); plain executemany of 8-column step rows on the same database: "
         f"{r['raw_rows_per_s']:,.0f} rows/s; ratio {r['ceiling_ratio']:.1%} (goal >= 20 %)"
     )
@@ -610,11 +631,12 @@ def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str) -> None:
         )
 
 
-def ceiling(db: str, n_batches: int, step_form: str = "columns") -> dict:
+def ceiling(db: str, n_batches: int, step_form: str = "columns", ingest_workers: int = 0) -> dict:
     """Ingest with large batches (1,000 steps + 100 scans) from 2 client processes, end to end, next to
     the raw insert rate of the same kind of database on this machine (each on a fresh database).
     ``step_form``: the clients send the steps in the columnar form (``columns``, what the client agent
-    sends for large batches) or as today's rows (``rows``)."""
+    sends for large batches) or as today's rows (``rows``); ``ingest_workers``: the server's
+    (``serve --ingest-workers``)."""
     from benchmarks.bench_server import ingest_run, raw_insert_rate
 
     tmp = Path(tempfile.mkdtemp(prefix="hybridloc-ceiling-"))
@@ -629,7 +651,15 @@ def ceiling(db: str, n_batches: int, step_form: str = "columns") -> dict:
             url_ingest, url_raw = pg.database("ceiling"), pg.database("raw")
         else:
             url_ingest = url_raw = db
-        r = ingest_run(url_ingest, 2, n_batches, n_steps=1000, n_scans=100, step_columns_from=1 if step_form == "columns" else None)
+        r = ingest_run(
+            url_ingest,
+            2,
+            n_batches,
+            n_steps=1000,
+            n_scans=100,
+            step_columns_from=1 if step_form == "columns" else None,
+            serve_args=("--ingest-workers", str(ingest_workers)),
+        )
         raw = raw_insert_rate(url_raw)
         costs = batch_costs(str(tmp / "costs.db") if db == "sqlite" else (pg.database("costs") if pg is not None else db), step_form=step_form)
     finally:
@@ -643,6 +673,7 @@ def ceiling(db: str, n_batches: int, step_form: str = "columns") -> dict:
         "raw_rows_per_s": round(raw, 1),
         "ceiling_ratio": round(steps_per_s / raw, 4),
         "ceiling_step_form": step_form,
+        "ceiling_ingest_workers": ingest_workers,
         **costs,
     }
 

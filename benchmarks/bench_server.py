@@ -94,11 +94,20 @@ def _serve(ep: str, db: str, *extra: str) -> subprocess.Popen:
     return p
 
 
-def ingest_run(db_url: str, n_clients: int, n_batches: int, n_steps: int = 100, n_scans: int = 10, step_columns_from: int | None = None) -> dict:
-    """``n_clients`` client processes sending ``n_batches`` batches each to a server on ``db_url``; batches of at
-    least ``step_columns_from`` steps with their steps in the columnar form (None: today's rows)."""
+def ingest_run(
+    db_url: str,
+    n_clients: int,
+    n_batches: int,
+    n_steps: int = 100,
+    n_scans: int = 10,
+    step_columns_from: int | None = None,
+    serve_args: tuple[str, ...] = (),
+) -> dict:
+    """``n_clients`` client processes sending ``n_batches`` batches each to a server on ``db_url`` (started
+    with ``serve_args`` more); batches of at least ``step_columns_from`` steps with their steps in the
+    columnar form (None: today's rows)."""
     ep = f"tcp/127.0.0.1:{free_port()}"
-    server = _serve(ep, db_url)
+    server = _serve(ep, db_url, *serve_args)
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
     go = ctx.Event()

@@ -11,6 +11,7 @@ line's own, so no file and no variable change nothing). Example file::
     db = "postgresql+psycopg://hybridloc@db/hybridloc"
     floorplan = "sites/site1"          # the site's floor plans (client --floorplan)
     locate_workers = 1                 # serve: processes answering the stored scans (0: in the server)
+    ingest_workers = 2                 # serve: processes storing the batches (0: in the server)
 
     [security]
     user = "phone-7"
@@ -111,6 +112,7 @@ class Settings:
     db: str = "hybridloc.db"  # SQLite file or database URL (postgresql+psycopg://...)
     method: str = "knn"  # the server's locate method, one of LOCATE_METHODS
     locate_workers: int = 0  # worker processes answering the server's stored scans (0: its locate thread)
+    ingest_workers: int = 0  # worker processes decoding and storing the server's batches (0: its ingest thread)
     floorplan: str | None = None  # the site's floor plan folder (Indoor Location Competition layout)
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)

@@ -32,25 +32,22 @@ import time
 from collections import Counter, deque
 
 import zenoh
-from sqlalchemy import exc as sa_exc
 
 from hybridloc.radio.locate import ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
-from hybridloc.types import Fix, RfScan, Technology
+from hybridloc.types import Fix, RfScan
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
+from .ingest import IngestResult, Stopping, ingest_group, with_database
+from .ingest_pool import IngestPool
 from .locate_pool import LocatePool, PoolBroken, answers, make_locator
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
 log = logging.getLogger("hybridloc.server")
-
-
-class _Stopping(Exception):
-    """The server stopped while ingest waited for the database."""
 
 
 class Server:
@@ -67,6 +64,7 @@ class Server:
         sites: list[str] | None = None,
         connect: list[str] | None = None,
         locate_workers: int = 0,
+        ingest_workers: int = 0,
     ):
         #: the sites this process serves (ingest, locate, maps): None or empty = every site. Processes
         #: serving different sites share one router mesh (``connect``: other routers) and one database.
@@ -101,6 +99,12 @@ class Server:
             raise ValueError(f"locate_workers must be >= 0, got {locate_workers}")
         #: worker processes answering the stored scans (:mod:`.locate_pool`); None: the locate thread itself
         self._pool: LocatePool | None = LocatePool(locate_workers, method) if locate_workers else None
+        if ingest_workers < 0:
+            raise ValueError(f"ingest_workers must be >= 0, got {ingest_workers}")
+        #: worker processes ingesting the batches (:mod:`.ingest_pool`, made at start); 0: the ingest thread itself
+        self.ingest_workers = ingest_workers
+        self._ingest_pool: IngestPool | None = None
+        self._counts_lock = threading.Lock()
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> Server:
@@ -119,6 +123,8 @@ class Server:
             s.declare_queryable(P.KEY_STATUS, self._on_status),
             s.liveliness().declare_subscriber(P.SUB_ALIVE, self._on_alive, history=True),
         ]
+        if self.ingest_workers:
+            self._ingest_pool = IngestPool(self.ingest_workers, self.db_url, self._deliver, self._count_all, self.max_group)
         self._worker = threading.Thread(target=self._run, name="hybridloc-ingest", daemon=True)
         self._worker.start()
         self._locate_worker = threading.Thread(target=self._run_locate, name="hybridloc-locate", daemon=True)
@@ -233,6 +239,11 @@ class Server:
         try:
             self._ingest_loop()
         finally:
+            if self._ingest_pool is not None:  # its workers ingest what they were sent, and it is answered
+                try:
+                    self._ingest_pool.close(timeout_s=8.0)
+                except Exception:  # noqa: BLE001 - shutting down: what is not acknowledged is resent
+                    log.exception("closing the ingest workers failed")
             self._ingest_done.set()
             with self._asked_cv:
                 self._asked_cv.notify()
@@ -263,7 +274,7 @@ class Server:
                     group.append(nxt)
                 try:
                     self._ingest(group)
-                except _Stopping:
+                except Stopping:
                     return  # stopped while the database was away (a group not yet stored is not acknowledged)
                 except Exception:  # noqa: BLE001 - a bad group must not end ingest: the batches it did not
                     # store are not acknowledged, so their devices resend them; the next group goes on
@@ -286,80 +297,34 @@ class Server:
         return None
 
     def _with_database(self, fn, *args, **kwargs):
-        """``fn(*args, **kwargs)``, retried while the database is unreachable (PostgreSQL stopped or
-        restarting, a network cut, SQLite locked past its busy timeout): each failed transaction rolled
-        back whole, so a retry never doubles (a commit whose answer was lost finds its batches stored
-        and counts them as duplicates, go-back-N). Backs off 0.1 s doubling to 2 s; nothing is
-        acknowledged meanwhile, so the devices keep their spools. Raises _Stopping when the server stops."""
-        delay, down_since = 0.1, None
-        while True:
-            try:
-                out = fn(*args, **kwargs)
-            except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-                self.counts["db-retries"] += 1
-                if down_since is None:
-                    down_since = time.monotonic()
-                    self.counts["db-outages"] += 1
-                    log.warning("database unreachable, ingest waits and retries: %s", str(exc).splitlines()[0][:200])
-                if self._stopping.wait(delay):
-                    raise _Stopping from None
-                delay = min(2.0, 2 * delay)
-                continue
-            if down_since is not None:
-                log.warning("database back after %.1f s; ingest resumes", time.monotonic() - down_since)
-            return out
+        """``fn(*args, **kwargs)``, retried while the database is unreachable (:func:`.ingest.with_database`);
+        raises Stopping when the server stops."""
+        return with_database(lambda: fn(*args, **kwargs), self.counts, self._stopping)
+
+    def _count_all(self, counts: Counter) -> None:
+        with self._counts_lock:
+            self.counts.update(counts)
 
     def _ingest(self, samples) -> None:
-        batches, bad = [], Counter()
-        for smp in samples:
-            key = str(smp.key_expr)
-            try:
-                site, device, _ = P.parse_key(key)
-            except ValueError:
-                bad[("?", "bad-key")] += 1
-                continue
-            try:
-                batches.append(C.BATCH.decode(smp.payload.to_bytes(), site, device))
-                self.counts["batches-received"] += 1
-            except P.Rejected as rej:
-                bad[(device, rej.reason)] += 1
-        new_ids: list[tuple[str, int]] = []
+        if self._ingest_pool is not None:
+            self._ingest_pool.submit([(str(smp.key_expr), smp.payload.to_bytes()) for smp in samples], _device_of_key)
+            return
+        got = ingest_group(self.store, [(str(smp.key_expr), smp.payload.to_bytes()) for smp in samples], self._with_database, self.counts)
+        self._deliver(got)
 
-        def persist():
-            new_ids.clear()  # a failed attempt may have listed batches its rollback took back
-            return self.store.persist(batches, bad, written_ids=new_ids)
-
-        acked, rejected, written = self._with_database(persist)
-        for (_, reason), n in rejected.items():
-            self.counts[f"rejected:{reason}"] += n
-        self.counts["batches-persisted"] += written
-        by_dev = {b.device: b for b in batches}
-        for device, seq in acked.items():
+    def _deliver(self, got: IngestResult) -> None:
+        """Publish a group's acknowledgements, then hand its stored batches' newest WiFi scans to the
+        locate worker."""
+        for site, device, seq in got.acks:
             self.session.put(
-                P.key_ack(by_dev[device].site, device),
+                P.key_ack(site, device),
                 C.ACK.encode(Ack(device, seq)),
                 encoding=C.ACK.encoding,
                 congestion_control=zenoh.CongestionControl.BLOCK,
             )
-        # answer the newest WiFi scan of each batch that brought one: a fix, or "no fix" with the
-        # reason (no map for the site, no known transmitter...), so a client always hears back.
-        # Only batches stored now are answered: a resent duplicate was answered when it was stored,
-        # and answering it again made the client fuse the same fix twice and count one answer too
-        # many. The locate worker answers them (_run_locate), after the acknowledgements.
-        stored = set(new_ids)
-        asked: list[tuple] = []  # (batch, its newest WiFi scan)
-        for b in batches:
-            if (b.device, b.seq) not in stored:
-                continue
-            # a resend in the same group as its original is a duplicate of it: answered once
-            stored.discard((b.device, b.seq))
-            scans = [sc for sc in b.scans if sc.technology is Technology.WIFI]
-            if scans:
-                # the decoded scan carries the batch's device model (the locators' per-device RSSI offset)
-                asked.append((b, scans[-1]))
-        if asked:
+        if got.asked:
             with self._asked_cv:
-                self._asked.extend(asked)
+                self._asked.extend(got.asked)
                 self._asked_cv.notify()
 
     # ------------------------------------------------------------ answers
@@ -376,7 +341,7 @@ class Server:
                     self._asked.clear()
                 try:
                     self._answer(todo)
-                except _Stopping:
+                except Stopping:
                     return
                 except Exception:  # noqa: BLE001 - a failed answer must not end the answers (the data is stored)
                     self.counts["locate-errors"] += 1
@@ -464,6 +429,14 @@ class Server:
             self.online.add(device)
         else:
             self.online.discard(device)
+
+
+def _device_of_key(key: str) -> str:
+    """The device a batch key names ("?" for a key that names none: refused as bad-key by whichever worker)."""
+    try:
+        return P.parse_key(key)[1]
+    except ValueError:
+        return "?"
 
 
 def serve_forever(server: Server, beside=None) -> None:

@@ -23,6 +23,7 @@ import json
 import math
 from collections import Counter
 from collections.abc import Collection
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from itertools import repeat
 from typing import cast
@@ -84,6 +85,11 @@ def _span_gap(w: m.Walk, lo: float, hi: float) -> float:
 class Store:
     def __init__(self, url: str, migrate: bool = True):
         self.engine: Engine = m.make_engine(url)
+        self._sqlite = self.engine.dialect.name == "sqlite"
+        #: held around each ingest transaction (:meth:`persist`) when set: SQLite's ingest workers share one
+        #: (:mod:`.ingest_pool`), so the writer after another starts at its commit instead of polling
+        #: for SQLite's lock in sleeps of milliseconds
+        self.write_lock: AbstractContextManager = nullcontext()
         if migrate:
             upgrade(self.engine)
 
@@ -128,7 +134,16 @@ class Store:
         if not batches and not rejected:
             return acked, rejected, written
         ends = set(end_of_walk)
-        with Session(self.engine) as s, s.begin():
+        # the scans' readings as JSON text before the transaction (no database in it): a writer holds
+        # SQLite's lock for less time beside other writers
+        readings = {id(b): [readings_json(_readings(sc)) for sc in b.scans] for b in batches}
+        with self.write_lock, Session(self.engine) as s, s.begin():
+            if self._sqlite:
+                # SQLite's write lock taken now, not at the first write: another writer's commit between
+                # our reads and our first write would otherwise fail it at once (a read snapshot
+                # cannot become a write transaction, SQLITE_BUSY_SNAPSHOT: no busy timeout applies);
+                # taken now, it waits for the other's commit (ingest workers, the SLAM child, fixes)
+                s.connection().exec_driver_sql("BEGIN IMMEDIATE")
             ids = list(dict.fromkeys(b.device for b in batches))
             devices = {d.id: d for d in _chunked_in(s, select(m.Device), m.Device.id, ids)}
             new_devs = [b for b in {b.device: b for b in reversed(batches)}.values() if b.device not in devices]
@@ -186,19 +201,20 @@ class Store:
                 for r, (_, w) in zip(rows, kept):
                     r["walk_id"] = None if w is None else w.id
                 batch_ids = s.execute(insert(m.Batch).returning(m.Batch.id, sort_by_parameter_order=True), rows).scalars().all()
-                self._insert_records(s, [(bid, b) for bid, (b, _) in zip(batch_ids, kept)])
+                self._insert_records(s, [(bid, b) for bid, (b, _) in zip(batch_ids, kept)], readings)
             self._add_rejections(s, rejected)
         return acked, rejected, written
 
     @staticmethod
-    def _insert_records(s: Session, stored: list[tuple[int, Batch]]) -> None:
+    def _insert_records(s: Session, stored: list[tuple[int, Batch]], readings: dict[int, list[str]]) -> None:
         """The steps, scans and marks of the batches ``stored`` as (batch row id, batch): an executemany each.
 
         The steps, a thousand rows a large batch, and the scans go to the driver's executemany as plain
         tuples (the ORM's bulk INSERT built a parameter dict per row, and Core's a parameter dict and a
         JSON bind per scan: most of a large batch's storing time); a decoded batch's steps are read from
         their columns (:class:`~hybridloc.wire.messages.StepColumns`), never made into records. A scan's
-        readings are JSON text by msgspec (:func:`readings_json`). The marks, few, through Core."""
+        readings are JSON text by msgspec (:func:`readings_json`), given in ``readings`` (the texts of
+        each batch's scans, by the batch's ``id()``). The marks, few, through Core."""
         steps: list[tuple] = []
         for bid, b in stored:
             if isinstance(b.steps, StepColumns):
@@ -215,11 +231,10 @@ class Store:
         conn = s.connection()
         if steps:
             conn.exec_driver_sql(_insert_sql("step", _STEP_COLUMNS, paramstyle), steps)
-        dumps = readings_json
         scans = [
-            (bid, b.device, sc.t, sc.technology.value, dumps(_readings(sc)))
+            (bid, b.device, sc.t, sc.technology.value, text)
             for bid, b in stored
-            for sc in b.scans
+            for sc, text in zip(b.scans, readings[id(b)])
         ]  # fmt: skip
         if scans:
             conn.exec_driver_sql(_insert_sql("scan", _SCAN_COLUMNS, paramstyle), scans)

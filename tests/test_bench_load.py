@@ -9,13 +9,14 @@ from benchmarks import bench_load
 
 
 def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
-    r = bench_load.main(["--clients", "4", "--minutes", "0.2", "--sessions", "2", "--ceiling-batches", "2"])
+    """Through the server's ingest workers (serve --ingest-workers 2): their scans answered from the real map."""
+    r = bench_load.main(["--clients", "4", "--minutes", "0.2", "--sessions", "2", "--ceiling-batches", "2", "--ingest-workers", "2"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(last) == r
     assert r["lost"] == 0 and r["doubled"] == 0
     assert r["steps_sent"] == 4 * 12 * len(bench_load.STEP_T) and r["scans_sent"] == 4 * 6
     assert r["fixes"] + r["no_fix"] == r["scans_sent"]  # one answer per stored scan, none twice
-    assert r["realtime_factor"] > 0
+    assert r["realtime_factor"] > 0 and r["ingest_workers"] == 2 and r["ceiling_ingest_workers"] == 2
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
@@ -28,6 +29,7 @@ def test_ceiling_only_with_step_rows(capsys):
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == r
     assert r["ceiling_only"] and "steps_sent" not in r
     assert r["ceiling_lossless"] and r["ceiling_step_form"] == "rows" and r["batch_encode_rows_ms"] is None
+    assert r["ceiling_ingest_workers"] == 0
     with pytest.raises(SystemExit):
         bench_load.main(["--ceiling-only", "--no-ceiling"])
 

@@ -1,0 +1,175 @@
+"""``serve --ingest-workers N``: batches decoded and stored in worker processes (server/ingest_pool.py),
+over real Zenoh on loopback, on a real SQLite file and a real PostgreSQL database."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+from collections import Counter
+
+import pytest
+import zenoh
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from hybridloc.clients.uplink import Uplink
+from hybridloc.server import db as m
+from hybridloc.server.ingest_pool import IngestPool
+from hybridloc.server.service import Server
+from hybridloc.types import RfScan, StepEvent
+from hybridloc.wire import codecs as C
+from hybridloc.wire import protocol as P
+from hybridloc.wire.messages import Batch
+from hybridloc.wire.zconfig import client_config
+
+from .helpers import wait_until
+
+SITE = "site1"
+
+
+def _steps(n: int, t0: float) -> list[StepEvent]:
+    return [StepEvent(t0 + 0.5 * i, 0.7, 0.1 * i, 0.05, 0.1, 0.1, 0.02) for i in range(n)]
+
+
+def _scans(n: int, t0: float) -> list[RfScan]:
+    return [RfScan(t0 + i, "wifi", {"aa:bb": -50.0 - i, "cc:dd": -70.0}) for i in range(n)]
+
+
+def _stored(db: str) -> tuple[dict[str, list[int]], int, int, dict[str, int]]:
+    """(each device's stored sequence numbers in order, steps, scans, rejections by reason)."""
+    eng = m.make_engine(db)
+    with Session(eng) as s:
+        seqs: dict[str, list[int]] = {}
+        for dev, seq in s.execute(select(m.Batch.device_id, m.Batch.seq).order_by(m.Batch.id)):
+            seqs.setdefault(dev, []).append(seq)
+        steps = len(s.execute(select(m.Step.id)).all())
+        scans = len(s.execute(select(m.Scan.id)).all())
+        rej = Counter()
+        for r in s.execute(select(m.Rejection)).scalars():
+            rej[r.reason] += r.count
+    eng.dispose()
+    return seqs, steps, scans, dict(rej)
+
+
+def _send_all(ep: str, tmp, devices: list[str], n_batches: int, resend_after: float = 2.0, midway=None) -> list[Uplink]:
+    """Each device (an Uplink on one client session) sends ``n_batches`` batches of 40 steps and 3 scans,
+    in columns from 20 steps; ``midway()`` runs once half are sent; every batch is acknowledged."""
+    with zenoh.open(client_config(ep)) as s:
+        ups = [Uplink(s, SITE, d, tmp / f"spool-{d}", resend_after=resend_after, step_columns_from=20) for d in devices]
+        try:
+            assert ups[0].wait_connected()
+            for k in range(n_batches):
+                for up in ups:
+                    up.send(steps=_steps(40, 30.0 * k), scans=_scans(3, 30.0 * k))
+                if midway is not None and k == n_batches // 2:
+                    midway()
+            for up in ups:
+                assert up.wait_acked(timeout=60), (up.device, up.acked)
+            return ups
+        finally:
+            for up in ups:
+                up.close()
+
+
+def test_ingest_workers_store_every_batch_once_in_order(tmp_path, db_url):
+    """Four devices through two ingest workers: every batch stored once, each device's in order, the
+    acknowledgements as the ingest thread gives them (the uplinks' spools emptied); a duplicate, a gap,
+    a malformed message and a bad key are refused and counted as the ingest thread counts them; the
+    scans to answer reach the locate thread ("no fix": no map here), one per stored batch."""
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    devices = [f"dev{i}" for i in range(4)]
+    srv = Server(ep, db_url, ingest_workers=2).start()
+    try:
+        ups = _send_all(ep, tmp_path, devices, 12)
+        assert all(up.acked == 12 for up in ups)
+        assert sorted(srv._ingest_pool._devices_of) == [2, 2]  # the devices shared between the workers
+        with zenoh.open(client_config(ep)) as s:
+            s.put(P.key_batch(SITE, "dev0"), C.BATCH.encode(Batch(SITE, "dev0", 5, "", tuple(_steps(2, 999.0)))))  # duplicate
+            s.put(P.key_batch(SITE, "dev1"), C.BATCH.encode(Batch(SITE, "dev1", 20, "", tuple(_steps(2, 999.0)))))  # gap
+            s.put(P.key_batch(SITE, "dev2"), b"{not json")
+            s.put(f"hl/v1/{SITE}/dev3/oops", b"{}")  # not a batch key: never delivered to the batch subscriber
+            s.put(P.key_batch(SITE, "dev3"), json.dumps({"schema": "hybridloc.batch/99", "site": SITE, "device": "dev3", "seq": 13}).encode())
+            assert wait_until(lambda: sum(v for k, v in srv.counts.items() if k.startswith("rejected:")) >= 4)
+        c = srv.counts
+        for reason in ("duplicate", "out-of-order", "malformed-json", "schema-version"):
+            assert c[f"rejected:{reason}"] == 1, (reason, dict(c))
+        assert c["batches-persisted"] == 48 and c["ingest-errors"] == 0
+        # one answer per stored batch's newest scan (of a device's waiting together, the older ones shed)
+        assert wait_until(lambda: srv.counts["no-fix-pushed"] + srv.counts["fixes-shed"] == 48), dict(srv.counts)
+    finally:
+        srv.stop()
+    seqs, steps, scans, rej = _stored(db_url)
+    assert seqs == {d: list(range(1, 13)) for d in devices}
+    assert (steps, scans) == (48 * 40, 48 * 3)
+    assert rej == {"duplicate": 1, "out-of-order": 1, "malformed-json": 1, "schema-version": 1}
+
+
+def test_a_killed_ingest_worker_loses_nothing_acknowledged(tmp_path, db_url):
+    """An ingest worker SIGKILLed while its devices send: another takes its devices, their clients
+    resend what was not acknowledged, and every batch is stored exactly once, in order."""
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    devices = [f"dev{i}" for i in range(4)]
+    srv = Server(ep, db_url, ingest_workers=2).start()
+    killed = []
+
+    def kill_one():
+        w = srv._ingest_pool._workers[0]
+        killed.append(w.proc.pid)
+        os.kill(w.proc.pid, signal.SIGKILL)
+
+    try:
+        _send_all(ep, tmp_path, devices, 30, resend_after=0.5, midway=kill_one)
+        assert killed and srv.counts["ingest-worker-restarts"] == 1
+        assert srv._ingest_pool._workers[0].proc.pid != killed[0] and srv._ingest_pool._workers[0].proc.is_alive()
+    finally:
+        srv.stop()
+    seqs, steps, _, _ = _stored(db_url)
+    assert seqs == {d: list(range(1, 31)) for d in devices}  # none lost, none doubled, in order
+    assert steps == 4 * 30 * 40
+
+
+def test_stop_ingests_what_the_workers_were_sent(tmp_path):
+    """Stopping the server: the workers ingest what they were sent before they exit, and what they stored
+    is acknowledged (no batch is stored and left unacknowledged by the stop)."""
+    ep = f"unixsock-stream/{tmp_path}/srv.sock"
+    db = str(tmp_path / "s.db")
+    srv = Server(ep, db, ingest_workers=2).start()
+    acked: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_ack(smp):
+        a = C.ACK.decode(smp.payload.to_bytes())
+        with lock:
+            acked[a.device] = max(acked.get(a.device, 0), a.acked_seq)
+
+    with zenoh.open(client_config(ep)) as s:
+        sub = s.declare_subscriber(P.key_ack(SITE, "*"), on_ack)
+        assert wait_until(lambda: any(r.ok for r in s.get(P.KEY_STATUS, timeout=1.0)))
+        for k in range(1, 151):
+            for d in ("a", "b"):
+                s.put(P.key_batch(SITE, d), C.BATCH.encode(Batch(SITE, d, k, "", tuple(_steps(300, 200.0 * k)))))
+        srv.stop()  # with batches still in the workers' queues and pipes
+        seqs, _, _, _ = _stored(db)
+        assert all(seqs.get(d) == list(range(1, len(seqs.get(d, [])) + 1)) for d in ("a", "b")), seqs
+        # the acknowledgements of everything stored were published before the server's session closed
+        assert wait_until(lambda: all(acked.get(d, 0) == len(seqs.get(d, [])) for d in ("a", "b"))), (acked, {d: len(v) for d, v in seqs.items()})
+        sub.undeclare()
+
+
+def test_each_device_stays_with_one_worker(tmp_path):
+    """Devices go to the worker with the fewest devices the first time they are seen, and stay there."""
+    pool = IngestPool.__new__(IngestPool)  # the assignment alone: no processes
+    pool._workers = [object(), object(), object()]
+    pool._devices_of = [0, 0, 0]
+    pool._device_worker = {}
+    first = [pool.worker_of(f"d{i}") for i in range(7)]
+    assert first == [0, 1, 2, 0, 1, 2, 0]
+    assert [pool.worker_of(f"d{i}") for i in reversed(range(7))] == list(reversed(first))
+    assert pool._devices_of == [3, 2, 2]
+
+
+def test_serve_refuses_negative_ingest_workers(tmp_path):
+    with pytest.raises(ValueError, match="ingest_workers"):
+        Server(f"unixsock-stream/{tmp_path}/x.sock", str(tmp_path / "x.db"), ingest_workers=-1)
