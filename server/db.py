@@ -14,6 +14,10 @@ steps through ``ix_step_batch_id``, see ``Store.read_walk``).
 from __future__ import annotations
 
 import datetime as dt
+import logging
+import os
+import sqlite3
+import threading
 
 from sqlalchemy import JSON, Boolean, DateTime, Float, ForeignKey, Index, Integer, LargeBinary, MetaData, String, UniqueConstraint, event, text
 from sqlalchemy import create_engine as _create_engine
@@ -333,19 +337,86 @@ def retry_unique(fn, attempts: int = 8):
                 raise
 
 
-def make_engine(url: str) -> Engine:
-    """An engine for a SQLite file path / URL (WAL, foreign keys, busy timeout) or any SQLAlchemy URL."""
+def make_engine(url: str, wal_autocheckpoint: int | None = None) -> Engine:
+    """An engine for a SQLite file path / URL (WAL, foreign keys, busy timeout) or any SQLAlchemy URL.
+    ``wal_autocheckpoint``: SQLite's pages of WAL after which a commit checkpoints (None: SQLite's 1,000);
+    larger where a :class:`WalCheckpointer` checkpoints beside the writers."""
     if "://" not in url:
         url = f"sqlite:///{url}"
     if url.startswith("sqlite"):
         eng = _create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
+        pragmas = ["journal_mode=WAL", "synchronous=NORMAL", "foreign_keys=ON", "busy_timeout=30000"]
+        if wal_autocheckpoint is not None:
+            pragmas.append(f"wal_autocheckpoint={int(wal_autocheckpoint)}")
 
         @event.listens_for(eng, "connect")
         def _pragmas(dbapi_conn, _rec):  # noqa: ANN001
             cur = dbapi_conn.cursor()
-            for p in ("journal_mode=WAL", "synchronous=NORMAL", "foreign_keys=ON", "busy_timeout=30000"):
+            for p in pragmas:
                 cur.execute(f"PRAGMA {p}")
             cur.close()
 
         return eng
     return _create_engine(url, pool_pre_ping=True)
+
+
+def sqlite_path(url: str) -> str | None:
+    """The file of a SQLite path or ``sqlite:///`` URL; None for another database (or SQLite in memory)."""
+    if "://" not in url:
+        return url if url != ":memory:" else None
+    if url.startswith("sqlite") and "///" in url:
+        path = url.split("///", 1)[1].split("?", 1)[0]
+        return path if path and path != ":memory:" else None
+    return None
+
+
+#: Pages of WAL after which an ingest commit checkpoints itself: the safety net behind the
+#: :class:`WalCheckpointer` (about 40 MB of 4 KiB pages; SQLite's default is 1,000)
+INGEST_WAL_AUTOCHECKPOINT = 10_000
+
+
+class WalCheckpointer:
+    """Checkpoints a SQLite database's WAL beside its writers, in a thread of its own with its own
+    connection: ``PRAGMA wal_checkpoint(PASSIVE)`` every ``every_s`` seconds while the WAL holds at least
+    ``min_bytes``. SQLite otherwise checkpoints in the commit that crosses 1,000 pages: inside the
+    writer's transaction time, which under SQLite's one-writer lock is everyone's (a quarter of two
+    ingest workers' throughput, benchmarks/bench_load.py --ceiling-only). A passive checkpoint takes
+    no writer's lock and waits for none (it copies what no reader still needs); the sqlite3 module
+    releases the interpreter lock while it runs, so the server's threads go on. The writers keep a
+    larger autocheckpoint (:data:`INGEST_WAL_AUTOCHECKPOINT`) as the safety net should this thread
+    fall behind or stop."""
+
+    def __init__(self, path: str, every_s: float = 0.25, min_bytes: int = 4 << 20):
+        self.path, self.every_s, self.min_bytes = path, every_s, min_bytes
+        self.checkpoints = 0
+        self.errors = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="hybridloc-wal-checkpoint", daemon=True)
+
+    def start(self) -> WalCheckpointer:
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        log = logging.getLogger("hybridloc.server")
+        con = sqlite3.connect(self.path, timeout=30, check_same_thread=False)
+        try:
+            while not self._stop.wait(self.every_s):
+                try:
+                    if os.path.getsize(self.path + "-wal") < self.min_bytes:
+                        continue
+                except OSError:
+                    continue  # no WAL file (yet, or the database is being replaced)
+                try:
+                    con.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchall()
+                    self.checkpoints += 1
+                except sqlite3.Error as exc:  # busy or away: the writers' own autocheckpoint still holds
+                    self.errors += 1
+                    if self.errors in (1, 10, 100):
+                        log.warning("WAL checkpoint failed (%d so far): %s", self.errors, exc)
+        finally:
+            con.close()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)

@@ -44,10 +44,12 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
     """A worker process: groups of (key, payload) in, an :class:`IngestResult` (or the error's text) out
     for each, until told to stop or the server is gone."""
     from .child_process import yield_to_server
+    from .db import INGEST_WAL_AUTOCHECKPOINT
     from .store import Store
 
     yield_to_server(parent_pid, 0, "hybridloc-ingest-watch")  # ingest keeps the server's priority
-    store = Store(db_url, migrate=False)  # the server migrated it before starting us
+    # the server migrated it before starting us; its WalCheckpointer checkpoints beside us
+    store = Store(db_url, migrate=False, wal_autocheckpoint=INGEST_WAL_AUTOCHECKPOINT)
     if write_lock is not None:
         store.write_lock = write_lock
     stopping = threading.Event()
@@ -98,6 +100,7 @@ class _Worker:
         self.pool, self.index = pool, index
         self.todo: queue.Queue = queue.Queue(maxsize=pool.queue_groups)
         self.in_flight = 0  # messages sent and not yet returned
+        self.ready = threading.Event()  # the process has started and opened the database
         self._lock = threading.Lock()
         self._spawn()
         self.feeder = threading.Thread(target=self._feed, name=f"hybridloc-ingest-feed-{index}", daemon=True)
@@ -142,6 +145,7 @@ class _Worker:
         try:
             if conn.recv() != "ready":
                 raise EOFError
+            self.ready.set()
             while True:
                 n, got, counts = conn.recv()
                 with self._lock:
@@ -180,6 +184,7 @@ class IngestPool:
         count_all: Callable[[Counter], None],
         max_group: int = 500,
         queue_groups: int = 4,
+        ready_timeout_s: float = 60.0,
     ):
         if workers < 1:
             raise ValueError(f"an ingest pool needs at least one worker, got {workers}")
@@ -191,6 +196,11 @@ class IngestPool:
         self._device_worker: dict[str, int] = {}
         self._devices_of = [0] * workers
         self._workers = [_Worker(self, i) for i in range(workers)]
+        # ready before the server says it listens (a process takes about a second to start): the first
+        # batches are not held up behind the workers' start
+        for w in self._workers:
+            if not w.ready.wait(ready_timeout_s):
+                log.warning("ingest worker %d not ready after %.0f s: its devices' batches wait for it", w.index, ready_timeout_s)
 
     def count(self, key: str, n: int) -> None:
         self.count_all(Counter({key: n}))

@@ -41,6 +41,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Ack, MapInfo, Status
 from hybridloc.wire.zconfig import Security, server_config
 
+from . import db as m
 from .ingest import IngestResult, Stopping, ingest_group, with_database
 from .ingest_pool import IngestPool
 from .locate_pool import LocatePool, PoolBroken, answers, make_locator
@@ -72,7 +73,11 @@ class Server:
         self.connect = list(connect or ())
         self.endpoint = endpoint
         self.db_url = db_url
-        self.store = Store(db_url)
+        # SQLite: the WAL checkpointed by a thread beside the writers (started with the server), the
+        # writers' own autocheckpoint only its safety net (db.WalCheckpointer)
+        self._wal_path = m.sqlite_path(db_url)
+        self.store = Store(db_url, wal_autocheckpoint=m.INGEST_WAL_AUTOCHECKPOINT if self._wal_path else None)
+        self._checkpointer: m.WalCheckpointer | None = None
         self.slam_sites = list(dict.fromkeys(slam_sites or ()))
         self.slam_options = slam_options
         self.slam_workers: dict[str, SlamWorker] = {}
@@ -108,6 +113,8 @@ class Server:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> Server:
+        if self._wal_path is not None:
+            self._checkpointer = m.WalCheckpointer(self._wal_path).start()
         self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
         s = self.session
         # every site's keys, or only the served sites' (a key expression per site: hl/v1/<site>/...)
@@ -172,6 +179,9 @@ class Server:
         self._entities.clear()
         if self._pool is not None:
             self._pool.close()
+        if self._checkpointer is not None:
+            self._checkpointer.stop()
+            self._checkpointer = None
         if self.session is not None:
             self.session.close()
             self.session = None

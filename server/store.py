@@ -83,8 +83,10 @@ def _span_gap(w: m.Walk, lo: float, hi: float) -> float:
 
 
 class Store:
-    def __init__(self, url: str, migrate: bool = True):
-        self.engine: Engine = m.make_engine(url)
+    def __init__(self, url: str, migrate: bool = True, wal_autocheckpoint: int | None = None):
+        """The store on ``url`` (migrated to the newest revision unless ``migrate`` is false);
+        ``wal_autocheckpoint``: SQLite's autocheckpoint in pages (:func:`~.db.make_engine`)."""
+        self.engine: Engine = m.make_engine(url, wal_autocheckpoint)
         self._sqlite = self.engine.dialect.name == "sqlite"
         #: held around each ingest transaction (:meth:`persist`) when set: SQLite's ingest workers share one
         #: (:mod:`.ingest_pool`), so the writer after another starts at its commit instead of polling

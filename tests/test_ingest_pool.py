@@ -173,3 +173,37 @@ def test_each_device_stays_with_one_worker(tmp_path):
 def test_serve_refuses_negative_ingest_workers(tmp_path):
     with pytest.raises(ValueError, match="ingest_workers"):
         Server(f"unixsock-stream/{tmp_path}/x.sock", str(tmp_path / "x.db"), ingest_workers=-1)
+
+
+def test_wal_checkpointer_backfills_the_wal_beside_a_writer(tmp_path):
+    """The server's WAL checkpointer (server/db.py): with the writer's own autocheckpoint off, the WAL
+    it wrote is copied into the database file by the checkpointer's thread; nothing is checkpointed
+    while the WAL is below its threshold."""
+    import sqlite3
+
+    from hybridloc.server.db import WalCheckpointer, sqlite_path
+
+    assert sqlite_path(str(tmp_path / "a.db")) == str(tmp_path / "a.db")
+    assert sqlite_path(f"sqlite:///{tmp_path}/a.db") == f"{tmp_path}/a.db"
+    assert sqlite_path("postgresql+psycopg://u@h/db") is None and sqlite_path(":memory:") is None
+    path = str(tmp_path / "w.db")
+    con = sqlite3.connect(path)
+    con.execute("PRAGMA journal_mode=WAL")
+    con.execute("PRAGMA wal_autocheckpoint=0")
+    con.execute("CREATE TABLE x (a REAL, b TEXT)")
+    con.commit()
+    ck = WalCheckpointer(path, every_s=0.05, min_bytes=1 << 20).start()
+    try:
+        with con:
+            con.executemany("INSERT INTO x VALUES (?, ?)", [(float(i), "y" * 100) for i in range(200)])  # far below 1 MB
+        assert not wait_until(lambda: ck.checkpoints > 0, timeout=0.5)
+        with con:
+            con.executemany("INSERT INTO x VALUES (?, ?)", [(float(i), "y" * 100) for i in range(40_000)])  # about 5 MB
+        assert wait_until(lambda: ck.checkpoints > 0, timeout=10.0)
+    finally:
+        ck.stop()
+    busy, log_frames, done = con.execute("PRAGMA wal_checkpoint(PASSIVE)").fetchone()
+    assert busy == 0 and log_frames > 0
+    con.close()
+    assert ck.errors == 0 and not ck._thread.is_alive()
+    assert sqlite3.connect(path).execute("SELECT count(*) FROM x").fetchone() == (40_200,)
