@@ -73,7 +73,7 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
             counts: Counter = Counter()
             try:
                 got: IngestResult | str = ingest_group(store, items, lambda fn, counts=counts: with_database(fn, counts, stopping), counts)
-            except Stopping:  # pragma: no cover - stopping is set only after the last group's recv
+            except Stopping:  # told to stop while the database was away: this group is not stored, nor acknowledged
                 got = IngestResult(counts=counts)
             except Exception as exc:  # noqa: BLE001 - reported to the server, which logs it and goes on
                 got = f"{type(exc).__name__}: {exc}"
