@@ -347,7 +347,9 @@ class RfScan:
         return len(self.rssi_dbm)
 
     def __reduce__(self):  # picklable (for worker processes) despite the read-only mapping views
-        return (RfScan, (self.t, self.technology, dict(self.rssi_dbm), dict(self.frequency_hz), dict(self.age_s), self.device_model))
+        # rebuilt without __post_init__'s checks: what is pickled is a scan that passed them (the locate
+        # and ingest workers send hundreds of site1 scans a second; the checks were half of unpickling)
+        return (RfScan._checked_already, (self.t, self.technology, dict(self.rssi_dbm), dict(self.frequency_hz), dict(self.age_s), self.device_model))
 
 
 # ----------------------------------------------------------------------------------------------

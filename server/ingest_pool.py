@@ -22,11 +22,14 @@ each worker ingests what it was sent, returns it, and exits.
 
 from __future__ import annotations
 
+import fcntl
 import gc
 import logging
 import multiprocessing as mp
 import os
 import queue
+import shutil
+import tempfile
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -91,6 +94,34 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
 # ------------------------------------------------------------------------------------------ the pool
 def _is_sqlite(url: str) -> bool:
     return "://" not in url or url.startswith("sqlite")
+
+
+class WriterLock:
+    """The lock SQLite's ingest workers take around each transaction: an exclusive ``flock`` on a file,
+    which the kernel releases when its holder dies (a worker SIGKILLed inside its transaction left a
+    multiprocessing lock held for ever, and every other writer waiting on it). Picklable: each process
+    opens the file for itself (flock locks belong to an open file, so two opens contend). Blocking in
+    ``flock`` releases the interpreter lock."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._fd: int | None = None
+
+    def __getstate__(self) -> dict:
+        return {"path": self.path}
+
+    def __setstate__(self, state: dict) -> None:
+        self.path, self._fd = state["path"], None
+
+    def __enter__(self) -> WriterLock:
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(self._fd, fcntl.LOCK_EX)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        assert self._fd is not None
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
 
 
 class _Worker:
@@ -192,7 +223,8 @@ class IngestPool:
         self.max_group, self.queue_groups = max_group, queue_groups
         self.closing = False
         # SQLite: one writer at a time, handed over by a lock at each commit (the Store's write_lock)
-        self.write_lock = mp.get_context("spawn").Lock() if _is_sqlite(db_url) else None
+        self._dir = tempfile.mkdtemp(prefix="hybridloc-ingest-")
+        self.write_lock = WriterLock(os.path.join(self._dir, "write.lock")) if _is_sqlite(db_url) else None
         self._device_worker: dict[str, int] = {}
         self._devices_of = [0] * workers
         self._workers = [_Worker(self, i) for i in range(workers)]
@@ -245,3 +277,4 @@ class IngestPool:
                 w.proc.join(5.0)
             w.reader.join(5.0)
             w.conn.close()
+        shutil.rmtree(self._dir, ignore_errors=True)

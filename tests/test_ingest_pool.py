@@ -207,3 +207,43 @@ def test_wal_checkpointer_backfills_the_wal_beside_a_writer(tmp_path):
     con.close()
     assert ck.errors == 0 and not ck._thread.is_alive()
     assert sqlite3.connect(path).execute("SELECT count(*) FROM x").fetchone() == (40_200,)
+
+
+def _hold_lock_forever(lock, held) -> None:
+    with lock:
+        held.set()
+        threading.Event().wait()
+
+
+def test_the_writer_lock_is_released_when_its_holder_dies(tmp_path):
+    """SQLite's ingest workers share a WriterLock (a flock): a worker SIGKILLed inside its transaction
+    must not leave the other writers waiting for ever, as a multiprocessing lock did."""
+    import multiprocessing as mp
+    import time
+
+    from hybridloc.server.ingest_pool import WriterLock
+
+    lock = WriterLock(str(tmp_path / "write.lock"))
+    ctx = mp.get_context("spawn")
+    held = ctx.Event()
+    p = ctx.Process(target=_hold_lock_forever, args=(lock, held), daemon=True)
+    p.start()
+    try:
+        assert held.wait(60)
+        got = threading.Event()
+
+        def take():
+            with lock:
+                got.set()
+
+        t = threading.Thread(target=take, daemon=True)
+        t.start()
+        assert not got.wait(0.3)  # held by the other process: we wait
+        os.kill(p.pid, signal.SIGKILL)
+        p.join(10)
+        t0 = time.monotonic()
+        assert got.wait(10) and time.monotonic() - t0 < 5  # released with its holder
+        t.join(5)
+    finally:
+        if p.is_alive():
+            p.kill()

@@ -82,6 +82,13 @@ def test_rf_scan_range_and_immutability():
         s.rssi_dbm["cc"] = -50  # type: ignore[index]
     with pytest.raises(ValueError, match="outside"):
         RfScan(1.0, "wifi", {"aa": 100})  # UJIIndoorLoc's "not detected" must never pass as dBm
+    # to a worker process and back: the same scan, still read-only (rebuilt without re-checking)
+    for scan in (s, RfScan(2.0, "ble", {"aa": -61.5}, {"aa": 2.4e9}, {"aa": 0.25}, "Pixel 7")):
+        back = pickle.loads(pickle.dumps(scan))
+        assert type(back) is RfScan and (back.t, back.technology, dict(back.rssi_dbm)) == (scan.t, scan.technology, dict(scan.rssi_dbm))
+        assert (dict(back.frequency_hz), dict(back.age_s), back.device_model) == (dict(scan.frequency_hz), dict(scan.age_s), scan.device_model)
+        with pytest.raises(TypeError):
+            back.age_s["bb"] = 1.0  # type: ignore[index]
 
 
 def test_rssi_range_is_one_check_for_floats_and_arrays():
