@@ -99,6 +99,8 @@ def test_bad_input_is_one_line_and_exit_2(command, kind, tmp_path, capsys, monke
         ("--slam-batch-share", "11", "--slam-batch-share must be a share"),
         ("--slam-batch-every", "-2", "--slam-batch-every must be >= 0"),
         ("--slam-idle", "-5", "--slam-idle must be >= 0"),
+        ("--ingest-workers", "-1", "--ingest-workers must be >= 0"),
+        ("--locate-workers", "-3", "--locate-workers must be >= 0"),
     ],
 )
 def test_serve_refuses_bad_slam_options_before_it_starts(option, value, says, tmp_path, capsys, monkeypatch):
