@@ -13,6 +13,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -32,22 +33,25 @@ class Stopping(Exception):
     """The server stopped while ingest waited for the database."""
 
 
-def with_database(fn: Callable, counts: Counter, stopping: threading.Event):
+def with_database(fn: Callable, counts: Counter, stopping, lock: threading.Lock | None = None):
     """``fn()``, retried while the database is unreachable (PostgreSQL stopped or restarting, a network
     cut, SQLite locked past its busy timeout): each failed transaction rolled back whole, so a retry
     never doubles (a commit whose answer was lost finds its batches stored and counts them as
     duplicates, go-back-N). Backs off 0.1 s doubling to 2 s; nothing is acknowledged meanwhile, so the
-    devices keep their spools. Counts ``db-retries`` and ``db-outages`` into ``counts``; raises
-    :class:`Stopping` once ``stopping`` is set."""
+    devices keep their spools. Counts ``db-retries`` and ``db-outages`` into ``counts`` (under ``lock``
+    when given: other threads count into it too); raises :class:`Stopping` once ``stopping`` (a
+    threading or multiprocessing Event) is set."""
     delay, down_since = 0.1, None
     while True:
         try:
             out = fn()
         except (sa_exc.OperationalError, sa_exc.InterfaceError) as exc:
-            counts["db-retries"] += 1
+            with lock or nullcontext():
+                counts["db-retries"] += 1
+                if down_since is None:
+                    counts["db-outages"] += 1
             if down_since is None:
                 down_since = time.monotonic()
-                counts["db-outages"] += 1
                 log.warning("database unreachable, ingest waits and retries: %s", str(exc).splitlines()[0][:200])
             if stopping.wait(delay):
                 raise Stopping from None

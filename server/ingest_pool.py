@@ -28,13 +28,13 @@ import logging
 import multiprocessing as mp
 import os
 import queue
-import shutil
-import tempfile
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 
+from .db import sqlite_path
 from .ingest import IngestResult, Stopping, ingest_group, with_database
 
 log = logging.getLogger("hybridloc.server")
@@ -43,9 +43,10 @@ _STOP = "stop"
 
 
 # ------------------------------------------------------------------------------------------ a worker
-def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int, write_lock) -> None:
+def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int, write_lock, stop_event) -> None:
     """A worker process: groups of (key, payload) in, an :class:`IngestResult` (or the error's text) out
-    for each, until told to stop or the server is gone."""
+    for each, until told to stop or the server is gone. ``stop_event`` (set when the server stops) ends a
+    wait for the database, as the ingest thread's does: that group is neither stored nor acknowledged."""
     from .child_process import yield_to_server
     from .db import INGEST_WAL_AUTOCHECKPOINT
     from .store import Store
@@ -55,13 +56,13 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
     store = Store(db_url, migrate=False, wal_autocheckpoint=INGEST_WAL_AUTOCHECKPOINT)
     if write_lock is not None:
         store.write_lock = write_lock
-    stopping = threading.Event()
     # what the process loaded (modules, the engine) left out of the collector's scans, as the server does
     gc.collect()
     gc.freeze()
     conn.send("ready")
     try:
-        while True:
+        last = False
+        while not last:
             msg = conn.recv()
             if msg == _STOP:
                 break
@@ -70,20 +71,18 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
             while len(items) < max_group and conn.poll():
                 more = conn.recv()
                 if more == _STOP:
-                    stopping.set()
+                    last = True
                     break
                 items += more
             counts: Counter = Counter()
             try:
-                got: IngestResult | str = ingest_group(store, items, lambda fn, counts=counts: with_database(fn, counts, stopping), counts)
+                got: IngestResult | str = ingest_group(store, items, lambda fn, counts=counts: with_database(fn, counts, stop_event), counts)
             except Stopping:  # told to stop while the database was away: this group is not stored, nor acknowledged
                 got = IngestResult(counts=counts)
             except Exception as exc:  # noqa: BLE001 - reported to the server, which logs it and goes on
                 got = f"{type(exc).__name__}: {exc}"
                 log.exception("ingest of a group of %d messages failed in a worker", len(items))
             conn.send((len(items), got, counts))
-            if stopping.is_set():
-                break
     except (EOFError, OSError):
         pass  # the server closed our pipe: nothing more to ingest
     finally:
@@ -92,10 +91,6 @@ def _worker_main(conn: Connection, db_url: str, parent_pid: int, max_group: int,
 
 
 # ------------------------------------------------------------------------------------------ the pool
-def _is_sqlite(url: str) -> bool:
-    return "://" not in url or url.startswith("sqlite")
-
-
 class WriterLock:
     """The lock SQLite's ingest workers take around each transaction: an exclusive ``flock`` on a file,
     which the kernel releases when its holder dies (a worker SIGKILLed inside its transaction left a
@@ -130,19 +125,20 @@ class _Worker:
     def __init__(self, pool: IngestPool, index: int):
         self.pool, self.index = pool, index
         self.todo: queue.Queue = queue.Queue(maxsize=pool.queue_groups)
-        self.in_flight = 0  # messages sent and not yet returned
         self.ready = threading.Event()  # the process has started and opened the database
-        self._lock = threading.Lock()
-        self._spawn()
+        self.closing = False  # set by the pool's close, under _lock: no process is started after it
+        self._lock = threading.Lock()  # conn, proc, reader and closing change together under it
+        with self._lock:
+            self._spawn()
         self.feeder = threading.Thread(target=self._feed, name=f"hybridloc-ingest-feed-{index}", daemon=True)
         self.feeder.start()
 
-    def _spawn(self) -> None:
+    def _spawn(self) -> None:  # under _lock
         ctx = mp.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.proc = ctx.Process(
             target=_worker_main,
-            args=(child, self.pool.db_url, os.getpid(), self.pool.max_group, self.pool.write_lock),
+            args=(child, self.pool.db_url, os.getpid(), self.pool.max_group, self.pool.write_lock, self.pool.stop_event),
             name=f"hybridloc-ingest-{self.index}",
             daemon=True,
         )
@@ -153,51 +149,57 @@ class _Worker:
 
     def _feed(self) -> None:
         """Send each queued group to the process (blocking while its pipe is full: the back pressure reaches
-        the server's channel and, through Zenoh's congestion control, the clients)."""
+        the server's channel and, through Zenoh's congestion control, the clients). A group sent to a
+        process that died is not acknowledged: its clients resend it."""
         while True:
             items = self.todo.get()
-            if items is None:
-                try:
-                    self.conn.send(_STOP)
-                except (OSError, ValueError):
-                    pass
-                return
             with self._lock:
                 conn = self.conn
-                self.in_flight += len(items)
             try:
-                conn.send(items)
-            except (OSError, ValueError):  # the process died: its reader restarts it; these are resent by their clients
-                with self._lock:
-                    self.in_flight -= len(items)
-                self.pool.count("ingest-messages-lost-to-restarts", len(items))
+                conn.send(_STOP if items is None else items)
+            except (OSError, ValueError):  # died (its reader starts another) or closed
+                if items is not None:
+                    self.pool.count("ingest-messages-lost-to-restarts", len(items))
+            if items is None:
+                return
 
     def _read(self, conn: Connection, proc) -> None:
+        """The process's results, each delivered (acknowledgements, scans to answer) and counted; when it
+        ends, another is started for the same devices unless the pool is closing."""
         try:
             if conn.recv() != "ready":
                 raise EOFError
             self.ready.set()
             while True:
                 n, got, counts = conn.recv()
-                with self._lock:
-                    self.in_flight -= n
-                self.pool.count_all(counts)
-                if isinstance(got, str):
+                try:
+                    self.pool.count_all(counts)
+                    if isinstance(got, str):
+                        self.pool.count("ingest-errors", 1)
+                        log.error(
+                            "ingest of a group of %d messages failed in worker %d (%s); what it did not store stays unacknowledged",
+                            n,
+                            self.index,
+                            got,
+                        )
+                    else:
+                        self.pool.deliver(got)
+                except Exception:  # noqa: BLE001 - one result's delivery failing (a Zenoh put) must not end the reading:
+                    # what was stored and not acknowledged is resent by its clients and acknowledged as a duplicate
                     self.pool.count("ingest-errors", 1)
-                    log.error(
-                        "ingest of a group of %d messages failed in worker %d (%s); what it did not store stays unacknowledged", n, self.index, got
-                    )
-                else:
-                    self.pool.deliver(got)
+                    log.exception("delivering a group of %d messages from ingest worker %d failed", n, self.index)
         except (EOFError, OSError):
             pass
+        except Exception:  # noqa: BLE001 - an unreadable result: the stream is not to be trusted, the process is replaced
+            log.exception("ingest worker %d sent what cannot be read: replacing it", self.index)
+            proc.kill()
         proc.join(10.0)
-        if self.pool.closing:
-            return
-        # died: the messages it held are not acknowledged (their clients resend them); a new process takes its devices
         with self._lock:
-            lost, self.in_flight = self.in_flight, 0
-            log.error("ingest worker %d ended (exit code %s) with %d messages unacknowledged: starting another", self.index, proc.exitcode, lost)
+            conn.close()
+            if self.closing:
+                return
+            # died: what it held is not acknowledged (its clients resend it); a new process takes its devices
+            log.error("ingest worker %d ended (exit code %s): starting another for its devices", self.index, proc.exitcode)
             self.pool.count("ingest-worker-restarts", 1)
             self._spawn()
 
@@ -221,10 +223,12 @@ class IngestPool:
             raise ValueError(f"an ingest pool needs at least one worker, got {workers}")
         self.db_url, self.deliver, self.count_all = db_url, deliver, count_all
         self.max_group, self.queue_groups = max_group, queue_groups
-        self.closing = False
-        # SQLite: one writer at a time, handed over by a lock at each commit (the Store's write_lock)
-        self._dir = tempfile.mkdtemp(prefix="hybridloc-ingest-")
-        self.write_lock = WriterLock(os.path.join(self._dir, "write.lock")) if _is_sqlite(db_url) else None
+        #: set when the server stops: a worker waiting for the database gives its group up (as the ingest thread does)
+        self.stop_event = mp.get_context("spawn").Event()
+        # SQLite: one writer at a time, handed over by a lock at each commit (the Store's write_lock); its
+        # file beside the database (a temporary folder's could be cleaned away under a long-running server)
+        path = sqlite_path(db_url)
+        self.write_lock = WriterLock(path + "-ingest.lock") if path is not None else None
         self._device_worker: dict[str, int] = {}
         self._devices_of = [0] * workers
         self._workers = [_Worker(self, i) for i in range(workers)]
@@ -246,35 +250,54 @@ class IngestPool:
             self._devices_of[w] += 1
         return w
 
-    def submit(self, items: list[tuple[str, bytes]], device_of: Callable[[str], str]) -> None:
+    def submit(self, items: list[tuple[str, bytes]], device_of: Callable[[str], str], stopping: threading.Event | None = None) -> None:
         """Send ``items`` (key expression, payload), each to its device's worker (``device_of(key)``),
-        in order. Blocks while a worker's queue is full."""
+        in order. Blocks while a worker's queue is full; once ``stopping`` is set, a group that still
+        finds its worker's queue full after 2 s is given up (not acknowledged: its clients resend it)."""
         parts: dict[int, list] = {}
         for key, payload in items:
             parts.setdefault(self.worker_of(device_of(key)), []).append((key, payload))
         for w, part in parts.items():
-            self._workers[w].todo.put(part)
-
-    @property
-    def in_flight(self) -> int:
-        """Messages sent to the workers and not yet ingested."""
-        return sum(w.in_flight + sum(map(len, list(w.todo.queue))) for w in self._workers)
+            waited_stopping = 0.0
+            while True:
+                try:
+                    self._workers[w].todo.put(part, timeout=0.25)
+                    break
+                except queue.Full:
+                    if stopping is not None and stopping.is_set():
+                        waited_stopping += 0.25
+                        if waited_stopping >= 2.0:
+                            self.count("ingest-messages-given-up-at-stop", len(part))
+                            break
 
     def close(self, timeout_s: float = 30.0) -> None:
-        """Each worker ingests what it was sent, returns it, and exits (killed after ``timeout_s``)."""
-        import time
-
-        self.closing = True  # a worker ending from now on is not replaced
+        """Each worker ingests what it was sent, returns it, and exits; one waiting for the database gives
+        its group up at once; what is left after ``timeout_s`` is given up (not acknowledged) and the
+        processes killed."""
+        self.stop_event.set()
         for w in self._workers:
-            w.todo.put(None)
+            with w._lock:
+                w.closing = True  # a worker ending from now on is not replaced
         deadline = time.monotonic() + timeout_s
+        for w in self._workers:
+            try:
+                w.todo.put(None, timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Full:  # its feeder is stuck on a full pipe: what is queued is given up
+                while True:
+                    try:
+                        left = w.todo.get_nowait()
+                    except queue.Empty:
+                        break
+                    if left is not None:
+                        self.count("ingest-messages-given-up-at-stop", len(left))
+                w.todo.put_nowait(None)
         for w in self._workers:
             w.feeder.join(max(0.0, deadline - time.monotonic()))
             w.proc.join(max(0.0, deadline - time.monotonic()))
         for w in self._workers:
-            if w.proc.is_alive():
-                w.proc.kill()
-                w.proc.join(5.0)
-            w.reader.join(5.0)
-            w.conn.close()
-        shutil.rmtree(self._dir, ignore_errors=True)
+            with w._lock:
+                proc, reader = w.proc, w.reader
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5.0)
+            reader.join(5.0)

@@ -113,6 +113,18 @@ class Server:
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> Server:
+        """Open the session, declare the keys and start the threads (and processes); what was started
+        is stopped again when a step fails (a Zenoh endpoint in use, a worker that cannot start)."""
+        try:
+            return self._start()
+        except BaseException:
+            if self._worker is None and self._ingest_pool is not None:  # made, but no ingest thread to close it
+                self._ingest_pool.close(timeout_s=5.0)
+                self._ingest_pool = None
+            self.stop()
+            raise
+
+    def _start(self) -> Server:
         if self._wal_path is not None:
             self._checkpointer = m.WalCheckpointer(self._wal_path).start()
         self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
@@ -309,7 +321,7 @@ class Server:
     def _with_database(self, fn, *args, **kwargs):
         """``fn(*args, **kwargs)``, retried while the database is unreachable (:func:`.ingest.with_database`);
         raises Stopping when the server stops."""
-        return with_database(lambda: fn(*args, **kwargs), self.counts, self._stopping)
+        return with_database(lambda: fn(*args, **kwargs), self.counts, self._stopping, self._counts_lock)
 
     def _count_all(self, counts: Counter) -> None:
         with self._counts_lock:
@@ -317,7 +329,7 @@ class Server:
 
     def _ingest(self, samples) -> None:
         if self._ingest_pool is not None:
-            self._ingest_pool.submit([(str(smp.key_expr), smp.payload.to_bytes()) for smp in samples], _device_of_key)
+            self._ingest_pool.submit([(str(smp.key_expr), smp.payload.to_bytes()) for smp in samples], _device_of_key, self._stopping)
             return
         got = ingest_group(self.store, [(str(smp.key_expr), smp.payload.to_bytes()) for smp in samples], self._with_database, self.counts)
         self._deliver(got)
@@ -325,8 +337,11 @@ class Server:
     def _deliver(self, got: IngestResult) -> None:
         """Publish a group's acknowledgements, then hand its stored batches' newest WiFi scans to the
         locate worker."""
+        session = self.session
+        if session is None:
+            return  # stopped: what was stored and not acknowledged is resent and acknowledged as a duplicate
         for site, device, seq in got.acks:
-            self.session.put(
+            session.put(
                 P.key_ack(site, device),
                 C.ACK.encode(Ack(device, seq)),
                 encoding=C.ACK.encoding,

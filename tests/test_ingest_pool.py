@@ -247,3 +247,72 @@ def test_the_writer_lock_is_released_when_its_holder_dies(tmp_path):
     finally:
         if p.is_alive():
             p.kill()
+
+
+def test_close_returns_while_the_database_is_locked(tmp_path):
+    """Stopping while SQLite is held by another writer (the workers' transactions wait on it, their
+    pipes and queues fill): close gives the rest up after its timeout instead of hanging, and nothing
+    it gave up was acknowledged (found by a review: the queue's put blocked for ever)."""
+    import sqlite3
+    import time
+
+    from hybridloc.server.store import Store
+
+    path = str(tmp_path / "t.db")
+    Store(path).close()
+    delivered: list = []
+    pool = IngestPool(1, path, delivered.append, lambda c: None)
+    holder = sqlite3.connect(path, timeout=1)
+    holder.execute("BEGIN IMMEDIATE")  # the database away for the worker (its busy timeout is 30 s)
+    try:
+        w = pool._workers[0]
+        k = 0
+        t0 = time.monotonic()
+        while not w.todo.full() and time.monotonic() - t0 < 20:
+            k += 1
+            pool.submit([(P.key_batch(SITE, "a"), C.BATCH.encode(Batch(SITE, "a", k, "", tuple(_steps(1000, 600.0 * k)))))], lambda key: "a")
+        assert w.todo.full()
+        t1 = time.monotonic()
+        closer = threading.Thread(target=pool.close, kwargs={"timeout_s": 2.0}, daemon=True)
+        closer.start()
+        closer.join(15)
+        assert not closer.is_alive() and time.monotonic() - t1 < 15
+        assert not w.proc.is_alive() and not w.feeder.is_alive()
+    finally:
+        holder.rollback()
+        holder.close()
+    acked = max((seq for r in delivered for _, _, seq in r.acks), default=0)
+    seqs, _, _, _ = _stored(path)
+    assert len(seqs.get("a", [])) == acked  # nothing acknowledged that is not stored
+
+
+def test_a_failing_delivery_does_not_stop_ingest(tmp_path):
+    """A result whose delivery fails (a Zenoh put raising) is counted and logged; the next groups are
+    still read and delivered (found by a review: one exception ended the reader thread, and with it
+    every device's ingest on that worker)."""
+    import time
+
+    from hybridloc.server.store import Store
+
+    path = str(tmp_path / "d.db")
+    Store(path).close()
+    delivered: list = []
+    counts: Counter = Counter()
+
+    def deliver(r):
+        if not delivered:
+            delivered.append(None)
+            raise RuntimeError("session closed")
+        delivered.append(r)
+
+    pool = IngestPool(1, path, deliver, counts.update)
+    try:
+        for k in (1, 2, 3):
+            pool.submit([(P.key_batch(SITE, "a"), C.BATCH.encode(Batch(SITE, "a", k, "", tuple(_steps(5, 10.0 * k)))))], lambda key: "a")
+            assert wait_until(lambda k=k: len(delivered) >= k, timeout=30)
+            time.sleep(0.05)
+    finally:
+        pool.close(timeout_s=10)
+    assert [r.acks for r in delivered[1:]] == [[(SITE, "a", 2)], [(SITE, "a", 3)]]
+    assert counts["ingest-errors"] == 1 and counts["batches-persisted"] == 3
+    assert pool._workers[0].proc.exitcode == 0  # the same process all along, ended by close
