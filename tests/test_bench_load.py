@@ -20,6 +20,7 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
+    assert r["raw_rows_per_s"] == pytest.approx(0.5 * (r["raw_rows_per_s_before"] + r["raw_rows_per_s_after"]), abs=0.2)
     assert r["ceiling_step_form"] == "columns" and r["batch_encode_rows_ms"] is not None
 
 
