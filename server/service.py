@@ -7,6 +7,10 @@ Threads:
 * the ingest worker drains the channel in groups (up to ``max_group`` samples or ``max_wait`` s),
   validates every message, persists the group in one transaction, publishes the acknowledgements and
   hands the newest WiFi scan of each stored batch to the locate worker;
+  with ``ingest_workers`` (``serve --ingest-workers N``) it only hands each device's messages to its
+  worker process (:mod:`.ingest_pool`), which validates and persists them with the same code
+  (:mod:`.ingest`); the pool's reader threads publish the acknowledgements and hand the scans on;
+* with SQLite, a thread checkpoints the WAL beside the writers (:class:`.db.WalCheckpointer`);
 * the locate worker answers those scans (a fix, or "no fix" with the reason), stores the fixes and
   pushes them to their devices. It runs beside ingest, so locating never delays an acknowledgement;
   when it falls behind, it sheds load: of a device's scans waiting together only the newest is
