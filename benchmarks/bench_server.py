@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import headline
+from hybridloc.server.db import sqlite_path
 from hybridloc.wire.zconfig import free_port
 
 
@@ -220,10 +221,10 @@ def raw_insert_rate(db_url: str, rows: int = 200_000) -> float:
     WAL mode, synchronous=NORMAL as the store sets it; psycopg for PostgreSQL)."""
     params = [(i, "dev000", i * 0.1, 0.7, 0.3, 0.05, 0.1, 0.0) for i in range(rows)]
     cols = "(batch_id INTEGER, device_id TEXT, t REAL, length REAL, heading REAL, sigma_length REAL, sigma_heading REAL, heading_change REAL)"
-    if "://" not in db_url or db_url.startswith("sqlite"):
+    path = sqlite_path(db_url)
+    if path is not None:
         import sqlite3
 
-        path = db_url.split("///", 1)[-1]
         con = sqlite3.connect(path)
         con.execute("PRAGMA journal_mode=WAL")
         con.execute("PRAGMA synchronous=NORMAL")

@@ -187,16 +187,6 @@ def _plot(args: argparse.Namespace, plan, tracks: dict, raw: dict | None, loops:
     return 0
 
 
-def _sqlite_path(url: str) -> str | None:
-    """The file of a SQLite database URL or path (None for other databases and in-memory SQLite)."""
-    if "://" not in url:
-        return url
-    if url.startswith("sqlite:///"):
-        rest = url[len("sqlite:///") :]
-        return rest or None
-    return None
-
-
 def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
     from ._common import batch_client, check_batch_arguments, check_db_driver, executor_of
 
@@ -206,10 +196,11 @@ def _cmd_slam_rebuild(args: argparse.Namespace) -> int:
     if args.processes is not None and args.processes < 1:
         raise BadInput(f"--processes must be at least 1 (got {args.processes})")
     check_db_driver(args.db)
+    from ..server.db import sqlite_path
     from ..server.slam_batch import site_floors, sites_with_walks
     from ..server.store import Store
 
-    path = _sqlite_path(args.db)
+    path = sqlite_path(args.db)
     if path is not None and not Path(path).is_file():
         raise MissingData(f"{path}: no such database (the server's SQLite file, or a database URL)")
     st = Store(args.db)
