@@ -157,7 +157,8 @@ class _Worker:
                 conn = self.conn
             try:
                 conn.send(_STOP if items is None else items)
-            except (OSError, ValueError):  # died (its reader starts another) or closed
+            except Exception:  # noqa: BLE001 - died (its reader starts another) or closed meanwhile by its reader
+                # (a pipe closed under a blocked send fails with OSError, ValueError or TypeError): not delivered
                 if items is not None:
                     self.pool.count("ingest-messages-lost-to-restarts", len(items))
             if items is None:
@@ -301,3 +302,4 @@ class IngestPool:
                 proc.kill()
                 proc.join(5.0)
             reader.join(5.0)
+            w.feeder.join(5.0)  # a send blocked on the killed process's full pipe has failed by now
