@@ -470,7 +470,7 @@ def print_fingerprint(res) -> None:
     """The report of ``eval fingerprint`` (:class:`hybridloc.radio.evaluate.FingerprintEval`)."""
     import numpy as np
 
-    from ..radio.evaluate import UJI_COVERED_M, UJI_METHODS, _fmt
+    from ..radio.evaluate import PATHLOSS_FAR_REACH_M, UJI_COVERED_M, UJI_METHODS, _fmt
 
     if res.uji:
         val = res.uji_validation
@@ -544,6 +544,18 @@ def print_fingerprint(res) -> None:
                 f"{lo:g}-{hi:g} m: {100 * m.mean():.0f} % of scans, mean {np.nanmean(e[m]) if np.isfinite(e[m]).any() else float('nan'):.2f} m"
             )
         print("  routes held out whole, error by the distance from the truth to the nearest reference label on its floor: " + "; ".join(parts))
+        for sc, label in ((ro.pathloss, "at the kernel's reach"), (ro.pathloss_far, f"carried {PATHLOSS_FAR_REACH_M:g} m past the labels")):
+            if sc is None:
+                continue
+            ep, cp = np.array(sc.errors), np.array(sc.cover_m)
+            by = []
+            for lo, hi in bins:
+                m = (cp >= lo) & (cp < hi)
+                by.append(f"{lo:g}-{hi:g} m: {np.nanmean(ep[m]) if np.isfinite(ep[m]).any() else float('nan'):.2f} m")
+            print(
+                f"  routes held out whole, cell likelihood on maps with the path-loss prior {label}: floor hit {100 * np.mean(sc.floor_hits):.2f}%  "
+                f"error on the right floor: {_fmt(ep)}; by distance to the nearest label: " + "; ".join(by)
+            )
         print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
 
 
@@ -617,7 +629,7 @@ def fingerprint_headline(res) -> dict:
     if res.uji_phone is not None:
         out.update(_score_keys("uji_phone_cv", res.uji_phone["ours"].summary()))
         out["uji_phone_cv_plain_mean_m"] = res.uji_phone["plain"].summary()["mean_m"]
-    for m, key in zip(res.ilc_methods, ("ilc_knn", "ilc_prob")):
+    for m, key in zip(res.ilc_methods, ("ilc_knn", "ilc_prob", "ilc_prob_pathloss")):
         s = m.score
         out[f"{key}_mean_m"] = np.nanmean(s.errors) if s.errors else float("nan")
         out[f"{key}_floor_hit_pct"] = 100 * np.mean(s.floor_hits)
@@ -630,6 +642,13 @@ def fingerprint_headline(res) -> dict:
         out["ilc_routes_held_out_near_share_pct"] = 100 * float(near.mean()) if near.size else float("nan")
         out["ilc_routes_held_out_near_mean_m"] = np.nanmean(e[near]) if np.isfinite(e[near]).any() else float("nan")
         out["ilc_routes_held_out_far_mean_m"] = np.nanmean(e[cov >= 5.0]) if np.isfinite(e[cov >= 5.0]).any() else float("nan")
+        for sc, key in ((res.routes.pathloss, "ilc_routes_held_out_pathloss"), (res.routes.pathloss_far, "ilc_routes_held_out_pathloss_reach30")):
+            if sc is None:
+                continue
+            ep, cp = np.array(sc.errors), np.array(sc.cover_m)
+            out[f"{key}_mean_m"] = np.nanmean(ep) if ep.size else float("nan")
+            out[f"{key}_floor_hit_pct"] = 100 * float(np.mean(sc.floor_hits))
+            out[f"{key}_far_mean_m"] = np.nanmean(ep[cp >= 5.0]) if np.isfinite(ep[cp >= 5.0]).any() else float("nan")
     sp = res.uji_phone_split
     if sp is not None:
         for name, key in (("kfold", "uji_phone_cv_split"), ("lopo", "uji_lopo_split")):

@@ -4,17 +4,19 @@ from __future__ import annotations
 
 import argparse
 
-from ..errors import MissingData
+from ..errors import BadInput, MissingData
 
 
 def _cmd_map_build(args: argparse.Namespace) -> int:
     from ..radio.radiomap import BuildParams, build_radio_map
     from ..radio.sources import labelled_from_inputs
 
+    if args.reach is not None and not args.reach > 0:
+        raise BadInput(f"--reach must be a positive distance in metres, not {args.reach}")
     labelled, plan, site = labelled_from_inputs(args.format, args.inputs, args.floorplan)
     if not labelled:
         raise MissingData("no labelled scans in the inputs (surveys need at least two waypoints)")
-    params = BuildParams(cell=args.cell, max_age_s=args.max_age)
+    params = BuildParams(cell=args.cell, max_age_s=args.max_age, prior=args.prior, reach_m=args.reach)
     rmap = build_radio_map(labelled, site=args.site or site, plan=plan, params=params)
     rmap.save(args.out)
     fl = ", ".join(f"{f.name}: {len(f.cells)} cells, {len(f.tx)} transmitters" for f in rmap.floors.values())
@@ -54,6 +56,16 @@ def register(msub) -> None:
     mb.add_argument("--site", help="site name stored in the map")
     mb.add_argument("--cell", type=float, default=1.5, help="grid cell size, m (default 1.5)")
     mb.add_argument("--max-age", type=float, default=8.0, help="leave out readings older than this at scan time, s (default 8)")
+    mb.add_argument(
+        "--prior",
+        choices=("floor-mean", "path-loss"),
+        default="floor-mean",
+        help="where the labels are thin: each transmitter's floor-wide mean (default), or a log-distance path-loss model fitted per "
+        "transmitter (the cell likelihood 27 %% closer on ILC site1, the kNN answer unchanged: eval fingerprint)",
+    )
+    mb.add_argument(
+        "--reach", type=float, help="keep cells within this distance of a labelled scan, m (default: the kernel's reach, 3 bandwidths + a cell)"
+    )
     mb.set_defaults(func=_cmd_map_build)
     ms = msub.add_parser("show", help="coverage and per-transmitter heat maps as a PNG")
     ms.add_argument("map", metavar="MAP")

@@ -456,6 +456,15 @@ class RoutesHeldOut:
     score: FingerprintScore
     repeated_errors: np.ndarray
     other_errors: np.ndarray
+    #: the same folds by the cell likelihood on maps with the path-loss prior (pathloss.py): the kernel's
+    #: reach, and the model carried ``PATHLOSS_FAR_REACH_M`` past the labelled scans (unlabelled corridors)
+    pathloss: FingerprintScore | None = None
+    pathloss_far: FingerprintScore | None = None
+
+
+#: How far past the labelled scans the path-loss map of the routes held out reaches, m (the scans that
+#: lie farther than 10 m from every label are 8 % of site1's; 30 m covers nearly all of them)
+PATHLOSS_FAR_REACH_M = 30.0
 
 
 @dataclass
@@ -507,8 +516,12 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         traces = load_site_surveys(ilc, every)
         plan = read_ilc_site(ilc)
         out.n_ilc_traces = len(traces)
-        for method, kw, label in (("knn", {"k": 5, "max_age_s": 8.0}, "weighted 5-NN, powed"), ("prob", {"max_age_s": 8.0}, "cell likelihood")):
-            s = evaluate_ilc(traces, folds, method, plan=plan, params=BuildParams(max_age_s=8.0) if method == "prob" else None, **kw)
+        for method, kw, label, params in (
+            ("knn", {"k": 5, "max_age_s": 8.0}, "weighted 5-NN, powed", None),
+            ("prob", {"max_age_s": 8.0}, "cell likelihood", BuildParams(max_age_s=8.0)),
+            ("prob", {"max_age_s": 8.0}, "cell lik., path loss", BuildParams(max_age_s=8.0, prior="path-loss")),
+        ):
+            s = evaluate_ilc(traces, folds, method, plan=plan, params=params, **kw)
             out.ilc_methods.append(IlcMethodScore(label, s))
         # The folds above deal walks recorded one after the other to different folds, so a route walked
         # twice in a row nearly always has one walk in the map. Held out whole, routes show what a path the
@@ -517,8 +530,15 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         repeated = {t.name for t, g in zip(traces, groups) if np.count_nonzero(groups == g) > 1}
         ordered = np.arange(len(traces)) % folds
         seen = sum(1 for i, g in enumerate(groups) if traces[i].name in repeated and np.any((groups == g) & (ordered != ordered[i])))
-        s = evaluate_ilc(traces, folds, "knn", fold_of=route_folds(traces, folds, np.random.default_rng(0)), k=5, max_age_s=8.0)
+        rfolds = route_folds(traces, folds, np.random.default_rng(0))
+        s = evaluate_ilc(traces, folds, "knn", fold_of=rfolds, k=5, max_age_s=8.0)
         rep = np.array([x for k, v in s.by_trace.items() if k in repeated for x in v])
         rest = np.array([x for k, v in s.by_trace.items() if k not in repeated for x in v])
         out.routes = RoutesHeldOut(len(repeated), seen, s, rep, rest)
+        # Can a model of each transmitter place the scans of unlabelled corridors? The cell likelihood on
+        # maps whose thin cells take a fitted path-loss prediction, at the kernel's reach and carried
+        # past the labels over the walkable floor.
+        for reach, attr in ((None, "pathloss"), (PATHLOSS_FAR_REACH_M, "pathloss_far")):
+            bp = BuildParams(max_age_s=8.0, prior="path-loss", reach_m=reach)
+            setattr(out.routes, attr, evaluate_ilc(traces, folds, "prob", plan=plan, params=bp, fold_of=rfolds, max_age_s=8.0, region=False))
     return out
