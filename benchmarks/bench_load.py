@@ -127,12 +127,14 @@ class _Load:
 
         now = time.monotonic()
         if not str(sample.key_expr).endswith("/ack"):
-            self.misrouted += 1  # seen: a few samples of another key handed to this callback
+            with self.lock:  # callbacks run on several of Zenoh's threads
+                self.misrouted += 1  # seen: a few samples of another key handed to this callback
             return
         try:
             a = C.ACK.decode(sample.payload.to_bytes())
         except P.Rejected:  # seen under load: another key's payload (a fix) on this key
-            self.misrouted += 1
+            with self.lock:
+                self.misrouted += 1
             return
         with self.lock:
             old = self.acked.get(a.device)
@@ -156,13 +158,15 @@ class _Load:
 
         now = time.monotonic()
         if not str(sample.key_expr).endswith("/fix"):
-            self.misrouted += 1
+            with self.lock:
+                self.misrouted += 1
             return
         device = str(sample.key_expr).split("/")[3]
         try:
             f = C.FIX.decode(sample.payload.to_bytes())
         except P.Rejected:  # seen under load: an ack's payload on a fix key
-            self.misrouted += 1
+            with self.lock:
+                self.misrouted += 1
             return
         t = f.fix.t if f.fix is not None else f.t
         with self.lock:
@@ -483,13 +487,21 @@ def _subscribe(session, devices: list[str], load: _Load) -> None:
     with 20 devices a session that is 2,000 threads at 1,000 clients, each answer a handover of the
     interpreter lock between them, and the load generator spent more of the machine's two cores than
     the server it loads (1.26 cores against 0.7, measured with /proc). A real phone holds two such
-    subscribers, not forty. The callbacks only take a lock and record a time."""
+    subscribers, not forty. The callbacks only take ``load.lock`` and record a time.
+
+    Never close a session, put or declare while holding ``load.lock``: ``Session.close`` waits for a
+    running callback, which may be waiting for that lock. The latencies recorded include the wait of a
+    callback for the interpreter lock while the generator's main thread runs (up to its 5 ms switch
+    interval), as with a thread per subscriber."""
     import zenoh
 
     from hybridloc.wire import protocol as P
 
-    on_ack = zenoh.handlers.Callback(load.on_ack, indirect=False)
-    on_fix = zenoh.handlers.Callback(load.on_fix, indirect=False)
+    try:  # ``indirect`` is marked unstable in zenoh-python: a version without it gets plain callbacks
+        on_ack = zenoh.handlers.Callback(load.on_ack, indirect=False)
+        on_fix = zenoh.handlers.Callback(load.on_fix, indirect=False)
+    except TypeError:
+        on_ack, on_fix = load.on_ack, load.on_fix
     for d in devices:
         session.declare_subscriber(P.key_ack(SITE, d), on_ack)
         session.declare_subscriber(P.key_fix(SITE, d), on_fix)

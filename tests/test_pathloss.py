@@ -71,11 +71,11 @@ def test_radio_map_prior_option():
         if sel.any():
             rssi = {f"ap{int(j)}": float(v) for j, v in zip(r_col[sel], r_val[sel])}
             scans.append(LabelledScan(RfScan(float(i), Technology.WIFI, rssi), pos[i].copy(), 0.5, "F1"))
-    plain = build_radio_map(scans, params=BuildParams(margin=20.0))
-    pl = build_radio_map(scans, params=BuildParams(margin=20.0, prior="path-loss", reach_m=40.0))
-    # the path-loss map reaches farther from the corridors than the kernel does (no plan here: the
-    # grid spans the data plus the margin), and between the corridors, 10 m from both, it predicts the
-    # transmitter in the middle (at (30, 15)) as the strongest
+    plain = build_radio_map(scans)
+    pl = build_radio_map(scans, params=BuildParams(prior="path-loss", reach_m=40.0))
+    # the path-loss map reaches farther from the corridors than the kernel does (no plan here: the grid
+    # spans the data plus the larger of the margin and the reach), and between the corridors, 10 m from
+    # both, it predicts the transmitter in the middle (at (30, 15)) as the strongest
     fp, fk = pl.floors["F1"], plain.floors["F1"]
     assert len(fp.cells) > len(fk.cells)
     mid = int(np.argmin(np.linalg.norm(fp.cells - [30.0, 15.0], axis=1)))
@@ -83,6 +83,66 @@ def test_radio_map_prior_option():
     assert int(np.argmax(fp.mu[mid])) == int(np.flatnonzero(fp.tx == pl.tx_index["ap2"])[0])
     with pytest.raises(ValueError, match="prior"):
         build_radio_map(scans, params=BuildParams(prior="nonsense"))
+    with pytest.raises(ValueError, match="reach_m"):
+        build_radio_map(scans, params=BuildParams(prior="path-loss", reach_m=0.0))
+
+
+def test_map_files_stay_readable_both_ways(tmp_path):
+    """A map built with the default parameters is the file older hybridloc wrote (no new header keys),
+    and a header with parameters this version does not know still loads."""
+    import json
+
+    from hybridloc.radio.radiomap import BuildParams, RadioMap, build_radio_map
+    from hybridloc.radio.survey import LabelledScan
+    from hybridloc.types import RfScan, Technology
+
+    rng = np.random.default_rng(5)
+    pos, r_scan, r_col, r_val = _simulate(rng, np.array([[10.0, 5.0], [40.0, 25.0]]), np.full(2, -35.0), np.full(2, 2.8), n_scans=120)
+    scans = [
+        LabelledScan(
+            RfScan(float(i), Technology.WIFI, {f"ap{int(j)}": float(v) for j, v in zip(r_col[r_scan == i], r_val[r_scan == i])}),
+            pos[i].copy(),
+            0.5,
+            "F1",
+        )
+        for i in range(len(pos))
+        if (r_scan == i).any()
+    ]
+    build_radio_map(scans).save(tmp_path / "d.npz")
+    with np.load(tmp_path / "d.npz") as z:
+        meta = json.loads(bytes(z["meta"]).decode())
+    assert "prior" not in meta["params"] and "reach_m" not in meta["params"]
+    build_radio_map(scans, params=BuildParams(prior="path-loss", reach_m=12.0)).save(tmp_path / "p.npz")
+    with np.load(tmp_path / "p.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    assert meta["params"]["prior"] == "path-loss"
+    meta["params"]["a_later_setting"] = 3
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(tmp_path / "later.npz", **arrays)
+    m = RadioMap.load(tmp_path / "later.npz")
+    assert m.params.prior == "path-loss" and m.params.reach_m == 12.0
+
+
+def test_degenerate_readings_are_not_fitted():
+    """Readings from one spot, a NaN reading and a floor where every pair is heard: no transmitter is
+    placed from what cannot place it, nothing is NaN, and the detection law keeps its a-priori values."""
+    from hybridloc.radio.pathloss import R50_PRIOR, S50_PRIOR
+
+    rng = np.random.default_rng(2)
+    spot = np.repeat([[3.0, 4.0], [3.5, 4.0]], 10, axis=0)  # 20 readings from two spots 0.5 m apart
+    pl = fit_path_loss(spot, np.arange(20), np.zeros(20, int), rng.normal(-60, 3, 20), 1)
+    assert not pl.ok.any()
+    pos = np.column_stack([rng.uniform(0, 40, 50), rng.uniform(0, 10, 50)])
+    val = -40.0 - 25.0 * np.log10(np.hypot(pos[:, 0] - 20, pos[:, 1] - 5) + 1.0)
+    pl = fit_path_loss(pos, np.arange(50), np.zeros(50, int), val, 1)
+    assert pl.ok.all()
+    # every (scan, transmitter) pair heard: no detection law can be fitted
+    assert (pl.r50, pl.s50) == (R50_PRIOR, S50_PRIOR)
+    val[7] = np.nan  # a NaN reading is left out, not spread over the floor
+    pl = fit_path_loss(pos, np.arange(50), np.zeros(50, int), val, 1)
+    assert pl.ok.all() and np.isfinite(pl.p0).all() and np.isfinite(pl.resid_sd).all()
+    assert np.isfinite([pl.r50, pl.s50]).all() and pl.s50 > 0
 
 
 def test_map_build_with_the_path_loss_prior_on_the_bundled_sample(tmp_path):
@@ -107,3 +167,5 @@ def test_map_build_with_the_path_loss_prior_on_the_bundled_sample(tmp_path):
         assert np.isfinite(f.mu).all() and np.isfinite(f.sd).all() and ((f.pd > 0) & (f.pd < 1)).all()
     r = run("map", "build", "--format", "msft", *map(str, traces), "--out", str(tmp_path / "x.npz"), "--prior", "path-loss", "--reach", "-1")
     assert r.returncode == 2 and "--reach" in r.stderr
+    r = run("map", "build", "--format", "msft", *map(str, traces), "--out", str(tmp_path / "x.npz"), "--reach", "20")
+    assert r.returncode == 2 and "--prior path-loss" in r.stderr

@@ -619,6 +619,8 @@ def _print_uji_split_votes(res) -> None:
 def fingerprint_headline(res) -> dict:
     import numpy as np
 
+    from ..radio.evaluate import PATHLOSS_FAR_REACH_M
+
     out: dict = {}
     if res.uji_split is not None:
         v = res.uji_split["ours"]
@@ -642,7 +644,10 @@ def fingerprint_headline(res) -> dict:
         out["ilc_routes_held_out_near_share_pct"] = 100 * float(near.mean()) if near.size else float("nan")
         out["ilc_routes_held_out_near_mean_m"] = np.nanmean(e[near]) if np.isfinite(e[near]).any() else float("nan")
         out["ilc_routes_held_out_far_mean_m"] = np.nanmean(e[cov >= 5.0]) if np.isfinite(e[cov >= 5.0]).any() else float("nan")
-        for sc, key in ((res.routes.pathloss, "ilc_routes_held_out_pathloss"), (res.routes.pathloss_far, "ilc_routes_held_out_pathloss_reach30")):
+        for sc, key in (
+            (res.routes.pathloss, "ilc_routes_held_out_pathloss"),
+            (res.routes.pathloss_far, f"ilc_routes_held_out_pathloss_reach{PATHLOSS_FAR_REACH_M:g}"),
+        ):
             if sc is None:
                 continue
             ep, cp = np.array(sc.errors), np.array(sc.cover_m)

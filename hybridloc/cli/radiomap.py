@@ -13,6 +13,8 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
 
     if args.reach is not None and not args.reach > 0:
         raise BadInput(f"--reach must be a positive distance in metres, not {args.reach}")
+    if args.reach is not None and args.prior != "path-loss":
+        raise BadInput("--reach needs --prior path-loss (past the kernel's reach only the model has anything to say)")
     labelled, plan, site = labelled_from_inputs(args.format, args.inputs, args.floorplan)
     if not labelled:
         raise MissingData("no labelled scans in the inputs (surveys need at least two waypoints)")

@@ -18,9 +18,10 @@ sd^2 = shadow_sd^2 + s_floor^2 * prior_weight / (n_d + prior_weight), s_floor th
 With ``prior="path-loss"`` the prior is a log-distance model fitted to each transmitter's readings
 (:mod:`.pathloss`: its predicted mean, its detection law, its fit's residual spread in place of
 s_floor), and ``reach_m`` may keep cells beyond the kernel's reach, where the model alone speaks. On ILC
-site1 (``eval fingerprint``) the cell likelihood comes 27 % closer with it (6.94 -> 5.04 m per scan);
-past the labels the model does not place the scans of unlabelled corridors (18.4 m against the
-kernel map's 19.2 m beyond 10 m), so it is not the default.
+site1 (``eval fingerprint``) the cell likelihood comes 27 % closer with it (6.94 -> 5.04 m per scan;
+the weighted kNN, the server's locator, 4.76 m); on routes held out whole it ties the kNN (6.89 against
+6.93 m), and carried 30 m past the labels it places the scans beyond 10 m from every label at 17.2 m
+(the kNN 19.2 m) but those 5-10 m away worse (14.4 against 12.4 m): 7.00 m over all. Not the default.
 
 Time: every sample is weighted by 0.5^(age / half_life) (age relative to the newest scan), so
 transmitters that move or vanish fade out and new ones appear as soon as they are seen; each
@@ -37,6 +38,7 @@ one array set per floor: ``<floor>/cells`` (n, 2) cell centres, ``<floor>/mu``, 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from dataclasses import dataclass, field
@@ -135,7 +137,7 @@ class RadioMap:
             "floors": [{"name": f.name, "cell_size": f.cell_size, "level": self.floor_levels.get(f.name)} for f in self.floors.values()],
             "device_offsets": self.device_offsets,
             "built_at": self.built_at,
-            "params": self.params.__dict__,
+            "params": _params_header(self.params),
         }
         arrays = {"meta": np.frombuffer(json.dumps(meta).encode("utf-8"), dtype=np.uint8), "last_seen": self.last_seen}
         arrays.update(_references_to_arrays(self.references, self.tx_index))
@@ -190,10 +192,26 @@ class RadioMap:
             {k: float(v) for k, v in meta["device_offsets"].items()},
             z["last_seen"],
             float(meta["built_at"]),
-            BuildParams(**meta["params"]),
+            _params_from_header(meta["params"]),
             levels,
             _references_from_arrays(z, txs, meta["technology"]),
         )
+
+
+#: Build parameters added after version 1's first files: written only when they differ from their
+#: default, so a map built with the defaults is the very file older hybridloc wrote and reads
+_LATER_PARAMS = {"prior": "floor-mean", "reach_m": None}
+
+
+def _params_header(p: BuildParams) -> dict:
+    return {k: v for k, v in p.__dict__.items() if not (k in _LATER_PARAMS and v == _LATER_PARAMS[k])}
+
+
+def _params_from_header(d: dict) -> BuildParams:
+    """The build parameters of a file: the ones this version knows (a later version's extra settings only
+    describe how its map was built; the arrays are what positioning reads)."""
+    known = {f.name for f in dataclasses.fields(BuildParams)}
+    return BuildParams(**{k: v for k, v in d.items() if k in known})
 
 
 def _references_to_arrays(refs: list[LabelledScan], tix: dict[str, int]) -> dict[str, np.ndarray]:
@@ -327,6 +345,10 @@ def build_radio_map(
 ) -> RadioMap:
     """Build a radio map from labelled scans of one technology (see the module docstring)."""
     p = params or BuildParams()
+    if p.prior not in ("floor-mean", "path-loss"):
+        raise ValueError(f"BuildParams.prior must be 'floor-mean' or 'path-loss', not {p.prior!r}")
+    if p.reach_m is not None and not p.reach_m > 0:
+        raise ValueError(f"BuildParams.reach_m must be a positive distance in metres, not {p.reach_m!r}")
     scans = [ls for ls in labelled if ls.scan.technology.value == technology]
     if not scans:
         raise ValueError(f"no labelled {technology} scans to build a map from")
@@ -370,7 +392,8 @@ def build_radio_map(
 def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: BuildParams, t_new: float, walkable) -> FloorMap:
     sel_scans = np.flatnonzero(R.floor == fi)
     pts = R.pos[sel_scans]
-    cells = _grid_cells(pts, p.cell, p.margin, walkable)
+    # without a plan the grid spans the data plus the margin: a reach beyond it widens the grid
+    cells = _grid_cells(pts, p.cell, p.margin if p.reach_m is None else max(p.margin, p.reach_m), walkable)
     if len(cells):
         # Keep the cells the data informs: within 3 kernel sigmas (plus a cell) of a labelled scan.
         d, _ = cKDTree(pts).query(cells, k=1)
@@ -426,7 +449,7 @@ def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: Build
         # the prior from a path-loss model of each transmitter fitted here (pathloss.py), where it fitted
         from .pathloss import fit_path_loss
 
-        pl = fit_path_loss(pts, r_scan, r_col, r_val, m)
+        pl = fit_path_loss(pts, r_scan, r_col, r_val, m, weights=w)
         mu_pl = pl.mean(cells)
         mu_prior = np.where(pl.ok[None, :], mu_pl, mu_prior)
         pd_prior = np.where(pl.ok[None, :], pl.detection(mu_pl), np.float32(0.02))
