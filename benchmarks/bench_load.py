@@ -189,6 +189,7 @@ class _Faults:
         self.ongoing: list[dict] = []  # started, not ended
         self.watch: list[dict] = []  # ended, not yet caught up
         self.done: list[dict] = []
+        self.sent = 0  # the newest batch every device has been given (sent, or spooled while dropped)
 
     def active(self) -> bool:
         return bool(self.ongoing or self.watch)
@@ -218,6 +219,8 @@ class _Faults:
             else:
                 self.ctl["resume"]()
             f["t_end"] = time.monotonic()
+            # caught up: every batch given to the devices before the fault ended is acknowledged
+            f["last_seq"] = max(f["last_seq"], self.sent)
             devs = f["devices"] if f["devices"] is not None else self.load.devices
             with self.load.lock:
                 f["acked0"] = {d: self.load.acked[d] for d in devs}
@@ -405,6 +408,7 @@ def run(
                     session_of[d].put(keys[d], payload, encoding=C.BATCH.encoding, congestion_control=block)
                 sent_steps += len(steps)
                 sent_scans += len(sc)
+            fl.sent = sec + 1
             _resend_stalled(load, session_of, keys, block)
             fl.poll()
         # drain: every batch acknowledged (resending on stalls), every fault ended
