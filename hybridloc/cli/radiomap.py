@@ -60,7 +60,7 @@ def register(msub) -> None:
     mb.add_argument("--max-age", type=float, default=8.0, help="leave out readings older than this at scan time, s (default 8)")
     mb.add_argument(
         "--prior",
-        choices=("floor-mean", "path-loss"),
+        choices=("floor-mean", "path-loss"),  # radio.radiomap.PRIORS, not imported here: the CLI starts without shapely and scipy
         default="floor-mean",
         help="where the labels are thin: each transmitter's floor-wide mean (default), or a log-distance path-loss model fitted per "
         "transmitter (the cell likelihood 27 %% closer on ILC site1, the kNN answer unchanged: eval fingerprint)",

@@ -35,8 +35,8 @@ HEIGHT_M = 3.0
 MIN_READINGS = 8
 #: Most readings a transmitter's fit uses (evenly thinned beyond): the fit's cost, not its answer
 MAX_READINGS = 300
-#: A transmitter's readings must span at least this (the largest distance between two of their positions,
-#: m): readings from one spot fix neither where it is nor how fast it fades
+#: A transmitter's readings must span at least this (the diagonal of their positions' bounding box, m):
+#: readings from one spot fix neither where it is nor how fast it fades
 MIN_SPAN_M = 5.0
 #: Least residual spread of a fit, dB: a reading's own scatter about a local mean (radiomap's var0 floor)
 MIN_RESID_SD = 3.0
@@ -103,9 +103,9 @@ def _fit_all(P: np.ndarray, r: np.ndarray, valid: np.ndarray, wt: np.ndarray | N
     a = np.take_along_axis(P, top[:, :, None], axis=1).mean(1)
     n = np.full(m, 2.5)
     d2 = ((P - a[:, None, :]) ** 2).sum(-1) + HEIGHT_M**2
-    p0 = np.array([np.median((r[j] + 5.0 * n[j] * np.log10(d2[j]))[valid[j]]) for j in range(m)])
-    lo_a = np.array([np.where(valid[j][:, None], P[j], np.inf).min(0) for j in range(m)]) - 30.0
-    hi_a = np.array([np.where(valid[j][:, None], P[j], -np.inf).max(0) for j in range(m)]) + 30.0
+    p0 = np.nanmedian(np.where(valid, r + 5.0 * n[:, None] * np.log10(d2), np.nan), axis=1)
+    lo_a = np.where(valid[:, :, None], P, np.inf).min(1) - 30.0
+    hi_a = np.where(valid[:, :, None], P, -np.inf).max(1) + 30.0
     lam = np.full(m, 1e-2)
     f = 4.0
 
@@ -138,8 +138,9 @@ def _fit_all(P: np.ndarray, r: np.ndarray, valid: np.ndarray, wt: np.ndarray | N
         c = np.where(better, c2, c)
         e[better], d2[better] = e2[better], d22[better]
         lam = np.clip(np.where(better, lam * 0.3, lam * 10.0), 1e-6, 1e8)
-    med = np.array([np.median(e[j][valid[j]]) for j in range(m)])
-    mad = np.array([np.median(np.abs(e[j][valid[j]] - med[j])) for j in range(m)])
+    ev = np.where(valid, e, np.nan)
+    med = np.nanmedian(ev, axis=1)
+    mad = np.nanmedian(np.abs(ev - med[:, None]), axis=1)
     # the residuals of a 4-parameter fit understate its spread: scale by sqrt(k / (k - 4))
     sd = 1.4826 * mad * np.sqrt(cnt / np.maximum(cnt - 4.0, 1.0))
     # a fit whose position ended at the edge of its search box did not find the transmitter. An exponent
@@ -176,7 +177,7 @@ def fit_path_loss(
         if len(sel) < MIN_READINGS:
             continue
         q = pos[r_scan[sel]]
-        if np.hypot(*np.ptp(q, axis=0)) < MIN_SPAN_M:  # the bounding box's diagonal: >= the largest distance / 1
+        if np.hypot(*np.ptp(q, axis=0)) < MIN_SPAN_M:
             continue
         fit.append(j)
     if fit:

@@ -54,6 +54,8 @@ from .survey import LabelledScan
 
 FORMAT_NAME = "hybridloc-radiomap"
 FORMAT_VERSION = 1
+#: What a map says where its data are thin (BuildParams.prior); the first is the default
+PRIORS = ("floor-mean", "path-loss")
 #: RSSI assumed for a transmitter at the edge of detection, dBm (prior mean for barely-seen cells).
 FLOOR_DBM = -100.0
 
@@ -75,7 +77,7 @@ class BuildParams:
     label_weight: bool = False
     #: what the map says where its data are thin: "floor-mean" (each transmitter's floor-wide mean RSSI,
     #: detection 2 %) or "path-loss" (a log-distance model fitted per transmitter, pathloss.py)
-    prior: str = "floor-mean"
+    prior: str = PRIORS[0]
     #: cells are kept within this distance of a labelled scan, m (default: 3 bandwidths and a cell, where
     #: the kernel reaches; with the path-loss prior a cell farther out holds the model's prediction)
     reach_m: float | None = None
@@ -200,7 +202,7 @@ class RadioMap:
 
 #: Build parameters added after version 1's first files: written only when they differ from their
 #: default, so a map built with the defaults is the very file older hybridloc wrote and reads
-_LATER_PARAMS = {"prior": "floor-mean", "reach_m": None}
+_LATER_PARAMS = {"prior": PRIORS[0], "reach_m": None}
 
 
 def _params_header(p: BuildParams) -> dict:
@@ -345,8 +347,8 @@ def build_radio_map(
 ) -> RadioMap:
     """Build a radio map from labelled scans of one technology (see the module docstring)."""
     p = params or BuildParams()
-    if p.prior not in ("floor-mean", "path-loss"):
-        raise ValueError(f"BuildParams.prior must be 'floor-mean' or 'path-loss', not {p.prior!r}")
+    if p.prior not in PRIORS:
+        raise ValueError(f"BuildParams.prior must be one of {PRIORS}, not {p.prior!r}")
     if p.reach_m is not None and not p.reach_m > 0:
         raise ValueError(f"BuildParams.reach_m must be a positive distance in metres, not {p.reach_m!r}")
     scans = [ls for ls in labelled if ls.scan.technology.value == technology]
@@ -454,8 +456,6 @@ def _build_floor(name: str, fi: int, R: _Readings, dev_off: np.ndarray, p: Build
         mu_prior = np.where(pl.ok[None, :], mu_pl, mu_prior)
         pd_prior = np.where(pl.ok[None, :], pl.detection(mu_pl), np.float32(0.02))
         var_prior = np.where(pl.ok, pl.resid_sd**2, var0).astype(np.float32)[None, :]
-    elif p.prior != "floor-mean":
-        raise ValueError(f"BuildParams.prior must be 'floor-mean' or 'path-loss', not {p.prior!r}")
     pd = (D_s + a * pd_prior) / (n_eff[:, None].astype(np.float32) + a)
     mu = (R_s + a * mu_prior) / (D_s + a)
     # Spread: temporal/shadowing noise of a reading (``shadow_sd``) plus the uncertainty of the local
