@@ -536,27 +536,33 @@ def print_fingerprint(res) -> None:
             f"(mean area {np.mean(s.region_areas):.0f} m^2)"
         )
         cov = np.array(s.cover_m)
-        bins = ((0, 2), (2, 5), (5, 10), (10, np.inf))
         parts = []
-        for lo, hi in bins:
+        for lo, hi in _COVER_BINS:
             m = (cov >= lo) & (cov < hi)
-            parts.append(
-                f"{lo:g}-{hi:g} m: {100 * m.mean():.0f} % of scans, mean {np.nanmean(e[m]) if np.isfinite(e[m]).any() else float('nan'):.2f} m"
-            )
+            parts.append(f"{lo:g}-{hi:g} m: {100 * m.mean():.0f} % of scans, mean {_finite_mean(e[m]):.2f} m")
         print("  routes held out whole, error by the distance from the truth to the nearest reference label on its floor: " + "; ".join(parts))
         for sc, label in ((ro.pathloss, "at the kernel's reach"), (ro.pathloss_far, f"carried {PATHLOSS_FAR_REACH_M:g} m past the labels")):
             if sc is None:
                 continue
             ep, cp = np.array(sc.errors), np.array(sc.cover_m)
-            by = []
-            for lo, hi in bins:
-                m = (cp >= lo) & (cp < hi)
-                by.append(f"{lo:g}-{hi:g} m: {np.nanmean(ep[m]) if np.isfinite(ep[m]).any() else float('nan'):.2f} m")
+            by = [f"{lo:g}-{hi:g} m: {_finite_mean(ep[(cp >= lo) & (cp < hi)]):.2f} m" for lo, hi in _COVER_BINS]
             print(
                 f"  routes held out whole, cell likelihood on maps with the path-loss prior {label}: floor hit {100 * np.mean(sc.floor_hits):.2f}%  "
                 f"error on the right floor: {_fmt(ep)}; by distance to the nearest label: " + "; ".join(by)
             )
         print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
+
+
+def _finite_mean(x) -> float:
+    """Mean of the finite values of ``x`` (errors are NaN on a wrong floor); NaN when there are none."""
+    import numpy as np
+
+    x = np.asarray(x, float)
+    return float(np.nanmean(x)) if np.isfinite(x).any() else float("nan")
+
+
+#: The distance bins, m, from a routes-held-out scan's truth to the nearest label on its floor
+_COVER_BINS = ((0, 2), (2, 5), (5, 10), (10, float("inf")))
 
 
 def _split_label(c) -> str:
@@ -642,8 +648,8 @@ def fingerprint_headline(res) -> dict:
         cov, e = np.array(s.cover_m), np.array(s.errors)
         near = cov < 2.0
         out["ilc_routes_held_out_near_share_pct"] = 100 * float(near.mean()) if near.size else float("nan")
-        out["ilc_routes_held_out_near_mean_m"] = np.nanmean(e[near]) if np.isfinite(e[near]).any() else float("nan")
-        out["ilc_routes_held_out_far_mean_m"] = np.nanmean(e[cov >= 5.0]) if np.isfinite(e[cov >= 5.0]).any() else float("nan")
+        out["ilc_routes_held_out_near_mean_m"] = _finite_mean(e[near])
+        out["ilc_routes_held_out_far_mean_m"] = _finite_mean(e[cov >= 5.0])
         for sc, key in (
             (res.routes.pathloss, "ilc_routes_held_out_pathloss"),
             (res.routes.pathloss_far, f"ilc_routes_held_out_pathloss_reach{PATHLOSS_FAR_REACH_M:g}"),
@@ -653,7 +659,7 @@ def fingerprint_headline(res) -> dict:
             ep, cp = np.array(sc.errors), np.array(sc.cover_m)
             out[f"{key}_mean_m"] = np.nanmean(ep) if ep.size else float("nan")
             out[f"{key}_floor_hit_pct"] = 100 * float(np.mean(sc.floor_hits))
-            out[f"{key}_far_mean_m"] = np.nanmean(ep[cp >= 5.0]) if np.isfinite(ep[cp >= 5.0]).any() else float("nan")
+            out[f"{key}_far_mean_m"] = _finite_mean(ep[cp >= 5.0])
     sp = res.uji_phone_split
     if sp is not None:
         for name, key in (("kfold", "uji_phone_cv_split"), ("lopo", "uji_lopo_split")):
