@@ -1,7 +1,7 @@
 """Live load: many phone clients at their real step and scan rates through real Zenoh on loopback.
 
     python -m benchmarks.bench_load [--clients 1000] [--minutes 10] [--db sqlite|postgres|URL] [--sessions N] [--window S] [--locate-workers N]
-        [--ingest-workers N]
+        [--ingest-workers N|auto]
 
 The server is ``hybridloc serve`` in its own process, serving a real radio map of site1 F1 built from
 the bundled sample's surveys (``hybridloc/data/ilc_site1_F1``), so every scan costs a real locate.
@@ -257,10 +257,11 @@ def run(
     faults: list[tuple[str, int, float]] = (),  # type: ignore[assignment]
     drop_fraction: float = 0.2,
     locate_workers: int = 0,
-    ingest_workers: int = 0,
+    ingest_workers: int | str = "auto",
 ) -> dict:
     import zenoh
 
+    from hybridloc.server.ingest_pool import resolve_ingest_workers
     from hybridloc.types import RfScan, StepEvent, Technology
     from hybridloc.wire import codecs as C
     from hybridloc.wire import protocol as P
@@ -278,6 +279,7 @@ def run(
         url, label = pg.database("load"), "postgres"
     else:
         url, label = db, db.split(":", 1)[0]
+    ingest_workers = resolve_ingest_workers(ingest_workers, url)  # "auto" as the server resolves it
     map_file, scans = _map_and_scans(tmp)
     rng = np.random.default_rng(0)
     ep = f"tcp/127.0.0.1:{free_port()}"
@@ -571,9 +573,10 @@ def main(argv: list[str] | None = None) -> dict:
     )
     ap.add_argument(
         "--ingest-workers",
-        type=int,
-        default=0,
-        help="the server's ingest worker processes, for the live load and the ceiling (serve --ingest-workers; 0: its ingest thread)",
+        type=_count_or_auto,
+        default="auto",
+        help="the server's ingest worker processes, for the live load and the ceiling (serve --ingest-workers; 0: its ingest thread; "
+        "default auto, the server's own default: 2 on 2 cores or more)",
     )
     ap.add_argument(
         "--ceiling-batches",
@@ -601,13 +604,14 @@ def main(argv: list[str] | None = None) -> dict:
         ap.error("a fault's SECOND must fall inside the run (< --minutes x 60)")
     if any(k == "db-outage" for k, _, _ in faults) and args.db != "postgres":
         ap.error("a db-outage fault needs --db postgres (the benchmark pauses its own PostgreSQL server)")
-    if args.locate_workers < 0 or args.ingest_workers < 0:
-        ap.error("--locate-workers and --ingest-workers must be >= 0")
+    if args.locate_workers < 0:
+        ap.error("--locate-workers must be >= 0")
     if args.ceiling_only and (args.no_ceiling or faults):
         ap.error("--ceiling-only runs no live load: it takes neither --no-ceiling nor --fault")
     if args.ceiling_only:
-        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True, "ingest_workers": args.ingest_workers}
+        r = {"db": args.db.split(":", 1)[0] if "://" in args.db else args.db, "ceiling_only": True}
         _print_ceiling(r, args.db, args.ceiling_batches, args.ceiling_steps, args.ingest_workers)
+        r["ingest_workers"] = r["ceiling_ingest_workers"]
         print(json.dumps(r))
         return r
     r = run(
@@ -642,7 +646,15 @@ def main(argv: list[str] | None = None) -> dict:
     return r
 
 
-def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str, ingest_workers: int = 0) -> None:
+def _count_or_auto(text: str) -> int | str:
+    if text == "auto":
+        return text
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0 or auto, got {text!r}")
+    return int(text)
+
+
+def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str, ingest_workers: int | str = "auto") -> None:
     """Run :func:`ceiling` into ``r`` and print its lines."""
     r.update(ceiling(db, n_batches, step_form, ingest_workers))
     print(
@@ -667,13 +679,14 @@ def _print_ceiling(r: dict, db: str, n_batches: int, step_form: str, ingest_work
         )
 
 
-def ceiling(db: str, n_batches: int, step_form: str = "columns", ingest_workers: int = 0) -> dict:
+def ceiling(db: str, n_batches: int, step_form: str = "columns", ingest_workers: int | str = "auto") -> dict:
     """Ingest with large batches (1,000 steps + 100 scans) from 2 client processes, end to end, next to
     the raw insert rate of the same kind of database on this machine (each on a fresh database).
     ``step_form``: the clients send the steps in the columnar form (``columns``, what the client agent
     sends for large batches) or as today's rows (``rows``); ``ingest_workers``: the server's
     (``serve --ingest-workers``)."""
     from benchmarks.bench_server import ingest_run, raw_insert_rate
+    from hybridloc.server.ingest_pool import resolve_ingest_workers
 
     tmp = Path(tempfile.mkdtemp(prefix="hybridloc-ceiling-"))
     pg = None
@@ -687,6 +700,7 @@ def ceiling(db: str, n_batches: int, step_form: str = "columns", ingest_workers:
             url_ingest, url_raw = pg.database("ceiling"), pg.database("raw")
         else:
             url_ingest = url_raw = db
+        ingest_workers = resolve_ingest_workers(ingest_workers, url_ingest)
         # the raw rate before and after the run, their mean the ratio's denominator: a shared machine's
         # speed drifts within seconds (508,000-884,000 rows/s between runs in the tenth session)
         raw_before = raw_insert_rate(url_raw)

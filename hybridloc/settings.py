@@ -11,7 +11,7 @@ line's own, so no file and no variable change nothing). Example file::
     db = "postgresql+psycopg://hybridloc@db/hybridloc"
     floorplan = "sites/site1"          # the site's floor plans (client --floorplan)
     locate_workers = 1                 # serve: processes answering the stored scans (0: in the server)
-    ingest_workers = 2                 # serve: processes storing the batches (0: in the server)
+    ingest_workers = 2                 # serve: processes storing the batches (0: in the server; default "auto")
 
     [security]
     user = "phone-7"
@@ -112,7 +112,9 @@ class Settings:
     db: str = "hybridloc.db"  # SQLite file or database URL (postgresql+psycopg://...)
     method: str = "knn"  # the server's locate method, one of LOCATE_METHODS
     locate_workers: int = 0  # worker processes answering the server's stored scans (0: its locate thread)
-    ingest_workers: int = 0  # worker processes decoding and storing the server's batches (0: its ingest thread)
+    ingest_workers: int | str = (
+        "auto"  # worker processes decoding and storing the server's batches (0: its ingest thread; "auto": 2 on 2 cores or more)
+    )
     floorplan: str | None = None  # the site's floor plan folder (Indoor Location Competition layout)
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
@@ -139,6 +141,12 @@ def _coerce(key: str, value: Any, typ: str, from_env: bool) -> Any:
     """``value`` as the field's type (annotations are strings here: ``str | None``, ``float``)."""
     if value is None:
         return None
+    if typ == "int | str":  # a count or "auto" (ingest_workers)
+        if value == "auto" or (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+            return value
+        if from_env and isinstance(value, str) and value.isdigit():
+            return int(value)
+        raise BadInput(f'setting {key}: expected a whole number >= 0 or "auto", got {value!r}')
     if "bool" in typ:
         if from_env and isinstance(value, str) and value.lower() in ("1", "true", "yes", "on", "0", "false", "no", "off"):
             return value.lower() in ("1", "true", "yes", "on")

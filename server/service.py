@@ -47,7 +47,7 @@ from hybridloc.wire.zconfig import Security, server_config
 
 from . import db as m
 from .ingest import IngestResult, Stopping, ingest_group, with_database
-from .ingest_pool import IngestPool
+from .ingest_pool import IngestPool, resolve_ingest_workers
 from .locate_pool import LocatePool, PoolBroken, answers, make_locator
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
@@ -69,7 +69,7 @@ class Server:
         sites: list[str] | None = None,
         connect: list[str] | None = None,
         locate_workers: int = 0,
-        ingest_workers: int = 0,
+        ingest_workers: int | str = 0,
     ):
         #: the sites this process serves (ingest, locate, maps): None or empty = every site. Processes
         #: serving different sites share one router mesh (``connect``: other routers) and one database.
@@ -108,10 +108,9 @@ class Server:
             raise ValueError(f"locate_workers must be >= 0, got {locate_workers}")
         #: worker processes answering the stored scans (:mod:`.locate_pool`); None: the locate thread itself
         self._pool: LocatePool | None = LocatePool(locate_workers, method) if locate_workers else None
-        if ingest_workers < 0:
-            raise ValueError(f"ingest_workers must be >= 0, got {ingest_workers}")
-        #: worker processes ingesting the batches (:mod:`.ingest_pool`, made at start); 0: the ingest thread itself
-        self.ingest_workers = ingest_workers
+        #: worker processes ingesting the batches (:mod:`.ingest_pool`, made at start); 0: the ingest thread
+        #: itself; "auto": :func:`.ingest_pool.resolve_ingest_workers` (2 on two cores or more)
+        self.ingest_workers = resolve_ingest_workers(ingest_workers, db_url)
         self._ingest_pool: IngestPool | None = None
         self._counts_lock = threading.Lock()
 
@@ -481,7 +480,8 @@ def serve_forever(server: Server, beside=None) -> None:
         # what the process loaded to start (modules, the radio maps) is left out of the collector's scans:
         # ingest allocates thousands of objects a batch, and each full collection walked all of it again
         gc.freeze()
-        print(f"hybridloc server listening on {server.endpoint} (router mode)", flush=True)
+        workers = f", ingest in {server.ingest_workers} worker processes" if server.ingest_workers else ""
+        print(f"hybridloc server listening on {server.endpoint} (router mode{workers})", flush=True)
         extra = beside(server) if beside is not None else None
         try:
             while not stop.is_set():

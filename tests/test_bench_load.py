@@ -26,7 +26,7 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
 
 def test_ceiling_only_with_step_rows(capsys):
     """``--ceiling-only`` runs no live load; ``--ceiling-steps rows`` sends today's rows, every batch stored."""
-    r = bench_load.main(["--ceiling-only", "--ceiling-batches", "1", "--ceiling-steps", "rows"])
+    r = bench_load.main(["--ceiling-only", "--ceiling-batches", "1", "--ceiling-steps", "rows", "--ingest-workers", "0"])
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1]) == r
     assert r["ceiling_only"] and "steps_sent" not in r
     assert r["ceiling_lossless"] and r["ceiling_step_form"] == "rows" and r["batch_encode_rows_ms"] is None

@@ -16,7 +16,7 @@ from sqlalchemy.orm import Session
 
 from hybridloc.clients.uplink import Uplink
 from hybridloc.server import db as m
-from hybridloc.server.ingest_pool import IngestPool
+from hybridloc.server.ingest_pool import AUTO_INGEST_WORKERS, IngestPool, resolve_ingest_workers
 from hybridloc.server.service import Server
 from hybridloc.types import RfScan, StepEvent
 from hybridloc.wire import codecs as C
@@ -173,6 +173,28 @@ def test_each_device_stays_with_one_worker(tmp_path):
 def test_serve_refuses_negative_ingest_workers(tmp_path):
     with pytest.raises(ValueError, match="ingest_workers"):
         Server(f"unixsock-stream/{tmp_path}/x.sock", str(tmp_path / "x.db"), ingest_workers=-1)
+
+
+def test_auto_ingest_workers_need_two_cores_and_a_shared_database(tmp_path):
+    """``serve --ingest-workers auto`` (the default): workers where the server may use two cores or more
+    and they can open its database; SQLite in memory takes none (each would open its own), a count is
+    kept as given, and workers asked for on SQLite in memory are refused."""
+    f, pg = str(tmp_path / "h.db"), "postgresql+psycopg://u@localhost/h"
+    assert resolve_ingest_workers("auto", f, cores=2) == resolve_ingest_workers("auto", pg, cores=8) == AUTO_INGEST_WORKERS
+    assert resolve_ingest_workers("auto", "sqlite:///" + f, cores=2) == AUTO_INGEST_WORKERS
+    assert resolve_ingest_workers("auto", f, cores=1) == resolve_ingest_workers("auto", pg, cores=1) == 0
+    assert resolve_ingest_workers("auto", ":memory:", cores=4) == resolve_ingest_workers("auto", "sqlite://", cores=4) == 0
+    assert resolve_ingest_workers(0, pg) == 0 and resolve_ingest_workers(3, f) == 3
+    for bad in (-1, "two", 1.5, True):
+        with pytest.raises(ValueError, match="ingest_workers"):
+            resolve_ingest_workers(bad, f)
+    with pytest.raises(ValueError, match="in memory"):
+        resolve_ingest_workers(2, ":memory:")
+    srv = Server(f"unixsock-stream/{tmp_path}/x.sock", f, ingest_workers="auto")
+    try:
+        assert srv.ingest_workers == resolve_ingest_workers("auto", f)
+    finally:
+        srv.stop()
 
 
 def test_wal_checkpointer_backfills_the_wal_beside_a_writer(tmp_path):

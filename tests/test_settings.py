@@ -60,6 +60,8 @@ def test_file_then_environment(tmp_path):
         ("[slam]\nenabled = 1", "slam.enabled"),
         ("[slam]\nbatch_every = 2.5", "slam.batch_every"),
         ('[slam]\nidle_s = "long"', "slam.idle_s"),
+        ('ingest_workers = "many"', "ingest_workers"),
+        ("ingest_workers = -1", "ingest_workers"),
     ],
 )
 def test_unknown_keys_and_wrong_types_name_the_key(tmp_path, text, key):
@@ -81,6 +83,18 @@ def test_slam_section_from_file_and_environment(tmp_path):
     assert (s.slam.enabled, s.slam.batch_every) == (True, 5)
     with pytest.raises(BadInput, match="HYBRIDLOC_SLAM_ENABLED"):
         load_settings(None, {"HYBRIDLOC_SLAM_ENABLED": "maybe"})
+
+
+def test_ingest_workers_a_count_or_auto(tmp_path):
+    """``ingest_workers``: "auto" by default (serve resolves it), or a whole number, from the file or the environment."""
+    assert load_settings(None, {}).ingest_workers == "auto"
+    f = tmp_path / "w.toml"
+    f.write_text("ingest_workers = 0\n")
+    assert load_settings(f, {}).ingest_workers == 0
+    assert load_settings(f, {"HYBRIDLOC_INGEST_WORKERS": "3"}).ingest_workers == 3
+    assert load_settings(f, {"HYBRIDLOC_INGEST_WORKERS": "auto"}).ingest_workers == "auto"
+    with pytest.raises(BadInput, match="HYBRIDLOC_INGEST_WORKERS"):
+        load_settings(None, {"HYBRIDLOC_INGEST_WORKERS": "-2"})
 
 
 def test_bad_environment_names_the_variable():

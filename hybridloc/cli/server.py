@@ -58,6 +58,16 @@ def _start_dashboard(args: argparse.Namespace, session, store, access, query: st
     return dash
 
 
+def _count_or_auto(text: str) -> int | str:
+    """``--ingest-workers``: a whole number >= 0 or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)  # a negative count is refused with the other options' checks, in one line
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0 or auto, got {text!r}") from None
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     check_db_driver(args.db)
     from ..server.service import Server, serve_forever
@@ -72,8 +82,14 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     if args.locate_workers < 0:
         raise BadInput(f"--locate-workers must be >= 0, got {args.locate_workers}")
-    if args.ingest_workers < 0:
+    from ..server.ingest_pool import resolve_ingest_workers
+
+    if isinstance(args.ingest_workers, int) and args.ingest_workers < 0:
         raise BadInput(f"--ingest-workers must be >= 0, got {args.ingest_workers}")
+    try:
+        ingest_workers = resolve_ingest_workers(args.ingest_workers, str(args.db))
+    except ValueError as exc:
+        raise BadInput(f"--ingest-workers: {exc}") from None
     slam_sites, slam_options = [], None
     if args.slam is not False and args.site:
         from ..server.slam_worker import SlamOptions
@@ -105,7 +121,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         sites=args.site,
         connect=args.connect,
         locate_workers=args.locate_workers,
-        ingest_workers=args.ingest_workers,
+        ingest_workers=ingest_workers,
     )
     for spec in args.map or []:
         site, _, path = spec.partition("=")
@@ -315,10 +331,11 @@ def register(sub) -> None:
     )
     sv.add_argument(
         "--ingest-workers",
-        type=int,
-        metavar="N",
+        type=_count_or_auto,
+        metavar="N|auto",
         help="worker processes that decode and store the batches, each device's in one of them, in order "
-        "(default 0: the server's own ingest thread; 2 on a 2-core machine for large batches)",
+        "(0: the server's own ingest thread; default auto: 2 when the server may use 2 cores or more and its "
+        "database is a file or a server, else 0)",
     )
     sv.add_argument("--users", help="user:password dictionary file (enables authentication)")
     sv.add_argument("--user", help="with --connect under authentication: the server user this process presents to the other routers")
