@@ -23,11 +23,13 @@ def _steps(n, t0):
     return [StepEvent(t0 + 0.5 * i, 0.7, 0.1, 0.05, 0.1) for i in range(n)]
 
 
-def test_postgresql_stopped_mid_ingest_loses_nothing_and_ingest_comes_back(tmp_path):
+@pytest.mark.parametrize("ingest_workers", [0, 2], ids=["ingest-thread", "ingest-workers"])
+def test_postgresql_stopped_mid_ingest_loses_nothing_and_ingest_comes_back(tmp_path, ingest_workers):
     """PostgreSQL stopped for 5 s while a device sends a batch every 50 ms: nothing is acknowledged
-    during the outage, the ingest thread lives through it (it retries the same group), and after the
-    restart every batch is stored exactly once and acknowledged within a few seconds: the retry's
-    back-off cap (2 s) plus the uplink's resend period (1 s) and the ingest itself."""
+    during the outage, the ingest thread (or the worker process that has the device: ``serve``'s
+    default on two cores) lives through it (it retries the same group), and after the restart every
+    batch is stored exactly once and acknowledged within a few seconds: the retry's back-off cap
+    (2 s) plus the uplink's resend period (1 s) and the ingest itself."""
     from hybridloc.server.pgtemp import TempPostgres, find_binaries
 
     if find_binaries() is None:
@@ -35,7 +37,7 @@ def test_postgresql_stopped_mid_ingest_loses_nothing_and_ingest_comes_back(tmp_p
     with TempPostgres() as pg:
         url = pg.database()
         ep = f"unixsock-stream/{tmp_path}/srv.sock"
-        srv = Server(ep, url).start()
+        srv = Server(ep, url, ingest_workers=ingest_workers).start()
         try:
             with zenoh.open(client_config(ep)) as s:
                 up = Uplink(s, SITE, "devpg", tmp_path / "spool", resend_after=1.0)
