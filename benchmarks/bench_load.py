@@ -102,6 +102,21 @@ def _peak_rss_mb(pid: int) -> float:
     return float("nan")
 
 
+def _children_peak_rss_mb(pid: int) -> float:
+    """The summed peak memory of ``pid``'s child processes (the server's ingest and locate workers):
+    an upper bound of what they held at once."""
+    total = 0.0
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[1]) == pid:  # field 4 of /proc/PID/stat (after "pid (comm)"): the parent's pid
+            peak = _peak_rss_mb(int(stat.parent.name))
+            total += peak if peak == peak else 0.0
+    return total
+
+
 class _Load:
     """The simulated phones' state: what each sent, when, and what came back."""
 
@@ -296,7 +311,7 @@ def run(
         "--ingest-workers",
         str(ingest_workers),
     )
-    server = {"proc": _serve(ep, url, *serve_args), "rss": 0.0}
+    server = {"proc": _serve(ep, url, *serve_args), "rss": 0.0, "workers_rss": 0.0}
     devices = [f"load{i:05d}" for i in range(clients)]
     n_sess = sessions or max(1, min(clients, (clients + 19) // 20))
     load = _Load(devices, fixed_resend)
@@ -321,6 +336,7 @@ def run(
 
         def kill() -> None:
             server["rss"] = max(server["rss"], _peak_rss_mb(server["proc"].pid))
+            server["workers_rss"] = max(server["workers_rss"], _children_peak_rss_mb(server["proc"].pid))
             server["proc"].kill()
             server["proc"].wait()
 
@@ -435,6 +451,7 @@ def run(
                     break
             time.sleep(0.01)
         rss = max(server["rss"], _peak_rss_mb(server["proc"].pid))
+        workers_rss = max(server["workers_rss"], _children_peak_rss_mb(server["proc"].pid))
     finally:
         for s in opened:
             try:
@@ -475,6 +492,7 @@ def run(
         "ingest_workers": ingest_workers,
         "misrouted": load.misrouted,
         "server_peak_rss_mb": round(rss, 1),
+        "workers_peak_rss_mb": round(workers_rss, 1),
         "wall_s": round(wall, 1),
         "realtime_factor": round(sim_seconds / wall, 3),
         **({"faults": fl.report(), "fault_caught_up_max_s": _max_caught_up(fl.report())} if faults else {}),
@@ -633,7 +651,7 @@ def main(argv: list[str] | None = None) -> dict:
         f"realtime factor {r['realtime_factor']:.2f} ({'held real time' if held else 'did NOT hold real time'}), "
         f"stored {r['steps_per_s']:.0f} steps/s + {r['scans_per_s']:.0f} scans/s, ack p50 {r['ack_p50_ms']} ms p99 {r['ack_p99_ms']} ms, "
         f"fixes {r['fixes']} (+{r['no_fix']} no-fix) p50 {r['fix_p50_ms']} ms p99 {r['fix_p99_ms']} ms, resends {r['resends']}, "
-        f"server peak {r['server_peak_rss_mb']} MB, lost {r['lost']}, doubled {r['doubled']}"
+        f"server peak {r['server_peak_rss_mb']} MB (its worker processes {r['workers_peak_rss_mb']} MB), lost {r['lost']}, doubled {r['doubled']}"
     )
     for f in r.get("faults", []):
         print(

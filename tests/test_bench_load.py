@@ -17,6 +17,7 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
     assert r["steps_sent"] == 4 * 12 * len(bench_load.STEP_T) and r["scans_sent"] == 4 * 6
     assert r["fixes"] + r["no_fix"] == r["scans_sent"]  # one answer per stored scan, none twice
     assert r["realtime_factor"] > 0 and r["ingest_workers"] == 2 and r["ceiling_ingest_workers"] == 2
+    assert r["workers_peak_rss_mb"] > 0  # the workers' memory is counted beside the server's
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
