@@ -1,9 +1,11 @@
 """What every process the server spawns does first (the SLAM child, :mod:`.slam_child`; the locate
-workers, :mod:`.locate_pool`): it yields to the server, and it ends when the server is gone."""
+workers, :mod:`.locate_pool`; the ingest workers, :mod:`.ingest_pool`): it yields to the server, it
+leaves Ctrl-C to the server, and it ends when the server is gone."""
 
 from __future__ import annotations
 
 import os
+import signal
 import threading
 import time
 
@@ -17,9 +19,14 @@ def _watch_parent(parent_pid: int) -> None:
 
 def yield_to_server(parent_pid: int, niceness: int, name: str) -> None:
     """A lower CPU priority (``niceness`` more), one BLAS thread (OpenBLAS takes every core by default),
-    and a thread ``name`` that exits this process once ``parent_pid`` is no longer its parent."""
+    SIGINT ignored, and a thread ``name`` that exits this process once ``parent_pid`` is no longer its
+    parent. Ctrl-C at a terminal reaches the whole process group: the server alone decides how its
+    children stop (an ingest worker stores and acknowledges what it was sent first), where a
+    KeyboardInterrupt would have cut each one off mid-task with a traceback. Call it from the child's
+    main thread."""
     from threadpoolctl import threadpool_limits
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.nice(niceness)
     threadpool_limits(1)
     threading.Thread(target=_watch_parent, args=(parent_pid,), name=name, daemon=True).start()

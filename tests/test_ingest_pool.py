@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import signal
+import subprocess
+import sys
 import threading
 from collections import Counter
 
@@ -22,9 +24,9 @@ from hybridloc.types import RfScan, StepEvent
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch
-from hybridloc.wire.zconfig import client_config
+from hybridloc.wire.zconfig import client_config, free_port
 
-from .helpers import wait_until
+from .helpers import stored_stream, wait_until
 
 SITE = "site1"
 
@@ -338,3 +340,34 @@ def test_a_failing_delivery_does_not_stop_ingest(tmp_path):
     assert [r.acks for r in delivered[1:]] == [[(SITE, "a", 2)], [(SITE, "a", 3)]]
     assert counts["ingest-errors"] == 1 and counts["batches-persisted"] == 3
     assert pool._workers[0].proc.exitcode == 0  # the same process all along, ended by close
+
+
+def test_ctrl_c_at_the_terminal_stops_serve_and_its_workers_cleanly(tmp_path):
+    """Ctrl-C reaches the whole process group, the default ingest workers included: they leave the
+    stop to the server (which has them store and acknowledge what they were sent), so ``serve`` exits
+    0 with no traceback from any process and every batch sent before is stored once."""
+    db = str(tmp_path / "h.db")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    argv = [sys.executable, "-m", "hybridloc.cli", "serve", "--endpoint", ep, "--db", db, "--ingest-workers", "2"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        first = proc.stdout.readline()
+        assert "listening" in first and "2 worker processes" in first, first
+        with zenoh.open(client_config(ep)) as s:
+            up = Uplink(s, SITE, "devint", tmp_path / "spool", resend_after=1.0)
+            try:
+                assert up.wait_connected()
+                for i in range(5):
+                    up.send(steps=_steps(4, 10.0 * i), scans=_scans(1, 10.0 * i))
+                assert up.wait_acked(timeout=30)
+            finally:
+                up.close()
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+    assert stored_stream(db, "devint") == (list(range(1, 6)), 20)
