@@ -112,9 +112,8 @@ class Settings:
     db: str = "hybridloc.db"  # SQLite file or database URL (postgresql+psycopg://...)
     method: str = "knn"  # the server's locate method, one of LOCATE_METHODS
     locate_workers: int = 0  # worker processes answering the server's stored scans (0: its locate thread)
-    ingest_workers: int | str = (
-        "auto"  # worker processes decoding and storing the server's batches (0: its ingest thread; "auto": 2 on 2 cores or more)
-    )
+    # worker processes decoding and storing the server's batches (0: its ingest thread; "auto": 2 on 2 cores or more)
+    ingest_workers: int | str = "auto"
     floorplan: str | None = None  # the site's floor plan folder (Indoor Location Competition layout)
     security: SecuritySettings = field(default_factory=SecuritySettings)
     filter: FilterSettings = field(default_factory=FilterSettings)
