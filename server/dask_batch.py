@@ -104,13 +104,44 @@ def batch_client(scheduler: str | None = None, workers: int | None = None) -> It
 
 @contextlib.contextmanager
 def _warmed(client):
-    """``client``, its workers' imports started (:func:`_warm_up`), closed at the end."""
+    """``client``, its workers' imports started (:func:`_warm_up`), closed at the end. A command that
+    ends before the imports did (nothing to do) first lets them finish: a local cluster closed under a
+    worker busy importing logged its heartbeat's failure with a traceback."""
+    warm: list = []
     try:
         warm = _warm_up(client)
         yield client
+        if warm:
+            from distributed import wait
+
+            with contextlib.suppress(Exception):
+                wait(warm, timeout=WARM_UP_WAIT_S)
     finally:
         del warm
         client.close()
+
+
+#: longest wait, s, for the warm-up imports when a command is done before them (:func:`_warmed`)
+WARM_UP_WAIT_S = 15.0
+
+
+@contextlib.contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """SIGINT ignored while the local cluster starts its processes: they inherit the disposition (it
+    survives the spawn's exec, and Python and asyncio leave an ignored SIGINT alone), so a Ctrl-C at
+    the terminal, which signals the whole process group, reaches this process alone, which closes the
+    cluster in order, instead of every worker dying of a KeyboardInterrupt with a traceback of its own."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def _open_client(scheduler: str | None, workers: int | None, Client, LocalCluster) -> Iterator:
@@ -123,14 +154,15 @@ def _open_client(scheduler: str | None, workers: int | None, Client, LocalCluste
             yield client
         return
     n = workers or usable_cores()
-    cluster = LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        dashboard_address=None,  # no web server (and no bokeh needed)
-        silence_logs=logging.ERROR,
-        host="127.0.0.1",
-    )
+    with _sigint_ignored():
+        cluster = LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,  # no web server (and no bokeh needed)
+            silence_logs=logging.ERROR,
+            host="127.0.0.1",
+        )
     try:
         with _warmed(Client(cluster)) as client:
             yield client

@@ -188,3 +188,47 @@ def test_rebuild_commands_on_a_real_scheduler(filled, serial, tmp_path):
                 except subprocess.TimeoutExpired:
                     p.kill()
                     p.wait()
+
+
+def test_ctrl_c_and_an_empty_site_close_the_local_cluster_without_tracebacks(filled, tmp_path):
+    """Ctrl-C signals the whole process group: the cluster's worker processes leave it to the command,
+    which closes them in order (exit 130, no traceback, no process left behind); a command with
+    nothing to do (a site with no survey) closes the cluster without its workers' heartbeat errors."""
+    import os
+    import signal
+
+    db = _copy(filled, tmp_path, "ctrl_c")
+    out = subprocess.run([*CLI, "map", "rebuild", "--db", db, "--site", "nowhere"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and "no survey" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr and "ERROR" not in out.stderr, out.stderr
+    proc = subprocess.Popen(
+        [*CLI, "slam", "rebuild", "--db", db], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True
+    )
+    try:
+        lines = []
+        while not any(" solve " in ln or " loops " in ln for ln in lines):  # the cluster's tasks are running
+            ln = proc.stdout.readline()
+            assert ln, "".join(lines)
+            lines.append(ln)
+        os.killpg(proc.pid, signal.SIGINT)
+        rest, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text = "".join(lines) + rest
+    assert proc.returncode == 130, text
+    assert "Traceback" not in text and "KeyboardInterrupt" not in text, text
+    time.sleep(1.0)
+    # still running (a zombie has ended: it waits for a parent to reap it, init in a container may not)
+    left = [p for p in psutil.process_iter(["pid", "status"]) if _in_group(p, proc.pid) and p.info["status"] != psutil.STATUS_ZOMBIE]
+    assert not left, left
+
+
+def _in_group(p, pgid: int) -> bool:
+    import os
+
+    try:
+        return os.getpgid(p.pid) == pgid
+    except (ProcessLookupError, PermissionError):
+        return False
