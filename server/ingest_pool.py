@@ -157,6 +157,11 @@ class _Worker:
         self.ready = threading.Event()  # the process has started and opened the database
         self.closing = False  # set by the pool's close, under _lock: no process is started after it
         self._lock = threading.Lock()  # conn, proc, reader and closing change together under it
+        # held by the feeder through each send, and by the reader to close a connection: closing a pipe
+        # while a send is still writing to it frees its descriptor, the next pipe (the replacement
+        # process's) may get the same number, and the rest of the interrupted message would reach the
+        # new process as garbage (seen once: "invalid load key", a second restart)
+        self._sending = threading.Lock()
         with self._lock:
             self._spawn()
         self.feeder = threading.Thread(target=self._feed, name=f"hybridloc-ingest-feed-{index}", daemon=True)
@@ -184,12 +189,13 @@ class _Worker:
             items = self.todo.get()
             with self._lock:
                 conn = self.conn
-            try:
-                conn.send(_STOP if items is None else items)
-            except Exception:  # noqa: BLE001 - died (its reader starts another) or closed meanwhile by its reader
-                # (a pipe closed under a blocked send fails with OSError, ValueError or TypeError): not delivered
-                if items is not None:
-                    self.pool.count("ingest-messages-lost-to-restarts", len(items))
+            with self._sending:
+                try:
+                    conn.send(_STOP if items is None else items)
+                except Exception:  # noqa: BLE001 - died (its reader starts another; a send blocked on a dead
+                    # process's pipe fails) or closed meanwhile by its reader (OSError): not delivered
+                    if items is not None:
+                        self.pool.count("ingest-messages-lost-to-restarts", len(items))
             if items is None:
                 return
 
@@ -225,7 +231,8 @@ class _Worker:
             proc.kill()
         proc.join(10.0)
         with self._lock:
-            conn.close()
+            with self._sending:  # a send in flight on this connection ends first: its process is gone, so it fails
+                conn.close()
             if self.closing:
                 return
             # died: what it held is not acknowledged (its clients resend it); a new process takes its devices
