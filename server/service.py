@@ -130,7 +130,12 @@ class Server:
     def _start(self) -> Server:
         if self._wal_path is not None:
             self._checkpointer = m.WalCheckpointer(self._wal_path).start()
-        self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
+        try:
+            self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
+        except zenoh.ZError as exc:  # an endpoint in use or not ours to listen on: the user's to mend, in one line
+            why = str(exc).split(" at /", 1)[0].strip()
+            hint = " (another server listening there?)" if "in use" in why else ""
+            raise OSError(f"cannot open the server's Zenoh session on {self.endpoint}{hint}: {why}") from exc
         s = self.session
         # every site's keys, or only the served sites' (a key expression per site: hl/v1/<site>/...)
         batch_keys = [P.SUB_BATCHES] if not self.sites else [P.sub_batches(x) for x in self.sites]

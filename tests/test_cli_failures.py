@@ -113,3 +113,17 @@ def test_serve_refuses_bad_slam_options_before_it_starts(option, value, says, tm
     err = capsys.readouterr().err
     assert rc == 2 and says in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
     assert not (tmp_path / "h.db").exists()  # refused before the server opened anything
+
+
+def test_serve_on_an_endpoint_in_use_says_so_in_one_line(tmp_path, capsys, monkeypatch):
+    """A second server on a listening endpoint: exit 2 and one line naming the endpoint, no traceback."""
+    from hybridloc.server.service import Server
+    from hybridloc.wire.zconfig import free_port
+
+    monkeypatch.delenv("HYBRIDLOC_CONFIG", raising=False)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    with Server(ep, str(tmp_path / "a.db")):
+        rc = main(["serve", "--endpoint", ep, "--db", str(tmp_path / "b.db"), "--ingest-workers", "0"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1 and ep in err and "in use" in err and "Traceback" not in err, err
