@@ -347,6 +347,24 @@ def test_cli_refuses_bad_dashboard_options(tmp_path, capsys):
         assert err.count("\n") == 1 and words in err and "Traceback" not in err, (argv, err)
 
 
+def test_dashboard_on_a_port_in_use_says_so_in_one_line(tmp_path, capsys):
+    """The page's port taken by another program: exit 2 and one error line naming it (the web server's
+    own log line and bare exit status are not shown), the server stopped behind it."""
+    import socket
+
+    from hybridloc.cli import main
+    from hybridloc.wire.zconfig import free_port
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        argv = ["serve", "--endpoint", f"tcp/127.0.0.1:{free_port()}", "--db", str(tmp_path / "s.db"), "--ingest-workers", "0"]
+        assert main([*argv, "--http", f"127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"127.0.0.1:{port}" in err and "in use" in err and "Traceback" not in err, err
+
+
 def test_vendored_leaflet_matches_its_manifest_and_ships_in_the_package():
     import tomllib
 

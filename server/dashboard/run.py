@@ -106,6 +106,8 @@ class Dashboard:
             server_header=False,
             **kwargs,
         )
+        if self.port:
+            _check_bindable(self.host, self.port)
         self._server = server = uvicorn.Server(config)
         failed: list[BaseException] = []
 
@@ -120,7 +122,8 @@ class Dashboard:
         t_end = time.monotonic() + timeout
         while not server.started:
             if failed or not self._thread.is_alive():
-                raise OSError(f"the dashboard could not listen on {self.host}:{self.port}" + (f": {failed[0]}" if failed else ""))
+                why = f": {failed[0]}" if failed and not isinstance(failed[0], SystemExit) else " (see the web server's message above)"
+                raise OSError(f"the dashboard could not listen on {self.host}:{self.port}{why}")
             if time.monotonic() > t_end:
                 raise OSError(f"the dashboard did not start within {timeout:g} s")
             time.sleep(0.01)
@@ -142,3 +145,22 @@ class Dashboard:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+
+def _check_bindable(host: str, port: int) -> None:
+    """:class:`OSError` naming ``host:port`` when the page cannot listen there (in use, not this
+    machine's address), before the web server tries: it would log the failure and exit with a bare
+    status instead."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise OSError(f"the dashboard could not listen on {host}:{port}: {exc.strerror}") from None
+    family, kind, proto, _, addr = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the web server does
+        try:
+            sock.bind(addr)
+        except OSError as exc:
+            raise OSError(f"the dashboard could not listen on {host}:{port}: {exc.strerror}") from None
