@@ -163,7 +163,9 @@ class RadioMap:
             z = np.load(path, allow_pickle=False)
             meta = json.loads(bytes(z["meta"]).decode("utf-8"))
         except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{path}: not a hybridloc radio map ({exc})") from exc
+            # numpy reads anything that is not .npy/.npz as a pickle, and refuses it with a word about trust
+            why = "not a .npz file" if "pickled" in str(exc) else str(exc)
+            raise ValueError(f"{path}: not a hybridloc radio map ({why})") from exc
         if meta.get("format") != FORMAT_NAME:
             raise ValueError(f"{path}: not a hybridloc radio map (format {meta.get('format')!r})")
         if int(meta.get("version", 0)) > FORMAT_VERSION:
