@@ -64,7 +64,8 @@ def open_client(endpoint: str, security=None, log=None) -> zenoh.Session:
         return zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:
         if log:
-            log(f"server at {endpoint} unreachable ({str(exc).splitlines()[0][:80]}): working offline, connecting when it appears")
+            why = str(exc).splitlines()[0].split(" at /", 1)[0].strip()[:120]  # Zenoh's text without its source paths
+            log(f"server at {endpoint} unreachable ({why}): working offline, connecting when it appears")
         conf = client_config(endpoint, security)
         conf.insert_json5("mode", '"peer"')
         return zenoh.open(conf)
