@@ -58,14 +58,13 @@ def open_client(endpoint: str, security=None, log=None) -> zenoh.Session:
     work then (dead reckoning, spooling), so it falls back to a peer-mode session that keeps trying
     the endpoint and connects when the server appears (its spool is resent then).
     """
-    from hybridloc.wire.zconfig import client_config
+    from hybridloc.wire.zconfig import client_config, zenoh_reason
 
     try:
         return zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:
         if log:
-            why = str(exc).splitlines()[0].split(" at /", 1)[0].strip()[:120]  # Zenoh's text without its source paths
-            log(f"server at {endpoint} unreachable ({why}): working offline, connecting when it appears")
+            log(f"server at {endpoint} unreachable ({zenoh_reason(exc, 120)}): working offline, connecting when it appears")
         conf = client_config(endpoint, security)
         conf.insert_json5("mode", '"peer"')
         return zenoh.open(conf)

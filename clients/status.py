@@ -6,7 +6,7 @@ import zenoh
 
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
-from hybridloc.wire.zconfig import Security, client_config
+from hybridloc.wire.zconfig import Security, client_config, zenoh_reason
 
 
 def query_status(endpoint: str, security: Security | None = None, timeout: float = 5.0) -> dict | None:
@@ -20,7 +20,11 @@ def query_status(endpoint: str, security: Security | None = None, timeout: float
 def query_statuses(endpoint: str, security: Security | None = None, timeout: float = 5.0) -> list[dict]:
     """Every server process's status (the query goes to all queryables, not the nearest one)."""
     out = []
-    with zenoh.open(client_config(endpoint, security)) as s:
+    try:
+        session = zenoh.open(client_config(endpoint, security))
+    except zenoh.ZError as exc:  # nothing listens there (or it refused us): the user's to mend, in one line
+        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc)}") from None
+    with session as s:
         for r in s.get(P.KEY_STATUS, timeout=timeout, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE):
             if r.ok:
                 out.append({"schema": C.STATUS.schema, **C.STATUS.decode(r.ok.payload.to_bytes()).as_dict()})

@@ -43,7 +43,7 @@ from hybridloc.types import Fix, RfScan
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Ack, MapInfo, Status
-from hybridloc.wire.zconfig import Security, server_config
+from hybridloc.wire.zconfig import Security, server_config, zenoh_reason
 
 from . import db as m
 from .ingest import IngestResult, Stopping, ingest_group, with_database
@@ -133,7 +133,7 @@ class Server:
         try:
             self.session = zenoh.open(server_config(self.endpoint, self.security, self.connect))
         except zenoh.ZError as exc:  # an endpoint in use or not ours to listen on: the user's to mend, in one line
-            why = str(exc).split(" at /", 1)[0].strip()
+            why = zenoh_reason(exc, 400)
             hint = " (another server listening there?)" if "in use" in why else ""
             raise OSError(f"cannot open the server's Zenoh session on {self.endpoint}{hint}: {why}") from exc
         s = self.session

@@ -127,3 +127,17 @@ def test_serve_on_an_endpoint_in_use_says_so_in_one_line(tmp_path, capsys, monke
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1 and ep in err and "in use" in err and "Traceback" not in err, err
+
+
+def test_status_with_no_server_says_so_in_one_line(capsys, monkeypatch):
+    """Nothing listening at the endpoint: exit 2 and one line naming it, Zenoh's reason without its
+    source paths, no traceback."""
+    from hybridloc.wire.zconfig import free_port
+
+    monkeypatch.delenv("HYBRIDLOC_CONFIG", raising=False)
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    rc = main(["status", "--endpoint", ep, "--timeout", "0.5"])
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1 and f"cannot reach the server at {ep}" in err, err
+    assert "Traceback" not in err and ".cargo" not in err, err

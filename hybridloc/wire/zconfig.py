@@ -53,6 +53,13 @@ def free_port(host: str = "127.0.0.1") -> int:
     return port
 
 
+def zenoh_reason(exc: BaseException, limit: int = 160) -> str:
+    """Zenoh's message for a failed session, for a person: its first line without the source paths it
+    appends (``... at /root/.cargo/git/checkouts/zenoh-.../orchestrator.rs:447.``)."""
+    lines = str(exc).splitlines() or [""]
+    return lines[0].split(" at /", 1)[0].strip()[:limit]
+
+
 def _base(mode: str) -> zenoh.Config:
     c = zenoh.Config()
     c.insert_json5("mode", json.dumps(mode))

@@ -49,12 +49,12 @@ def open_session(endpoint: str, security=None):
     endpoint when it cannot be reached or refuses the credentials."""
     import zenoh
 
-    from hybridloc.wire.zconfig import client_config
+    from hybridloc.wire.zconfig import client_config, zenoh_reason
 
     try:
         return zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:
-        raise OSError(f"cannot reach the server at {endpoint}: {str(exc).splitlines()[0][:160]}") from None
+        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc)}") from None
 
 
 class Dashboard:
