@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 
 
@@ -33,3 +35,18 @@ def stored_stream(db: str, device: str | None = None) -> tuple[list[int], int]:
         n_steps = ses.execute(select(func.count()).select_from(m.Step)).scalar_one()
     eng.dispose()
     return seqs, int(n_steps)
+
+
+def interrupt_group(proc, timeout: float = 60.0) -> str:
+    """Ctrl-C as a terminal sends it: SIGINT to the process group of ``proc`` (started with
+    ``start_new_session=True``); the rest of its output once it has ended."""
+    os.killpg(proc.pid, signal.SIGINT)
+    out, _ = proc.communicate(timeout=timeout)
+    return out
+
+
+def kill_group(proc) -> None:
+    """SIGKILL the process group of ``proc`` if it still runs (a test's cleanup)."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()

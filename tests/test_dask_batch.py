@@ -29,6 +29,7 @@ from hybridloc.server.slam_batch import run_batch
 from hybridloc.server.store import Store
 from hybridloc.wire.zconfig import free_port
 
+from .helpers import interrupt_group, kill_group
 from .slam_helpers import SITE, store_three_floors_with_stairs
 
 CLI = [sys.executable, "-m", "hybridloc.cli"]
@@ -194,9 +195,6 @@ def test_ctrl_c_and_an_empty_site_close_the_local_cluster_without_tracebacks(fil
     """Ctrl-C signals the whole process group: the cluster's worker processes leave it to the command,
     which closes them in order (exit 130, no traceback, no process left behind); a command with
     nothing to do (a site with no survey) closes the cluster without its workers' heartbeat errors."""
-    import os
-    import signal
-
     db = _copy(filled, tmp_path, "ctrl_c")
     out = subprocess.run([*CLI, "map", "rebuild", "--db", db, "--site", "nowhere"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 1 and "no survey" in out.stderr, out.stderr
@@ -210,12 +208,9 @@ def test_ctrl_c_and_an_empty_site_close_the_local_cluster_without_tracebacks(fil
             ln = proc.stdout.readline()
             assert ln, "".join(lines)
             lines.append(ln)
-        os.killpg(proc.pid, signal.SIGINT)
-        rest, _ = proc.communicate(timeout=60)
+        rest = interrupt_group(proc)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        kill_group(proc)
     text = "".join(lines) + rest
     assert proc.returncode == 130, text
     assert "Traceback" not in text and "KeyboardInterrupt" not in text, text

@@ -26,7 +26,7 @@ from hybridloc.wire import protocol as P
 from hybridloc.wire.messages import Batch
 from hybridloc.wire.zconfig import client_config, free_port
 
-from .helpers import stored_stream, wait_until
+from .helpers import interrupt_group, kill_group, stored_stream, wait_until
 
 SITE = "site1"
 
@@ -362,12 +362,9 @@ def test_ctrl_c_at_the_terminal_stops_serve_and_its_workers_cleanly(tmp_path):
                 assert up.wait_acked(timeout=30)
             finally:
                 up.close()
-        os.killpg(proc.pid, signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        out = interrupt_group(proc)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        kill_group(proc)
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
     assert stored_stream(db, "devint") == (list(range(1, 6)), 20)
