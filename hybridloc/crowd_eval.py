@@ -680,6 +680,7 @@ def survey_baseline(run: CrowdRun, db_url: str, processes: int | None = None) ->
     cores; each worker holds two maps)."""
     import multiprocessing as mp
 
+    from .pools import process_pool
     from .server.slam_batch import usable_cores
 
     C = run.clients
@@ -691,7 +692,7 @@ def survey_baseline(run: CrowdRun, db_url: str, processes: int | None = None) ->
         res = [_baseline_client(j) for j in jobs]
         _BASE_LOCATORS.clear()
     else:
-        with cf.ProcessPoolExecutor(n, mp_context=mp.get_context("spawn")) as ex:
+        with process_pool(n, mp.get_context("spawn")) as ex:
             res = list(ex.map(_baseline_client, jobs, chunksize=max(1, len(jobs) // (4 * n))))
     for c, (a, b) in zip(C, res):
         c.survey_only, c.replayed = a, b

@@ -322,6 +322,8 @@ def walks_from_files(paths: list[Path], marks: list[bool] | bool = True, workers
     ``marks``: one flag per file, or one for all. ``progress(done, total)`` after each file."""
     import concurrent.futures as cf
 
+    from ..pools import process_pool
+
     flags = [marks] * len(paths) if isinstance(marks, bool) else list(marks)
     jobs = list(zip([str(p) for p in paths], flags))
     if workers <= 1 or len(jobs) < 4:
@@ -332,7 +334,7 @@ def walks_from_files(paths: list[Path], marks: list[bool] | bool = True, workers
                 progress(i + 1, len(jobs))
         return out
     out = [None] * len(jobs)
-    with cf.ProcessPoolExecutor(max_workers=workers) as ex:
+    with process_pool(workers) as ex:
         futs = {ex.submit(_load_one, j): i for i, j in enumerate(jobs)}
         for n, f in enumerate(cf.as_completed(futs)):
             out[futs[f]] = f.result()
