@@ -64,7 +64,7 @@ def open_client(endpoint: str, security=None, log=None) -> zenoh.Session:
         return zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:
         if log:
-            log(f"server at {endpoint} unreachable ({zenoh_reason(exc, 120)}): working offline, connecting when it appears")
+            log(f"server at {endpoint} unreachable ({zenoh_reason(exc, 120, security)}): working offline, connecting when it appears")
         conf = client_config(endpoint, security)
         conf.insert_json5("mode", '"peer"')
         return zenoh.open(conf)

@@ -23,7 +23,7 @@ def query_statuses(endpoint: str, security: Security | None = None, timeout: flo
     try:
         session = zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:  # nothing listens there (or it refused us): the user's to mend, in one line
-        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc)}") from None
+        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc, security=security)}") from None
     with session as s:
         for r in s.get(P.KEY_STATUS, timeout=timeout, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE):
             if r.ok:

@@ -140,4 +140,7 @@ def test_status_with_no_server_says_so_in_one_line(capsys, monkeypatch):
     err = capsys.readouterr().err
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert rc == 2 and len(lines) == 1 and f"cannot reach the server at {ep}" in err, err
-    assert "Traceback" not in err and ".cargo" not in err, err
+    assert "Traceback" not in err and ".cargo" not in err and "password" not in err, err
+    # with credentials, Zenoh's "Unable to connect" may also be a refused login: the line says so
+    assert main(["status", "--endpoint", ep, "--timeout", "0.5", "--user", "dev01", "--password", "pw"]) == 2
+    assert "a wrong user, password or CA reads the same" in capsys.readouterr().err

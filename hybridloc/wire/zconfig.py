@@ -53,11 +53,16 @@ def free_port(host: str = "127.0.0.1") -> int:
     return port
 
 
-def zenoh_reason(exc: BaseException, limit: int = 160) -> str:
+def zenoh_reason(exc: BaseException, limit: int = 160, security: Security | None = None) -> str:
     """Zenoh's message for a failed session, for a person: its first line without the source paths it
-    appends (``... at /root/.cargo/git/checkouts/zenoh-.../orchestrator.rs:447.``)."""
+    appends (``... at /root/.cargo/git/checkouts/zenoh-.../orchestrator.rs:447.``). With credentials
+    or a CA in ``security``, a note that a refused login or certificate reads the same: Zenoh says
+    "Unable to connect" for all three."""
     lines = str(exc).splitlines() or [""]
-    return lines[0].split(" at /", 1)[0].strip()[:limit]
+    why = lines[0].split(" at /", 1)[0].strip()[:limit]
+    if security is not None and (security.user or security.tls_ca):
+        why += "; a wrong user, password or CA reads the same"
+    return why
 
 
 def _base(mode: str) -> zenoh.Config:

@@ -54,7 +54,7 @@ def open_session(endpoint: str, security=None):
     try:
         return zenoh.open(client_config(endpoint, security))
     except zenoh.ZError as exc:
-        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc)}") from None
+        raise OSError(f"cannot reach the server at {endpoint}: {zenoh_reason(exc, security=security)}") from None
 
 
 class Dashboard:
