@@ -485,7 +485,8 @@ def serve_forever(server: Server, beside=None) -> None:
         # what the process loaded to start (modules, the radio maps) is left out of the collector's scans:
         # ingest allocates thousands of objects a batch, and each full collection walked all of it again
         gc.freeze()
-        workers = f", ingest in {server.ingest_workers} worker processes" if server.ingest_workers else ""
+        n = server.ingest_workers
+        workers = f", ingest in {n} worker process{'es' if n > 1 else ''}" if n else ""
         print(f"hybridloc server listening on {server.endpoint} (router mode{workers})", flush=True)
         extra = beside(server) if beside is not None else None
         try:
