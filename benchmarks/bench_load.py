@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import shutil
 import tempfile
 import threading
 import time
@@ -274,6 +275,29 @@ def run(
     locate_workers: int = 0,
     ingest_workers: int | str = "auto",
 ) -> dict:
+    """The live load (module docstring) in a temporary folder that is removed at the end (its database
+    reaches hundreds of MB in 10 simulated minutes), also when the run fails or is interrupted."""
+    tmp = Path(tempfile.mkdtemp(prefix="hybridloc-load-"))
+    try:
+        return _run_in(tmp, clients, minutes, db, sessions, window, speed, fixed_resend, faults, drop_fraction, locate_workers, ingest_workers)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _run_in(
+    tmp: Path,
+    clients: int,
+    minutes: float,
+    db: str,
+    sessions: int | None,
+    window: float,
+    speed: float,
+    fixed_resend: bool,
+    faults: list[tuple[str, int, float]],
+    drop_fraction: float,
+    locate_workers: int,
+    ingest_workers: int | str,
+) -> dict:
     import zenoh
 
     from hybridloc.server.ingest_pool import resolve_ingest_workers
@@ -283,7 +307,6 @@ def run(
     from hybridloc.wire.messages import Batch
     from hybridloc.wire.zconfig import client_config
 
-    tmp = Path(tempfile.mkdtemp(prefix="hybridloc-load-"))
     pg = None
     if db == "sqlite":
         url, label = str(tmp / "load.db"), "sqlite"
@@ -737,6 +760,7 @@ def ceiling(db: str, n_batches: int, step_form: str = "columns", ingest_workers:
     finally:
         if pg is not None:
             pg.stop()
+        shutil.rmtree(tmp, ignore_errors=True)  # its databases: hundreds of MB a run
     steps_per_s = r["steps"] / r["wall"]
     return {
         "ceiling_steps_per_s": round(steps_per_s, 1),

@@ -10,6 +10,7 @@ per caller, so tests share one server and never each other's tables.
 
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 import socket
@@ -68,6 +69,10 @@ class TempPostgres:
         return r
 
     def start(self) -> TempPostgres:
+        # stopped when this process exits, whatever the way out: pg_ctl runs the server in a session of
+        # its own, so a Ctrl-C that ends this process (a benchmark interrupted) never reaches it and it
+        # would run on, its folder left behind (stop() is idempotent: after an explicit stop, nothing)
+        atexit.register(self.stop)
         if self.as_root:
             shutil.chown(self.dir, "postgres")
         self._run(self.bin / "initdb", "-D", self.data, "-A", "trust", "-U", "postgres", "--no-sync", "-E", "UTF8")

@@ -8,8 +8,12 @@ import pytest
 from benchmarks import bench_load
 
 
-def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
-    """Through the server's ingest workers (serve --ingest-workers 2): their scans answered from the real map."""
+def test_bench_load_small_run_loses_and_doubles_nothing(capsys, tmp_path, monkeypatch):
+    """Through the server's ingest workers (serve --ingest-workers 2): their scans answered from the real
+    map; the run's temporary folders (databases of hundreds of MB on long runs) removed at the end."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     r = bench_load.main(["--clients", "4", "--minutes", "0.2", "--sessions", "2", "--ceiling-batches", "2", "--ingest-workers", "2"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
     assert json.loads(last) == r
@@ -18,6 +22,7 @@ def test_bench_load_small_run_loses_and_doubles_nothing(capsys):
     assert r["fixes"] + r["no_fix"] == r["scans_sent"]  # one answer per stored scan, none twice
     assert r["realtime_factor"] > 0 and r["ingest_workers"] == 2 and r["ceiling_ingest_workers"] == 2
     assert r["workers_peak_rss_mb"] > 0  # the workers' memory is counted beside the server's
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(("hybridloc-load-", "hybridloc-ceiling-", "hybridloc-pg-"))]
     # the large-batch ceiling: 2 devices x 2 batches of 1,000 steps + 100 scans, all stored
     assert r["ceiling_lossless"] and r["ceiling_steps_per_s"] > 0 and r["raw_rows_per_s"] > 0
     assert r["ceiling_ratio"] == round(r["ceiling_steps_per_s"] / r["raw_rows_per_s"], 4)
