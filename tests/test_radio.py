@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from hybridloc.errors import MissingData
 from hybridloc.radio.locate import KnnLocator, ProbabilisticLocator
 from hybridloc.radio.radiomap import BuildParams, RadioMap, build_radio_map
 from hybridloc.radio.similarity import ProximityModel, cosine_shifted, jaccard
@@ -166,6 +167,12 @@ def test_map_file_round_trip(world, tmp_path):
     (tmp_path / "bad.npz").write_bytes(b"not a map")
     with pytest.raises(ValueError, match=r"not a hybridloc radio map \(not a \.npz file\)"):  # not numpy's word on pickles
         RadioMap.load(tmp_path / "bad.npz")
+    with pytest.raises(MissingData, match="no such radio map file"):
+        RadioMap.load(tmp_path / "none.npz")
+    with pytest.raises(MissingData, match="is a folder"):
+        RadioMap.load(tmp_path)
+    rmap.save(tmp_path / "new" / "folder" / "m.npz")  # its folder made, as the commands' --out folders are
+    assert len(RadioMap.load(tmp_path / "new" / "folder" / "m.npz").references) == len(rmap.references)
 
 
 def test_device_offset_is_estimated_and_removed():

@@ -153,12 +153,17 @@ class RadioMap:
             arrays[f"{k}/support"] = f.support.astype(np.float32)
             arrays[f"{k}/tx"] = f.tx.astype(np.int32)
         path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)  # as the commands' --out folders are made
         tmp = path.with_name(path.name + ".tmp.npz")
         np.savez_compressed(tmp, **arrays)
         os.replace(tmp, path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> RadioMap:
+        if isinstance(path, (str, os.PathLike)) and not Path(path).is_file():
+            from ..errors import MissingData
+
+            raise MissingData(f"{path}: is a folder, expected a radio map file" if Path(path).is_dir() else f"{path}: no such radio map file")
         try:
             z = np.load(path, allow_pickle=False)
             meta = json.loads(bytes(z["meta"]).decode("utf-8"))
