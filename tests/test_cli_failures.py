@@ -144,3 +144,15 @@ def test_status_with_no_server_says_so_in_one_line(capsys, monkeypatch):
     # with credentials, Zenoh's "Unable to connect" may also be a refused login: the line says so
     assert main(["status", "--endpoint", ep, "--timeout", "0.5", "--user", "dev01", "--password", "pw"]) == 2
     assert "a wrong user, password or CA reads the same" in capsys.readouterr().err
+
+
+def test_a_per_file_error_names_the_file_once_with_its_line(tmp_path, capsys):
+    """``FILE:LINE: error: ...`` (the usual form), not the file named twice."""
+    bad = tmp_path / "g.csv"
+    bad.write_text("garbage,1,2\n")
+    assert main(["pdr", "phone", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"{bad}:1: error: unknown format") and err.count(str(bad)) == 1, err
+    assert main(["pdr", "phone", str(tmp_path / "none.txt"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"{tmp_path / 'none.txt'}: error: no such recording", err

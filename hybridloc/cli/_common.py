@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -162,7 +163,17 @@ def report_input_error(path, exc: BaseException) -> int:
     code = input_error_status(exc)
     if code is None:
         raise exc
-    print(f"{path}: error: {one_line(exc)}", file=sys.stderr)
+    msg, where = one_line(exc), f"{path}"
+    # the readers name the file (and often the line) themselves: "FILE: error: FILE:12: ..." reads as
+    # "FILE:12: error: ...", the usual form of a message about a place in a file
+    if msg.startswith(f"{path}:"):
+        rest = msg[len(f"{path}") :]
+        m = re.match(r":(\d+): (.*)", rest, re.S)
+        if m:
+            where, msg = f"{path}:{m.group(1)}", m.group(2)
+        elif rest.startswith(": "):
+            msg = rest[2:]
+    print(f"{where}: error: {msg}", file=sys.stderr)
     return code
 
 
