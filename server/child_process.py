@@ -5,9 +5,18 @@ leaves Ctrl-C to the server, and it ends when the server is gone."""
 from __future__ import annotations
 
 import os
-import signal
 import threading
 import time
+
+from hybridloc.pools import ignore_sigint
+
+
+def usable_cores() -> int:
+    """Cores this process may run on (its CPU affinity, else the machine's count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not on Linux
+        return max(1, os.cpu_count() or 1)
 
 
 def _watch_parent(parent_pid: int) -> None:
@@ -26,7 +35,7 @@ def yield_to_server(parent_pid: int, niceness: int, name: str) -> None:
     main thread."""
     from threadpoolctl import threadpool_limits
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_sigint()
     os.nice(niceness)
     threadpool_limits(1)
     threading.Thread(target=_watch_parent, args=(parent_pid,), name=name, daemon=True).start()

@@ -34,6 +34,7 @@ from collections import Counter
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 
+from .child_process import usable_cores
 from .db import sqlite_path
 from .ingest import IngestResult, Stopping, ingest_group, with_database
 
@@ -58,11 +59,7 @@ def resolve_ingest_workers(value: int | str, db_url: str, cores: int | None = No
     a database of its own."""
     in_memory = sqlite_path(db_url) is None and ("://" not in db_url or db_url.startswith("sqlite"))
     if value == "auto":
-        if cores is None:
-            try:
-                cores = len(os.sched_getaffinity(0))
-            except AttributeError:  # pragma: no cover - not on Linux
-                cores = os.cpu_count() or 1
+        cores = usable_cores() if cores is None else cores
         return AUTO_INGEST_WORKERS if cores >= 2 and not in_memory else 0
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise ValueError(f"ingest_workers must be a count >= 0 or 'auto', got {value!r}")

@@ -46,6 +46,7 @@ from hybridloc.slam.online import CrowdSlam, build_crowd_maps, labels_from_marks
 from hybridloc.types import CorrectedTrack, WalkEnd
 
 from . import db as m
+from .child_process import usable_cores  # noqa: F401 - imported from here by the batch commands and eval crowd
 from .slam_store import CORRECTED, QUARANTINED, RELATIVE, SlamBusy, WalkResult
 from .store import Store
 
@@ -259,14 +260,6 @@ def _map_bytes(rmap) -> bytes:
 
 
 # ------------------------------------------------------------------------------------------ the run
-def usable_cores() -> int:
-    """Cores this process may run on (its CPU affinity, else the machine's count)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def floor_groups(walk_floors: Iterable[Iterable[str]], floors: Iterable[str]) -> list[list[str]]:
     """The connected groups of ``floors`` (each sorted; groups in the order of their first floor):
     two floors are in one group when some walk names both (``walk_floors``: each walk's floors; a walk's
