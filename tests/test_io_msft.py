@@ -115,22 +115,44 @@ def test_floor_level_names():
         floor_level("roof")
 
 
+def _trace_facts(path):
+    """What test_every_site1_trace_loads checks of one trace, read in a pool worker (plain values back)."""
+    tr = read_ilc_trace(path)
+    return {
+        "ok": tr.report.ok,
+        "summary": tr.report.summary(),
+        "rate_hz": None if tr.imu is None else tr.imu.rate_hz,
+        "span_s": None if tr.imu is None else (float(tr.imu.t[0]), float(tr.imu.t[-1])),
+        "window_s": (float(tr.meta["startTime"]) / 1000, float(tr.meta["endTime"]) / 1000),
+        "waypoints": len(tr.waypoints),
+        "floor": tr.floor,
+    }
+
+
 @pytest.mark.shared_data
 def test_every_site1_trace_loads(ilc_site1):
+    """All of site1's traces, read on two worker processes (the reader is pure and per file; half the
+    wall time of a loop on a 2-core machine like CI's)."""
+    import multiprocessing as mp
+
+    from hybridloc.pools import process_pool
+
     files = find_ilc_traces(ilc_site1)
     assert len(files) >= 300
     plan = read_ilc_site(ilc_site1)
     assert plan.floor_names == ["F1", "F2", "F3"]
+    with process_pool(2, mp.get_context("spawn")) as ex:
+        facts = list(ex.map(_trace_facts, files, chunksize=8))
     n_wp = 0
-    for f in files:
-        tr = read_ilc_trace(f)
-        assert tr.report.ok, f"{f}: {tr.report.summary()}"
-        assert tr.imu is not None and 45 < tr.imu.rate_hz < 55  # ~50 Hz phone sensors
-        assert len(tr.waypoints) >= 2
-        assert f.parent.parent.name == tr.floor
+    for f, tr in zip(files, facts, strict=True):
+        assert tr["ok"], f"{f}: {tr['summary']}"
+        assert tr["rate_hz"] is not None and 45 < tr["rate_hz"] < 55  # ~50 Hz phone sensors
+        assert tr["waypoints"] >= 2
+        assert f.parent.parent.name == tr["floor"]
         # Sensor epochs are Unix seconds inside the header's start/end window.
-        assert float(tr.meta["startTime"]) / 1000 - 1 <= tr.imu.t[0] <= tr.imu.t[-1] <= float(tr.meta["endTime"]) / 1000 + 1
-        n_wp += len(tr.waypoints)
+        (t0, t1), (start, end) = tr["span_s"], tr["window_s"]
+        assert start - 1 <= t0 <= t1 <= end + 1
+        n_wp += tr["waypoints"]
     assert n_wp >= 2000
 
 

@@ -420,7 +420,7 @@ def test_live_crowd_slam_server(tmp_path, capsys):
     db = str(tmp_path / "live.db")
     assert cli_main(["floorplan", "import", str(ILC_SITE1_F1), "--site", SITE, "--db", db]) == 0
     ep = f"tcp/127.0.0.1:{free_port()}"
-    opts = SlamOptions(idle_timeout_s=2.0, poll_s=0.1, batch_every_walks=0, batch_interval_s=0, live_every_s=4.0)
+    opts = SlamOptions(idle_timeout_s=2.0, poll_s=0.1, batch_every_walks=0, batch_interval_s=0, live_every_s=3.0)
     srv = Server(ep, db, slam_sites=[SITE], slam_options=opts).start()
     lis = _Listen(ep)
     st = srv.store
@@ -448,9 +448,10 @@ def test_live_crowd_slam_server(tmp_path, capsys):
         v, n_lab, _ = rebuild(st, SITE, tmp_path / "rebuild-cache")
         assert v == 1
         _wait(lambda: srv.locators.get(SITE, (None,))[0] == 1, 30, "the survey map in service")
-        # the phones, in lock-step at 2x: their walks are open for ~15 s (live corrections), then ended
+        # the phones (81-114 s walks), in lock-step at 6x: each walk is open for 14-19 s or more, several
+        # provisional corrections at one per 3 s of wall time (live corrections), then ended
         with cf.ThreadPoolExecutor(4) as ex:
-            phone_devs = list(ex.map(lambda p: replay(p, "phone", 2.0), phones))
+            phone_devs = list(ex.map(lambda p: replay(p, "phone", 6.0), phones))
         # a device that stops without an end-of-walk marker: its walk ends after the idle timeout
         with zenoh.open(client_config(ep)) as s:
             up = Uplink(s, SITE, "idler", tmp_path / "spool" / "idler")
