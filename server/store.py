@@ -479,7 +479,8 @@ class Store:
     def save_floor_plan(self, site: str, plan) -> int:
         """Store a :class:`~hybridloc.types.FloorPlan` as the site's newest floor plan (one GeoJSON row of
         the ``floor_plan`` table, :mod:`hybridloc.io.floorplan_geojson`); returns the row id. The site's
-        ``floor`` rows are added or updated (name, level)."""
+        ``floor`` rows are added or updated (name, level). A plan the same as the newest one (the same
+        GeoJSON) is not stored again: its row id is returned (an import run twice adds no version)."""
         from hybridloc.io.floorplan_geojson import floorplan_to_geojson
 
         text = floorplan_to_geojson(plan)
@@ -498,10 +499,19 @@ class Store:
                     have[f.name].level = int(f.level)
                 else:
                     s.add(m.Floor(site_id=site, name=f.name, level=int(f.level)))
+            newest = s.execute(select(func.max(m.FloorPlanVersion.id)).where(m.FloorPlanVersion.site_id == site)).scalar_one_or_none()
+            last = s.get(m.FloorPlanVersion, newest) if newest is not None else None
+            if last is not None and last.geojson == text:
+                return int(last.id)
             row = m.FloorPlanVersion(site_id=site, geojson=text)
             s.add(row)
             s.flush()
             return int(row.id)
+
+    def floor_plan_version(self, site: str) -> int | None:
+        """The row id of the site's newest floor plan, or None."""
+        with Session(self.engine) as s:
+            return s.execute(select(func.max(m.FloorPlanVersion.id)).where(m.FloorPlanVersion.site_id == site)).scalar_one_or_none()
 
     def load_floor_plan(self, site: str):
         """The site's newest floor plan (:class:`~hybridloc.types.FloorPlan`), or None."""

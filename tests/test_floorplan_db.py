@@ -86,7 +86,7 @@ def test_store_keeps_plans_by_site(db_url):
         assert st.load_floor_plan("s") is None
         first = st.save_floor_plan("s", plan)
         second = st.save_floor_plan("s", plan)
-        assert second > first
+        assert second == first  # the same plan again: no new version
         _assert_same_plan(plan, st.load_floor_plan("s"))
         assert st.load_floor_plan("other") is None
         with Session(st.engine) as s:
@@ -113,3 +113,29 @@ def test_floorplan_commands(tmp_path):
     finally:
         st.close()
     assert main(["floorplan", "export", "--site", "nobody", "--db", dbf, "--out", str(out)]) == 2
+
+
+def test_the_same_plan_imported_again_adds_no_version(tmp_path, capsys):
+    """An import run twice (an operator's script) keeps one version; a changed plan is a new one."""
+    from hybridloc.cli import main
+    from hybridloc.io.msft import read_ilc_site
+    from hybridloc.server.store import Store
+
+    dbf = str(tmp_path / "h.db")
+    assert main(["floorplan", "import", str(ILC_SITE1_F1), "--site", "mall", "--db", dbf]) == 0
+    assert main(["floorplan", "import", str(ILC_SITE1_F1), "--site", "mall", "--db", dbf]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert "floor plan 1 in" in printed[0] and "floor plan 1 (unchanged" in printed[1]
+    st = Store(dbf)
+    try:
+        assert st.floor_plan_version("mall") == 1
+        import dataclasses
+
+        plan = read_ilc_site(ILC_SITE1_F1)
+        plan = dataclasses.replace(plan, floors=[dataclasses.replace(plan.floors[0], level=plan.floors[0].level + 1), *plan.floors[1:]])
+        # a changed plan: a new version, then the same again: none
+        assert st.save_floor_plan("mall", plan) == 2 and st.save_floor_plan("mall", plan) == 2
+        assert st.load_floor_plan("mall").floors[0].level == plan.floors[0].level
+        assert st.floor_plan_version("nobody") is None
+    finally:
+        st.close()

@@ -30,11 +30,13 @@ def _cmd_floorplan_import(args: argparse.Namespace) -> int:
     site = args.site or plan.site
     st = Store(args.db)
     try:
+        before = st.floor_plan_version(site)
         row = st.save_floor_plan(site, plan)
     finally:
         st.close()
     fl = ", ".join(f"{f.name} (level {f.level}, {len(f.walls)} walls, walkable {f.walkable.area:.0f} m^2)" for f in plan.floors)
-    print(f"{args.source} -> site {site} floor plan {row} in {args.db}: {fl}")
+    same = " (unchanged: the site's newest plan is this one)" if row == before else ""
+    print(f"{args.source} -> site {site} floor plan {row}{same} in {args.db}: {fl}")
     return 0
 
 
