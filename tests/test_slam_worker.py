@@ -179,14 +179,22 @@ def test_one_batch_run_per_site_and_stale_leases_resume(tmp_path, walks):
 # ------------------------------------------------------------------------------------------ the command line
 def test_slam_rebuild_cli_is_atomic_and_resumes_after_a_kill(tmp_path, walks):
     db = _filled(tmp_path, walks, True)
-    # bad input: one line, exit 2
-    for argv, what in (
+    # bad input: one line, exit 2 (the three commands side by side: each is mostly its start-up)
+    bad = [
         (["--db", str(tmp_path / "none.db")], "no such database"),
         (["--db", db, "--site", "nowhere"], "no ended walks"),
         (["--db", db, "--site", SITE, "--floor", "F9"], "no walks on floor"),
-    ):
-        r = subprocess.run([*CLI, "slam", "rebuild", *argv], capture_output=True, text=True, timeout=120)
-        assert r.returncode == 2 and what in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    ]
+    procs = [subprocess.Popen([*CLI, "slam", "rebuild", *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for argv, _ in bad]
+    try:
+        for p, (_, what) in zip(procs, bad, strict=True):
+            _, err = p.communicate(timeout=120)
+            assert p.returncode == 2 and what in err and len(err.strip().splitlines()) == 1, err
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     assert not (tmp_path / "none.db").exists()
 
     r = subprocess.run([*CLI, "slam", "rebuild", "--db", db, "--serial"], capture_output=True, text=True, timeout=300)
