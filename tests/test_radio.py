@@ -340,6 +340,28 @@ def test_sorensen_neighbours_match_scipy_bray_curtis():
     assert np.allclose(D[0], 1.0)
 
 
+def test_sorensen_neighbours_sum_minima_as_a_scatter_add_does():
+    """The sums of minima come from a sparse product: bit for bit the scatter-add of the selected entries'
+    minima (np.bincount, the form before it), on float32 fingerprints as the locator keeps them."""
+    from scipy import sparse
+
+    from hybridloc.radio.locate import sorensen_neighbours
+
+    rng = np.random.default_rng(4)
+    R = (rng.random((300, 80)) * (rng.random((300, 80)) < 0.3)).astype(np.float32)
+    Q = (rng.random((20, 80)) * (rng.random((20, 80)) < 0.4)).astype(np.float32)
+    Rc, R_sum = sparse.csc_array(R), R.sum(axis=1)
+    D, I = sorensen_neighbours(Rc, R_sum, Q, 7)
+    for q, d, i in zip(Q, D, I, strict=True):
+        cols = np.flatnonzero(q > 0)
+        rows = np.concatenate([Rc.indices[Rc.indptr[c] : Rc.indptr[c + 1]] for c in cols])
+        mins = np.concatenate([np.minimum(Rc.data[Rc.indptr[c] : Rc.indptr[c + 1]], q[c]) for c in cols])
+        inter = np.bincount(rows, weights=mins, minlength=len(R))
+        full = 1.0 - 2.0 * inter / np.maximum(R_sum + float(q.sum()), 1e-12)
+        np.testing.assert_array_equal(d, full[i])
+        assert np.all(np.sort(full)[: len(d)] == d)
+
+
 def test_route_groups_and_folds_hold_a_repeated_route_together():
     """Walks of one route (same floor, the same marks give or take 0.3 m) share a group whatever their
     direction; the same marks on another floor, or a route 3 m aside, do not. Route folds never split
