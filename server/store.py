@@ -82,6 +82,15 @@ def _span_gap(w: m.Walk, lo: float, hi: float) -> float:
     return max(lo - w.t_end, w.t_start - hi)
 
 
+def _newest_floor_plan(s: Session, site: str) -> m.FloorPlanVersion | None:
+    """The site's newest ``floor_plan`` row (the highest id), or None."""
+    return (
+        s.execute(select(m.FloorPlanVersion).where(m.FloorPlanVersion.site_id == site).order_by(m.FloorPlanVersion.id.desc()).limit(1))
+        .scalars()
+        .first()
+    )
+
+
 class Store:
     def __init__(self, url: str, migrate: bool = True, wal_autocheckpoint: int | None = None):
         """The store on ``url`` (migrated to the newest revision unless ``migrate`` is false);
@@ -499,8 +508,7 @@ class Store:
                     have[f.name].level = int(f.level)
                 else:
                     s.add(m.Floor(site_id=site, name=f.name, level=int(f.level)))
-            newest = s.execute(select(func.max(m.FloorPlanVersion.id)).where(m.FloorPlanVersion.site_id == site)).scalar_one_or_none()
-            last = s.get(m.FloorPlanVersion, newest) if newest is not None else None
+            last = _newest_floor_plan(s, site)
             if last is not None and last.geojson == text:
                 return int(last.id)
             row = m.FloorPlanVersion(site_id=site, geojson=text)
@@ -511,18 +519,15 @@ class Store:
     def floor_plan_version(self, site: str) -> int | None:
         """The row id of the site's newest floor plan, or None."""
         with Session(self.engine) as s:
-            return s.execute(select(func.max(m.FloorPlanVersion.id)).where(m.FloorPlanVersion.site_id == site)).scalar_one_or_none()
+            row = _newest_floor_plan(s, site)
+            return None if row is None else int(row.id)
 
     def load_floor_plan(self, site: str):
         """The site's newest floor plan (:class:`~hybridloc.types.FloorPlan`), or None."""
         from hybridloc.io.floorplan_geojson import floorplan_from_geojson
 
         with Session(self.engine) as s:
-            row = (
-                s.execute(select(m.FloorPlanVersion).where(m.FloorPlanVersion.site_id == site).order_by(m.FloorPlanVersion.id.desc()))
-                .scalars()
-                .first()
-            )
+            row = _newest_floor_plan(s, site)
             return None if row is None else floorplan_from_geojson(row.geojson, source=f"floor plan {row.id} of site {site!r}")
 
     # -------------------------------------------------------------- radio maps
