@@ -126,18 +126,65 @@ def _as_gate(gate: ChiSquareGate | float | None) -> ChiSquareGate | None:
 
 
 def correct(
-    x, P: np.ndarray, z, model: MeasurementModel, gate: ChiSquareGate | float | None = None, stats: UpdateStats | None = None
+    x,
+    P: np.ndarray,
+    z,
+    model: MeasurementModel,
+    gate: ChiSquareGate | float | None = None,
+    stats: UpdateStats | None = None,
+    compiled: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
     """One gated Kalman update (module docstring); returns (dx, P+, info).
 
     ``gate``: a :class:`ChiSquareGate`, a probability (shorthand for ``ChiSquareGate(p)``), or None
     for no gate. A rejected measurement returns dx = 0 and P unchanged. ``stats`` counts the outcome
     under ``model.kind``.
+
+    ``compiled``: the arithmetic of measurements of up to 3 components without a robust kernel runs
+    compiled (:func:`._compiled.gated_joseph`: the same operations, several times faster on small
+    matrices; its first use on a machine compiles it, about 7 s, then it is cached on disk). The foot
+    filter asks for it (an update or two at every 200 Hz stance sample); filters updated a few times a
+    second are better off without the compile.
     """
     z_pred = model.evaluate(x)
     H = model.jacobian(x)
     R = model.covariance(x)
     y = model.residual(z, z_pred)
+    g = _as_gate(gate)
+    threshold = g.threshold(len(y)) if g is not None else float("inf")
+    kind = getattr(model, "kind", "measurement")
+    sel = model.selects
+    a, b, step = sel.indices(P.shape[0]) if sel is not None else (-1, -1, 1)
+    if compiled and len(y) <= 3 and getattr(model, "kernel", None) is None and step == 1:
+        kernels = _kernels()
+        status, S, nis, dx, P_new = kernels.gated_joseph(_f64(P), _f64(H), _f64(R), _f64(y), a, b, threshold)
+        if status != kernels.SINGULAR:
+            accepted = status == kernels.ACCEPTED
+            info = UpdateInfo(kind, accepted, y, S, nis, threshold, dx if accepted else None)
+            if stats is not None:
+                stats.record(info)
+            return (dx, P_new, info) if accepted else (np.zeros(P.shape[0]), P, info)
+    return _update_numpy(P, H, R, y, model, threshold, kind, stats)
+
+
+@functools.cache
+def _kernels():
+    """The compiled arithmetic, imported on its first use: Numba's import (0.15-0.5 s) is not paid by
+    the commands and processes that never ask for it."""
+    from . import _compiled
+
+    return _compiled
+
+
+def _f64(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _update_numpy(
+    P: np.ndarray, H: np.ndarray, R: np.ndarray, y: np.ndarray, model: MeasurementModel, threshold: float, kind: str, stats: UpdateStats | None
+) -> tuple[np.ndarray, np.ndarray, UpdateInfo]:
+    """The update's arithmetic in numpy (module docstring): the reference of the compiled one, and the
+    path of robust kernels and of measurements of more than 3 components."""
     sel = model.selects
     # H = [0 I 0] (``selects``): P H^T is P's block columns and H P H^T its block, exactly (the products
     # with H add zeros); otherwise the products themselves
@@ -147,9 +194,6 @@ def correct(
     S = 0.5 * (S + S.T)
     Sinv = inv_spd_small(S)
     nis = float(y @ Sinv @ y)
-    g = _as_gate(gate)
-    threshold = g.threshold(len(y)) if g is not None else float("inf")
-    kind = getattr(model, "kind", "measurement")
     if nis > threshold:
         info = UpdateInfo(kind, False, y, S, nis, threshold)
         if stats is not None:

@@ -23,26 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..estimation import ChiSquareGate, UpdateInfo, UpdateStats, correct
+from ._compiled import strapdown_predict
 from .measurements import DP, DTH, MeasurementModel
-from .strapdown import NominalState, dcm_from_quat_floats, quat_mult_floats
-
-
-def _qmul_exp_floats(q: np.ndarray, phi: np.ndarray) -> tuple[float, float, float, float]:
-    """q (x) exp(phi / 2), normalised, as floats (4-vectors are cheaper outside numpy).
-
-    Its exp map squares by multiplying, where :func:`.strapdown.rotvec_to_quat_floats` calls pow: the
-    two differ in the last bit now and then, so sharing one would change this filter's outputs."""
-    px, py, pz = float(phi[0]), float(phi[1]), float(phi[2])
-    a = math.sqrt(px * px + py * py + pz * pz)
-    if a < 1e-12:
-        b = 1.0, 0.5 * px, 0.5 * py, 0.5 * pz
-    else:
-        s = math.sin(0.5 * a) / a
-        b = math.cos(0.5 * a), px * s, py * s, pz * s
-    w, x, y, z = quat_mult_floats(q.tolist(), b)
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / n, x / n, y / n, z / n
-
+from .strapdown import NominalState
 
 #: Default probability of the chi-square innovation gate.
 GATE_PROBABILITY = 0.9999
@@ -84,13 +67,8 @@ class ErrorStateEkf:
         self.g = g
         self.gate = ChiSquareGate(gate_probability)
         self.stats = UpdateStats()
-        self._Phi = np.eye(15)
-        # the blocks predict() rewrites each sample, as views made once: Phi[DV, DBA] = Phi[DTH, DBG] = -R dt
-        self._Phi_v_ba = self._Phi[3:6, 9:12]
-        self._Phi_th_bg = self._Phi[6:9, 12:15]
-        self._dt = -1.0
-        self._qd = np.zeros(15)
-        self._qd_rate: np.ndarray | None = None
+        self._Phi = np.eye(15)  # predict() rewrites its time-varying blocks in place
+        self._qd_rate: np.ndarray | None = None  # diag(Q_c): Q_d = diag(Q_c) dt
 
     @property
     def gate_probability(self) -> float:
@@ -103,64 +81,27 @@ class ErrorStateEkf:
 
     def predict(self, f_body: np.ndarray, w_body: np.ndarray, dt: float) -> None:
         """Strapdown step of the nominal state (same equations as :func:`.strapdown.mechanise`, done
-        in place) and covariance propagation P <- Phi P Phi^T + Q_d."""
+        in place) and covariance propagation P <- Phi P Phi^T + Q_d (:func:`._compiled.strapdown_predict`).
+
+        The samples are at the end of the step (t_k): the attitude there is q_{k-1} exp(w_k dt), and
+        it is with that attitude that f_k is resolved. Resolving f_k with q_{k-1} misaligns the two
+        by one sample, i.e. by w dt - 0.025-0.05 rad in a foot's swing: PyShoe VICON trials on the
+        authors' stance labels, 0.0645 -> 0.0551 m mean ARMSE (theirs: 0.0557)."""
         x = self.x
-        # The samples are at the end of the step (t_k): the attitude there is q_{k-1} exp(w_k dt), and
-        # it is with that attitude that f_k is resolved. Resolving f_k with q_{k-1} misaligns the two
-        # by one sample, i.e. by w dt - 0.025-0.05 rad in a foot's swing: PyShoe VICON trials on the
-        # authors' stance labels, 0.0645 -> 0.0551 m mean ARMSE (theirs: 0.0557).
-        w, qx, qy, qz = _qmul_exp_floats(x.q, (w_body - x.b_g) * dt)
-        q_new = np.array((w, qx, qy, qz))
-        R = dcm_from_quat_floats(w, qx, qy, qz)
-        fb = f_body - x.b_a
-        a_nav = R @ fb
-        Phi = self._Phi
-        if dt != self._dt:
-            self._set_dt(dt)
-        ax, ay, az = a_nav.tolist()
-        # Phi[DV, DTH] = -[a_nav]x dt
-        Phi[3, 7], Phi[3, 8] = az * dt, -ay * dt
-        Phi[4, 6], Phi[4, 8] = -az * dt, ax * dt
-        Phi[5, 6], Phi[5, 7] = ay * dt, -ax * dt
-        np.multiply(R, -dt, out=self._Phi_v_ba)
-        self._Phi_th_bg[...] = self._Phi_v_ba
-        P = Phi @ self.P @ Phi.T
-        P.ravel()[::16] += self._qd  # Q_d is diagonal: R diag(s) R^T = s I for isotropic noise
-        self.P = P
-        # p <- p + v dt + a dt^2 / 2, v <- v + a dt with a = a_nav - g up; per component in floats
-        # (the same IEEE operations as numpy's elementwise ones, without their per-call overhead)
-        az -= self.g
-        (px, py, pz), (vx, vy, vz) = x.p.tolist(), x.v.tolist()
-        h = 0.5 * dt * dt
-        x.p = np.array((px + vx * dt + h * ax, py + vy * dt + h * ay, pz + vz * dt + h * az))
-        x.v = np.array((vx + ax * dt, vy + ay * dt, vz + az * dt))
-        x.q = q_new
+        if self._qd_rate is None:
+            n = self.noise
+            rates = [0.0] * 3 + [n.accel_density**2] * 3 + [n.gyro_density**2] * 3 + [n.accel_bias_rw**2] * 3 + [n.gyro_bias_rw**2] * 3
+            self._qd_rate = np.array(rates)
+        x.q, x.p, x.v, self.P = strapdown_predict(x.q, x.p, x.v, x.b_a, x.b_g, f_body, w_body, dt, self.g, self.P, self._Phi, self._qd_rate)
 
     @property
     def transition(self) -> np.ndarray:
         """A copy of the error-state transition matrix Phi of the last :meth:`predict`."""
         return self._Phi.copy()
 
-    def _set_dt(self, dt: float) -> None:
-        # Timestamps jitter, so this runs at almost every sample: no allocation here.
-        if self._qd_rate is None:
-            n = self.noise
-            self._qd_rate = np.concatenate(
-                [
-                    np.zeros(3),
-                    np.full(3, n.accel_density**2),
-                    np.full(3, n.gyro_density**2),
-                    np.full(3, n.accel_bias_rw**2),
-                    np.full(3, n.gyro_bias_rw**2),
-                ]
-            )
-        self._dt = dt
-        self._Phi[0, 3] = self._Phi[1, 4] = self._Phi[2, 5] = dt
-        np.multiply(self._qd_rate, dt, out=self._qd)
-
     def correct(self, model: MeasurementModel, z, gate: bool = True) -> Correction:
         """ZUPT, ZARU, heading and position fixes: the one gated update, then injection and reset."""
-        dx, P, info = correct(self.x, self.P, z, model, self.gate if gate else None, self.stats)
+        dx, P, info = correct(self.x, self.P, z, model, self.gate if gate else None, self.stats, compiled=True)
         if not info.accepted:
             return info
         self.x = self.x.plus(dx)
