@@ -98,6 +98,25 @@ def _answers(results):
     ]
 
 
+@pytest.mark.parametrize("metric,representation", [("sorensen", "auto"), ("euclidean", "raw")])
+def test_knn_with_another_k_answers_as_a_locator_built_with_it(world, metric, representation):
+    """with_k shares the references' fingerprint index (the SLAM's gate locator beside its fix locator)
+    and answers exactly as a locator built afresh with that k, memo or not, without touching the first."""
+    refs, _, _, tests = world
+    for memo in (False, True):
+        five = KnnLocator(refs, k=5, metric=metric, representation=representation, memo=memo and metric == "sorensen")
+        before = five.nearest(tests)
+        for k in (1, 12, len(refs) + 3):
+            other = five.with_k(k)
+            fresh = KnnLocator(refs, k=k, metric=metric, representation=representation)
+            assert other.k == fresh.k
+            for a, b in zip(other.nearest(tests), fresh.nearest(tests)):
+                np.testing.assert_array_equal(a, b)
+            assert _answers(other.locate_many(tests)) == _answers(fresh.locate_many(tests))
+        for a, b in zip(five.nearest(tests), before):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_knn_memo_relabel_and_fixes_without_regions_answer_as_a_fresh_search(world):
     """The memo of searches (by scan), a relabelled locator (same scans, labels moved) and answers
     without regions give exactly what a fresh locator's full answers give: a search row reads only its

@@ -332,6 +332,7 @@ class KnnLocator:
             self._R = sparse.csc_array(X.astype(np.float32))
             self._R_sum = X.sum(axis=1, dtype=np.float64)
         else:
+            self._X = X  # with_k fits its own search on it (scikit-learn picks its algorithm by k)
             self._nn = NearestNeighbors(n_neighbors=self.k).fit(X)
 
     #: Entries a memo holds before it starts again (~1 kB each at k = 30; the scans are not held)
@@ -353,6 +354,19 @@ class KnnLocator:
             return None
         out = copy.copy(self)
         out._set_labels(refs)
+        return out
+
+    def with_k(self, k: int) -> KnnLocator:
+        """This locator asking for ``k`` neighbours: the references' fingerprints (the dominant cost of
+        building a locator) shared, the memo of searches its own (a search row holds k neighbours); the
+        Euclidean metric's search structure fitted again (scikit-learn chooses it by k). Its answers are
+        those of a locator built afresh with ``k``."""
+        out = copy.copy(self)
+        out.k = min(k, len(self.refs))
+        if self._memo is not None:
+            out._memo = {}
+        if self.metric != "sorensen":
+            out._nn = NearestNeighbors(n_neighbors=out.k).fit(self._X)
         return out
 
     def memo_keys(self) -> set[int]:

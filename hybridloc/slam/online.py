@@ -117,6 +117,7 @@ from .pipeline import (
     _similarity_fit,
     _walkable_points,
     anchored_more,
+    gate_locator,
     locate_pieces,
     mapped_distance_gate,
     set_em_fixes,
@@ -397,7 +398,8 @@ class CrowdSlam:
 
         # memo on: the served map's locator places every walk's scans again in each batch (and the vote
         # map's asks the same walks' floors), the same answers each time
-        return KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s, memo=True), mapped_distance_gate(refs, self.cfg)
+        loc = KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s, memo=True)
+        return loc, mapped_distance_gate(refs, self.cfg, locator=gate_locator(refs, self.cfg, like=loc))
 
     def set_vote_map(self, radio_map) -> None:
         """The map :meth:`vote_floor` reads, when it is not the one that places walks (:meth:`set_map`):

@@ -248,11 +248,19 @@ class _Anchors:
     fixes: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
 
-def gate_locator(refs: list[LabelledScan], cfg: SlamConfig, memo: bool = False):
-    """The kNN locator :func:`mapped_distance_gate` searches ``refs`` with (30 neighbours)."""
+#: the neighbours :func:`mapped_distance_gate` searches
+GATE_K = 30
+
+
+def gate_locator(refs: list[LabelledScan], cfg: SlamConfig, memo: bool = False, like=None):
+    """The kNN locator :func:`mapped_distance_gate` searches ``refs`` with (:data:`GATE_K` neighbours);
+    ``like``: a locator of the same ``refs`` and settings whose fingerprint index it shares
+    (:meth:`~hybridloc.radio.locate.KnnLocator.with_k`) instead of building its own."""
     from ..radio.locate import KnnLocator
 
-    return KnnLocator(refs, k=min(30, len(refs)), max_age_s=cfg.knn_max_age_s, memo=memo)
+    if like is not None:
+        return like.with_k(GATE_K)
+    return KnnLocator(refs, k=min(GATE_K, len(refs)), max_age_s=cfg.knn_max_age_s, memo=memo)
 
 
 def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000, locator=None) -> float:
@@ -743,7 +751,7 @@ def set_em_fixes(
             loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s, memo=memo)
         gl = held[1].relabel(refs) if held is not None else None
         if gl is None:
-            gl = gate_locator(refs, cfg, memo=memo)
+            gl = gate_locator(refs, cfg, memo=memo, like=loc)  # loc: the same refs, settings and memo flag
         if cache is not None:
             cache[f] = (loc, gl)
         gate = mapped_distance_gate(refs, cfg, locator=gl)
