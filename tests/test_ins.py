@@ -9,7 +9,7 @@ from hybridloc.ins import stance
 from hybridloc.ins.eskf import ErrorStateEkf, ImuNoise
 from hybridloc.ins.foot import dedrift_i, run_foot_ins, strides
 from hybridloc.ins.measurements import Heading, PositionFix, StrideHeading, ZeroAngularRate, ZeroVelocity, jacobian_fd
-from hybridloc.ins.strapdown import NominalState, level_from_accel, mechanise, quat_from_rotvec, quat_to_dcm
+from hybridloc.ins.strapdown import NominalState, level_from_accel, mechanise, quat_from_rotvec, quat_mult_floats, quat_to_dcm
 from hybridloc.types import ImuBlock
 from hybridloc.units import G0
 
@@ -236,13 +236,7 @@ def _numpy_predict(x, P, f_body, w_body, dt, g, qd_rate):
     px, py, pz = ((w_body - x.b_g) * dt).tolist()
     a = math.sqrt(px * px + py * py + pz * pz)
     s = math.sin(0.5 * a) / a
-    b = math.cos(0.5 * a), px * s, py * s, pz * s
-    aw, ax_, ay_, az_ = x.q.tolist()
-    bw, bx, by, bz = b
-    w = aw * bw - ax_ * bx - ay_ * by - az_ * bz
-    qx = aw * bx + ax_ * bw + ay_ * bz - az_ * by
-    qy = aw * by - ax_ * bz + ay_ * bw + az_ * bx
-    qz = aw * bz + ax_ * by - ay_ * bx + az_ * bw
+    w, qx, qy, qz = quat_mult_floats(x.q.tolist(), (math.cos(0.5 * a), px * s, py * s, pz * s))
     n = math.sqrt(w * w + qx * qx + qy * qy + qz * qz)
     w, qx, qy, qz = w / n, qx / n, qy / n, qz / n
     R = np.array(
