@@ -277,22 +277,30 @@ def _transform(R: sp.csr_matrix, measure: str) -> sp.csr_matrix:
 def pair_similarity(R: sp.csr_matrix, I: np.ndarray, J: np.ndarray, measure: str, block: int = 200_000) -> np.ndarray:
     """S(R[I[n]], R[J[n]]) for each pair n, computed on the sparse rows only (module docstring, 3.)."""
     X = _transform(R.tocsr(), measure)
+    # the sums of minima compiled (slam/_compiled.py: scipy's sums to the bit) where they apply
+    compiled = measure != "cosine" and X.dtype == np.float64 and X.has_canonical_format
     out = np.empty(len(I))
     norms = np.sqrt(np.asarray(X.multiply(X).sum(axis=1)).ravel()) if measure == "cosine" else None
     tot = np.asarray(X.sum(axis=1)).ravel()
     for s in range(0, len(I), block):
         a, b = I[s : s + block], J[s : s + block]
-        Xa, Xb = X[a], X[b]
+        Xa, Xb = (None, None) if compiled else (X[a], X[b])
         if measure == "cosine":
-            assert norms is not None
+            assert norms is not None and Xa is not None
             num = np.asarray(Xa.multiply(Xb).sum(axis=1)).ravel()
             den = norms[a] * norms[b]
         else:  # sum min / sum max, with sum max = sum a + sum b - sum min (weighted Jaccard)
-            num = np.asarray(Xa.minimum(Xb).sum(axis=1)).ravel()
+            num = _sums_of_minima(X, a, b) if compiled else np.asarray(Xa.minimum(Xb).sum(axis=1)).ravel()
             den = tot[a] + tot[b] - num
         with np.errstate(invalid="ignore", divide="ignore"):
             out[s : s + block] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     return out
+
+
+def _sums_of_minima(X: sp.csr_matrix, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    from ._compiled import sum_of_minima  # Numba imported on first use
+
+    return sum_of_minima(X.indptr, X.indices, X.data, np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64))
 
 
 def index_pairs(
