@@ -29,7 +29,8 @@ def strapdown_predict(q, p, v, b_a, b_g, f_body, w_body, dt, g, P, Phi, qd_rate)
         P+ = Phi P Phi^T + diag(q_c) dt
         p+ = p + v dt + (a - g up) dt^2 / 2,   v+ = v + (a - g up) dt
     """
-    # exp map of phi = (w - b_g) dt, squared by multiplying (as eskf._qmul_exp_floats does)
+    # exp map of phi = (w - b_g) dt, its norm squared by multiplying: strapdown.rotvec_to_quat_floats
+    # squares by pow, and the two differ in the last bit now and then (this filter's outputs would move)
     px = (w_body[0] - b_g[0]) * dt
     py = (w_body[1] - b_g[1]) * dt
     pz = (w_body[2] - b_g[2]) * dt

@@ -68,7 +68,8 @@ class ErrorStateEkf:
         self.gate = ChiSquareGate(gate_probability)
         self.stats = UpdateStats()
         self._Phi = np.eye(15)  # predict() rewrites its time-varying blocks in place
-        self._qd_rate: np.ndarray | None = None  # diag(Q_c): Q_d = diag(Q_c) dt
+        n = noise  # diag(Q_c), the continuous noise densities per error state: Q_d = diag(Q_c) dt
+        self._qd_rate = np.array([0.0] * 3 + [n.accel_density**2] * 3 + [n.gyro_density**2] * 3 + [n.accel_bias_rw**2] * 3 + [n.gyro_bias_rw**2] * 3)
 
     @property
     def gate_probability(self) -> float:
@@ -88,10 +89,6 @@ class ErrorStateEkf:
         by one sample, i.e. by w dt - 0.025-0.05 rad in a foot's swing: PyShoe VICON trials on the
         authors' stance labels, 0.0645 -> 0.0551 m mean ARMSE (theirs: 0.0557)."""
         x = self.x
-        if self._qd_rate is None:
-            n = self.noise
-            rates = [0.0] * 3 + [n.accel_density**2] * 3 + [n.gyro_density**2] * 3 + [n.accel_bias_rw**2] * 3 + [n.gyro_bias_rw**2] * 3
-            self._qd_rate = np.array(rates)
         x.q, x.p, x.v, self.P = strapdown_predict(x.q, x.p, x.v, x.b_a, x.b_g, f_body, w_body, dt, self.g, self.P, self._Phi, self._qd_rate)
 
     @property

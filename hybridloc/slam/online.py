@@ -104,6 +104,7 @@ from ..sim.building import graph_components
 from ..types import TRACK_ANCHORS, CorrectedTrack, FloorPlan, RfScan, Walk, Waypoints
 from .frontend import FloorVectors, FrontendConfig, Loop, LoopDetector, WalkScans, floor_vectors, offsets_from_reference
 from .pipeline import (
+    GATE_K,
     LOOPS,
     MAP,
     MARKS,
@@ -117,7 +118,6 @@ from .pipeline import (
     _similarity_fit,
     _walkable_points,
     anchored_more,
-    gate_locator,
     locate_pieces,
     mapped_distance_gate,
     set_em_fixes,
@@ -399,7 +399,7 @@ class CrowdSlam:
         # memo on: the served map's locator places every walk's scans again in each batch (and the vote
         # map's asks the same walks' floors), the same answers each time
         loc = KnnLocator(refs, k=self.cfg.knn_k, max_age_s=self.cfg.knn_max_age_s, memo=True)
-        return loc, mapped_distance_gate(refs, self.cfg, locator=gate_locator(refs, self.cfg, like=loc))
+        return loc, mapped_distance_gate(refs, self.cfg, locator=loc.with_k(GATE_K))
 
     def set_vote_map(self, radio_map) -> None:
         """The map :meth:`vote_floor` reads, when it is not the one that places walks (:meth:`set_map`):

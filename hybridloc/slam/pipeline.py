@@ -252,15 +252,13 @@ class _Anchors:
 GATE_K = 30
 
 
-def gate_locator(refs: list[LabelledScan], cfg: SlamConfig, memo: bool = False, like=None):
-    """The kNN locator :func:`mapped_distance_gate` searches ``refs`` with (:data:`GATE_K` neighbours);
-    ``like``: a locator of the same ``refs`` and settings whose fingerprint index it shares
-    (:meth:`~hybridloc.radio.locate.KnnLocator.with_k`) instead of building its own."""
+def gate_locator(refs: list[LabelledScan], cfg: SlamConfig):
+    """The kNN locator :func:`mapped_distance_gate` searches ``refs`` with (:data:`GATE_K` neighbours).
+    A caller holding a locator of the same ``refs`` takes its ``with_k(GATE_K)`` instead, which shares
+    its fingerprint index (:meth:`~hybridloc.radio.locate.KnnLocator.with_k`)."""
     from ..radio.locate import KnnLocator
 
-    if like is not None:
-        return like.with_k(GATE_K)
-    return KnnLocator(refs, k=min(GATE_K, len(refs)), max_age_s=cfg.knn_max_age_s, memo=memo)
+    return KnnLocator(refs, k=min(GATE_K, len(refs)), max_age_s=cfg.knn_max_age_s)
 
 
 def mapped_distance_gate(refs: list[LabelledScan], cfg: SlamConfig, radius_m: float = 5.0, n_max: int = 2000, locator=None) -> float:
@@ -751,7 +749,7 @@ def set_em_fixes(
             loc = KnnLocator(refs, k=cfg.knn_k, max_age_s=cfg.knn_max_age_s, memo=memo)
         gl = held[1].relabel(refs) if held is not None else None
         if gl is None:
-            gl = gate_locator(refs, cfg, memo=memo, like=loc)  # loc: the same refs, settings and memo flag
+            gl = loc.with_k(GATE_K)  # loc: the same refs and settings; the fingerprint index shared
         if cache is not None:
             cache[f] = (loc, gl)
         gate = mapped_distance_gate(refs, cfg, locator=gl)
