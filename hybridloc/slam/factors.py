@@ -80,6 +80,30 @@ def kernel_weight(code: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
     return w
 
 
+def kernel_rho(code: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The robust cost rho(r) whose IRLS weight is :func:`kernel_weight` (w = rho'(r) / r, rho(0) = 0;
+    plain least squares rho = r^2 / 2), so that IRLS is the half-quadratic majorise-minimise of
+    sum rho (Zhang 1997): with s = r^2 and dro/ds = w / 2,
+
+    * GM      rho = c^2 s / (2 (c^2 + s))
+    * Cauchy  rho = c^2 / 2 ln(1 + s / c^2)
+    * Huber   rho = s / 2 for r <= c, c r - c^2 / 2 beyond
+    * DCS     rho = s / 2 for s <= Phi, 3 Phi / 2 - 2 Phi^2 / (Phi + s) beyond (Phi = c^2)."""
+    r = np.asarray(r, dtype=float)
+    s = r * r
+    c2 = c * c
+    out = 0.5 * s
+    gm = code == 1
+    out[gm] = c2[gm] * s[gm] / (2.0 * (c2[gm] + s[gm]))
+    ca = code == 2
+    out[ca] = 0.5 * c2[ca] * np.log1p(s[ca] / c2[ca])
+    hu = (code == 3) & (r > c)
+    out[hu] = c[hu] * r[hu] - 0.5 * c2[hu]
+    dc = (code == 4) & (s > c2)
+    out[dc] = 1.5 * c2[dc] - 2.0 * c2[dc] ** 2 / (c2[dc] + s[dc])
+    return out
+
+
 class ScalarField(Protocol):
     """The floor plan's walkable field: p (m,2) -> distance outside the walkable area d (m,) (0 inside), m,
     and its gradient (m,2)."""
