@@ -381,6 +381,44 @@ def test_sorensen_neighbours_sum_minima_as_a_scatter_add_does():
         assert np.all(np.sort(full)[: len(d)] == d)
 
 
+def test_fingerprint_matrix_writes_what_a_loop_over_the_readings_writes():
+    """The cached, scattered fill (scan_readings) against the per-reading loop it replaced: ages,
+    device offsets, transmitters outside tx_index, scans reused with other indices and new ids."""
+    from hybridloc.radio.locate import MISSING_DBM, fingerprint_matrix
+
+    def loop(scans, tx_index, offsets=None, max_age_s=None):
+        X = np.full((len(scans), len(tx_index)), MISSING_DBM, dtype=np.float32)
+        for i, s in enumerate(scans):
+            off = (offsets or {}).get(s.device_model, 0.0)
+            for k, v in s.rssi_dbm.items():
+                if max_age_s is not None and s.age_s.get(k, 0.0) > max_age_s:
+                    continue
+                j = tx_index.get(k)
+                if j is not None:
+                    X[i, j] = v - off
+        return X
+
+    rng = np.random.default_rng(17)
+    pool = [f"ap{i:03d}" for i in range(60)]
+    scans = []
+    for n in range(40):
+        keys = list(rng.choice(pool, size=int(rng.integers(0, 25)), replace=False))
+        ages = {k: float(rng.uniform(0, 12)) for k in keys if rng.random() < 0.7} if n % 3 else {}
+        scans.append(RfScan(float(n), "wifi", {k: float(rng.uniform(-99, -30)) for k in keys}, age_s=ages, device_model=["a", "b", ""][n % 3]))
+    for tx in (pool, pool[::2], pool[::-3] + ["never-heard"], []):
+        tx_index = {t: i for i, t in enumerate(tx)}
+        for offsets in (None, {"a": 3.7, "b": -1.25}):
+            for age in (None, 8.0, 0.0):
+                got = fingerprint_matrix(scans, tx_index, offsets, age)
+                np.testing.assert_array_equal(got, loop(scans, tx_index, offsets, age))
+                assert got.dtype == np.float32
+    # a scan with transmitters no other scan held, after the others were cached
+    late = RfScan(99.0, "wifi", {"brand-new": -50.0, "ap001": -61.5})
+    idx = {"brand-new": 0, "ap001": 1, "ap002": 2}
+    np.testing.assert_array_equal(fingerprint_matrix(scans + [late], idx), loop(scans + [late], idx))
+    assert fingerprint_matrix([], idx).shape == (0, 3)
+
+
 def test_route_groups_and_folds_hold_a_repeated_route_together():
     """Walks of one route (same floor, the same marks give or take 0.3 m) share a group whatever their
     direction; the same marks on another floor, or a route 3 m aside, do not. Route folds never split

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import math
+import threading
 import weakref
 from dataclasses import dataclass, field
 
@@ -218,20 +219,67 @@ class FloorMapView:
         self.cells, self.mu, self.sd, self.pd = f.cells[keep], f.mu[keep], f.sd[keep], f.pd[keep]
 
 
+#: every transmitter id this process has read, as a small integer (:func:`scan_readings`): the codes only
+#: ever grow, so a scan's cached codes stay valid
+_TX_CODE: dict[str, int] = {}
+_TX_LOCK = threading.Lock()
+
+
+def _tx_codes(keys) -> np.ndarray:
+    codes = _TX_CODE
+    out = [codes.get(k, -1) for k in keys]
+    if -1 in out:
+        with _TX_LOCK:  # the first sight of a transmitter: numbered once, whatever thread sees it
+            out = [codes.setdefault(k, len(codes)) for k in keys]
+    return np.array(out, dtype=np.int64)
+
+
+def scan_readings(scan: RfScan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A scan's readings as arrays, in the order of its ``rssi_dbm``: (transmitter codes, dBm as float64,
+    ages in s or None when the scan has none). Made once per scan and kept on it (a scan is immutable;
+    the SLAM batch turns the same scans into fingerprint rows for every locator of every EM round)."""
+    got = scan.__dict__.get("_readings")
+    if got is None:
+        keys = list(scan.rssi_dbm)
+        vals = np.fromiter(scan.rssi_dbm.values(), dtype=np.float64, count=len(keys))
+        ages = np.array([scan.age_s.get(k, 0.0) for k in keys], dtype=np.float64) if scan.age_s else None
+        got = (_tx_codes(keys), vals, ages)
+        scan.__dict__["_readings"] = got  # not a field: repr, equality and pickling leave it out
+    return got
+
+
 def fingerprint_matrix(
     scans: list[RfScan], tx_index: dict[str, int], offsets: dict[str, float] | None = None, max_age_s: float | None = None
 ) -> np.ndarray:
     """(n, m) matrix of readings in dBm with MISSING_DBM for transmitters not heard (or heard more
-    than ``max_age_s`` before the scan: a stale cached reading describes another place)."""
+    than ``max_age_s`` before the scan: a stale cached reading describes another place).
+
+    Filled from each scan's cached arrays (:func:`scan_readings`) in one scatter: entry (i, j) is the
+    float32 of the float64 ``dBm - offset``, as a per-reading loop writes it (no scan holds a
+    transmitter twice, so the order of the writes does not matter)."""
     X = np.full((len(scans), len(tx_index)), MISSING_DBM, dtype=np.float32)
-    for i, s in enumerate(scans):
-        off = (offsets or {}).get(s.device_model, 0.0)
-        for k, v in s.rssi_dbm.items():
-            if max_age_s is not None and s.age_s.get(k, 0.0) > max_age_s:
-                continue
-            j = tx_index.get(k)
-            if j is not None:
-                X[i, j] = v - off
+    if not scans or not tx_index:
+        return X
+    tx_codes = _tx_codes(list(tx_index))
+    parts = [scan_readings(s) for s in scans]
+    counts = np.array([len(p[0]) for p in parts], dtype=np.int64)
+    if not counts.sum():
+        return X
+    # the column of every transmitter code (-1: not in tx_index), made after the scans' codes so that
+    # it covers every code they hold
+    lookup = np.full(len(_TX_CODE), -1, dtype=np.int64)
+    lookup[tx_codes] = np.fromiter(tx_index.values(), dtype=np.int64, count=len(tx_index))
+    codes = np.concatenate([p[0] for p in parts])
+    vals = np.concatenate([p[1] for p in parts])
+    rows = np.repeat(np.arange(len(scans)), counts)
+    cols = lookup[codes]
+    keep = cols >= 0
+    if max_age_s is not None:
+        ages = np.concatenate([p[2] if p[2] is not None else np.zeros(len(p[0])) for p in parts])
+        keep &= ~(ages > max_age_s)
+    if offsets:
+        vals = vals - np.repeat(np.array([offsets.get(s.device_model, 0.0) for s in scans], dtype=np.float64), counts)
+    X[rows[keep], cols[keep]] = vals[keep]
     return X
 
 
@@ -255,25 +303,22 @@ def sorensen_neighbours(R: sparse.csc_array, R_sum: np.ndarray, Q: np.ndarray, k
     query heard), not O(references x transmitters). ``R_sum`` holds the row sums of ``R``.
     Returns (distances, indices), each (len(Q), k), nearest first.
 
-    The sums of minima are one sparse product per query: the query's columns of ``R`` (sparse's own
-    column selection), their entries replaced by min(entry, query value) in double precision, times a
-    vector of ones. That product adds each reference's minima column by column from zero, the order a
-    scatter-add over the selected entries takes, so the distances are the same to the bit; it runs at
-    about twice the speed (a crowd-SLAM batch re-solve spends a quarter of its time here).
+    The sums of minima are compiled (:func:`._compiled.sums_of_minima`): each reference's minima added
+    column by column from zero, in ascending column order, as the sparse product of the query's columns
+    of ``R`` with a vector of ones did before it (the same sums to the bit; that form ran the two sparse
+    matrices per query that were most of a crowd-SLAM batch re-solve's kNN time).
     """
+    from ._compiled import sums_of_minima  # Numba imported on first use
+
     n = R.shape[0]
     k = min(k, n)
     D = np.empty((len(Q), k))
     I = np.empty((len(Q), k), dtype=np.int64)
+    Q = np.asarray(Q)
+    dt = np.result_type(R.data.dtype, Q.dtype)  # the minimum's dtype, as numpy's would promote them
+    indptr, indices, data = R.indptr, R.indices, R.data.astype(dt, copy=False)
     for i, q in enumerate(Q):
-        cols = np.flatnonzero(q > 0)
-        sub = R[:, cols]
-        if sub.nnz:
-            lens = np.diff(sub.indptr)
-            sub.data = np.minimum(sub.data, np.repeat(q[cols], lens)).astype(np.float64)
-            inter = sub @ np.ones(len(cols))
-        else:
-            inter = np.zeros(n)
+        inter = sums_of_minima(indptr, indices, data, q.astype(dt, copy=False), n)
         d = 1.0 - 2.0 * inter / np.maximum(R_sum + float(q.sum()), 1e-12)
         part = np.argpartition(d, k - 1)[:k] if k < n else np.arange(n)
         order = part[np.argsort(d[part], kind="stable")]
