@@ -212,6 +212,36 @@ def test_marginals_equal_the_inverse_of_the_dense_information_matrix():
     assert np.trace(expected[b[-1]]) > np.trace(expected[a[0]])
 
 
+def test_marginals_from_the_selected_inverse_equal_the_dense_solves(monkeypatch):
+    """Takahashi's recurrences on the factor's pattern (slam/_selinv.py) give the blocks the dense solve
+    of H X = E gives, to rounding: loops, robust fixes and the walkable field, held nodes (zeros); and
+    the dense path answers where the pattern is refused."""
+    for seed in (0, 4, 6):
+        # a phone's step is surer across its direction than along it (anisotropic odometry), so each
+        # node's x and y are coupled in H and its block lies on the factor's pattern
+        g = _corridor_grid_walks(seed, along_cross_var=(0.08, 0.02))
+        sol = solve(g, SolveOptions(max_iters=60))
+        nodes = np.arange(g.n_nodes)
+        fast = sol.marginals(nodes)
+        c0 = sol._marg.colmap[2 * nodes]
+        assert sol._marg._selected(c0, np.arange(nodes.size), np.zeros_like(fast)).size == 0  # all read off Z
+        dense = np.zeros_like(fast)
+        sol._marg._dense(sol._marg.colmap[2 * nodes], np.arange(nodes.size), dense, 2e7)
+        scale = np.abs(dense).max()
+        np.testing.assert_allclose(fast, dense, rtol=0, atol=1e-11 * scale)
+        np.testing.assert_array_equal(fast[:, 0, 1], fast[:, 1, 0])
+        assert np.all(np.linalg.eigvalsh(fast) > 0)
+    # held nodes read zeros; the free ones what a fresh solve of the same state gives
+    held = solve(g, SolveOptions(max_iters=60), x0=sol, free_nodes=np.arange(0, 40))
+    m = held.marginals(np.arange(g.n_nodes))
+    assert np.all(m[40:] == 0.0) and np.all(np.linalg.eigvalsh(m[:40]) > 0)
+    # a refused pattern falls back to the dense solves
+    import hybridloc.slam._selinv as selinv
+
+    monkeypatch.setattr(selinv, "selected_inverse", lambda L, U: (None, None, None, False))
+    np.testing.assert_allclose(solve(g, SolveOptions(max_iters=60)).marginals(nodes), sol.marginals(nodes), rtol=0, atol=1e-9 * scale)
+
+
 def test_marginals_with_cholmod_match_superlu():
     pytest.importorskip("cholespy", reason="cholespy (CHOLMOD) not installed: pip install '.[slam]'")
     g, _, _, _ = two_corridor_walks(np.random.default_rng(7))
@@ -315,9 +345,10 @@ def test_kernel_rho_is_the_cost_whose_irls_weight_is_kernel_weight():
     np.testing.assert_allclose(kernel_rho(np.zeros(3, int), np.ones(3), np.array([0.0, 1.0, 2.0])), [0.0, 0.5, 2.0])
 
 
-def _corridor_grid_walks(seed: int):
+def _corridor_grid_walks(seed: int, along_cross_var: tuple[float, float] | None = None):
     """Six walks dead-reckoned with scale and heading bias through a grid of 2 m corridors (shops 8 m
-    square between them), each with three Cauchy-robust fixes of 3 m sd and the walkable field."""
+    square between them), each with three Cauchy-robust fixes of 3 m sd and the walkable field.
+    Odometry covariance 0.05 m^2 I, or (along, cross) variances turned to each step's direction."""
     from hybridloc.slam.floorplan import WalkableField
 
     h = 0.25
@@ -335,7 +366,12 @@ def _corridor_grid_walks(seed: int):
         ids = g.add_nodes(init)
         k = g.add_nuisance()
         g.add_nuisance_prior(k, (1.0, 0.0), np.diag([0.1**2, 0.15**2]))
-        g.add_odometry_many(ids[:-1], ids[1:], D, 0.05 * np.eye(2), k)
+        if along_cross_var is None:
+            cov = 0.05 * np.eye(2)
+        else:
+            u = D / np.linalg.norm(D, axis=1, keepdims=True)
+            cov = along_cross_var[0] * u[:, :, None] * u[:, None, :] + along_cross_var[1] * perp(u)[:, :, None] * perp(u)[:, None, :]
+        g.add_odometry_many(ids[:-1], ids[1:], D, cov, k)
         for i in rng.choice(len(ids), 3, replace=False):
             g.add_position_prior(ids[i], truth[i] + rng.normal(0, 3.0, 2), 9.0 * np.eye(2), kernel=Kernel("cauchy", 1.0))
         g.add_field(ids, field, 0.5, 0.3)

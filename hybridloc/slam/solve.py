@@ -32,9 +32,11 @@ IRLS tail: once mu = 1 the weights change little per step, so the last factorisa
 conjugate gradients on the new H (a few triangular solves instead of a factorisation; re-factorised
 when CG stalls within 20 steps).
 
-Marginals: Cov(p_i) = (H^-1)_{ii} (the 2x2 block), by solving H X = E_i (batched right-hand sides)
-with the factorisation of H at the final state (the last one when it was made there; else made on the
-first call).
+Marginals: Cov(p_i) = (H^-1)_{ii} (the 2x2 block) from the factorisation of H at the final state (the
+last one when it was made there; else made on the first call): read off the selected inverse of its
+sparse factor (:mod:`._selinv`, Takahashi's recurrences: the entries of H^-1 on the factor's pattern,
+which holds every node's block), or by solving H X = E_i (batched right-hand sides) where that factor
+is not SuperLU's in the nested-dissection order (CHOLMOD, the MMD order).
 """
 
 from __future__ import annotations
@@ -80,7 +82,9 @@ class SolveOptions:
     #: is better on one floor of three and worse over all (corrected crowd walks mean 12.41 -> 13.17 m,
     #: median 9.20 -> 10.05; fused test clients 17.37 -> 17.69 m; F1 10.22 -> 9.85 m, F2 11.46 -> 15.46 m
     #: with coverage 37.8 -> 45.6 %, F3 14.84 -> 14.94 m): the undamped steps' jumps carry walks out of
-    #: the shops they were drawn into, which a descent method does not
+    #: the shops they were drawn into, which a descent method does not. An earlier session's line search
+    #: measured the same way on a batch re-solve of an eval crowd database (8.46 m against 8.21 m,
+    #: docs/slam.md "Why the solves do not settle")
     line_search: bool = False
 
 
@@ -122,6 +126,7 @@ class _Marginals:
     def __init__(self, problem: _Problem, x: np.ndarray, lu=None):
         self.problem, self.x, self._lu = problem, x, lu
         self.colmap, self.n_free = problem.colmap, problem.n_free
+        self._z: tuple | None = None  # the selected inverse of the factor, made on the first call
 
     @property
     def lu(self):
@@ -133,6 +138,39 @@ class _Marginals:
         out = np.zeros((nodes.size, 2, 2))
         c0 = self.colmap[2 * nodes]
         idx = np.flatnonzero(c0 >= 0)
+        if idx.size and isinstance(self.lu, _PermutedLU):
+            idx = self._selected(c0, idx, out)
+        self._dense(c0, idx, out, max_doubles)
+        return out
+
+    def _selected(self, c0: np.ndarray, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """The blocks of nodes ``idx`` read from the selected inverse of the factor (:mod:`._selinv`),
+        written into ``out``; returns the nodes it could not read (the dense solve's), all of them when
+        SuperLU pivoted off the diagonal or the pattern misses an entry."""
+        from ._selinv import gather, selected_inverse  # Numba imported on first use
+
+        lu = self.lu
+        if self._z is None:
+            n = self.n_free
+            natural = np.array_equal(lu.lu.perm_r, np.arange(n)) and np.array_equal(lu.lu.perm_c, np.arange(n))
+            self._z = selected_inverse(lu.lu.L, lu.lu.U) if natural else (None, None, None, False)
+        indptr, indices, z, ok = self._z
+        if not ok:
+            return idx
+        pinv = np.empty_like(lu.perm)
+        pinv[lu.perm] = np.arange(lu.perm.size)
+        px, py = pinv[c0[idx]], pinv[c0[idx] + 1]
+        vals, found = gather(indptr, indices, z, np.concatenate([px, py, px]), np.concatenate([px, py, py]))
+        m = idx.size
+        got = found[:m] & found[m : 2 * m] & found[2 * m :]
+        xx, yy, xy = vals[:m], vals[m : 2 * m], vals[2 * m :]
+        sel = idx[got]
+        out[sel, 0, 0], out[sel, 1, 1] = xx[got], yy[got]
+        out[sel, 0, 1] = out[sel, 1, 0] = xy[got]
+        return idx[~got]
+
+    def _dense(self, c0: np.ndarray, idx: np.ndarray, out: np.ndarray, max_doubles: float) -> None:
+        """The blocks of nodes ``idx`` by solving H X = E for their identity columns, in chunks."""
         chunk = max(1, int(max_doubles // max(self.n_free, 1) // 2))
         for s in range(0, idx.size, chunk):
             sel = idx[s : s + chunk]
@@ -143,7 +181,6 @@ class _Marginals:
             Xb = X[cols].reshape(sel.size, 2, sel.size, 2)
             ar = np.arange(sel.size)
             out[sel] = Xb[ar, :, ar, :]
-        return out
 
 
 def _triplets(row0: int, nr: int, starts: list[np.ndarray], blocks: list[np.ndarray]):
