@@ -85,11 +85,23 @@ def gather(indptr, indices, z, rows, cols):  # pragma: no cover - compiled
 
 
 def selected_inverse(L, U):
-    """(indptr, indices, z, ok) of Z = (L U)^-1 on the pattern of L for SuperLU's factors of a symmetric
-    positive definite matrix in symmetric mode (L unit lower, U = D L^T): module docstring."""
-    L = L.tocsc().copy()
-    L.sort_indices()
+    """(indptr, indices, z, ok) of Z = (L U)^-1 on the factor's pattern for SuperLU's factors of a
+    symmetric positive definite matrix in symmetric mode (L unit lower, U = D L^T): module docstring.
+
+    The factor is read from U: L_ij = U_ji / U_jj. SuperLU's exported factors leave out entries that came
+    out exactly zero, and not always the same ones in L and in U (an F1 matrix of 6,710 columns: one
+    entry of U^T missing from L, which broke the recurrences' pattern); entries only L holds are added
+    with L's values."""
     d = np.asarray(U.diagonal(), dtype=np.float64)
-    indptr, indices = L.indptr.astype(np.int64), L.indices.astype(np.int64)
-    z, ok = takahashi(indptr, indices, np.asarray(L.data, dtype=np.float64), d)
+    Ut = U.T.tocsc(copy=True)
+    Ut.sort_indices()
+    Ut.data = Ut.data / np.repeat(d, np.diff(Ut.indptr))
+    L = L.tocsc()
+    mask = Ut.copy()
+    mask.data[:] = 1.0
+    only_l = L - L.multiply(mask)  # L's entries where U^T has none (the others cancel and drop)
+    F = (Ut + only_l).tocsc() if only_l.nnz else Ut
+    F.sort_indices()
+    indptr, indices = F.indptr.astype(np.int64), F.indices.astype(np.int64)
+    z, ok = takahashi(indptr, indices, np.asarray(F.data, dtype=np.float64), d)
     return indptr, indices, z, bool(ok)
