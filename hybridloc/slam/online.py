@@ -892,8 +892,7 @@ class CrowdSlam:
                 h = fl.held[key]
                 h.pos, h.cov, h.nuisance = sol.pos[pc.nodes].copy(), sol.cov[pc.nodes].copy(), sol.nuisance[pc.nuisance].copy()
                 h.status, h.frame = st, (frames.setdefault(int(comp[k]), self._new_frame()) if st == RELATIVE else 0)
-            for lp in sol.loops:
-                ka, kb = fsl._piece_of_node(lp.node_a), fsl._piece_of_node(lp.node_b)
+            for lp, ka, kb in zip(sol.loops, *fsl._pieces_of_loops(sol.loops)):
                 records.append(dataclasses.replace(lp, node_a=lp.node_a - fsl.pieces[ka].node0, node_b=lp.node_b - fsl.pieces[kb].node0))
             if fsl.detector.model is not None:
                 fl.set_detector(fsl.detector, len(fsl.pieces))

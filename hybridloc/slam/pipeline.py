@@ -374,10 +374,9 @@ class FloorSlam:
     def _links(self) -> list[tuple[int, int, int, int]]:
         """(piece a, node in a, piece b, node in b) of every accepted fingerprint loop and beacon co-pass."""
         out = []
-        for lp in self.loops:
-            if lp.accepted:
-                ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
-                out.append((ka, lp.node_a - self.pieces[ka].node0, kb, lp.node_b - self.pieces[kb].node0))
+        acc = [lp for lp in self.loops if lp.accepted]
+        for lp, a, b in zip(acc, *self._pieces_of_loops(acc)):
+            out.append((a, lp.node_a - self.pieces[a].node0, b, lp.node_b - self.pieces[b].node0))
         for obs in self.beacons.values():
             for x in range(len(obs)):
                 for y in range(x + 1, len(obs)):
@@ -466,6 +465,14 @@ class FloorSlam:
                 g.add_edge_field(ei, ei + 1, self.field, cfg.field_sigma_m, cfg.field_margin_m, fractions=(0.5,))
         return g, local0, nuis, loop_ids
 
+    def _pieces_of_loops(self, loops) -> tuple[list[int], list[int]]:
+        """The pieces of each loop's two nodes (:meth:`_piece_of_node` of node_a and node_b), in one search."""
+        if not loops:
+            return [], []
+        na = np.fromiter((lp.node_a for lp in loops), dtype=np.int64, count=len(loops))
+        nb = np.fromiter((lp.node_b for lp in loops), dtype=np.int64, count=len(loops))
+        return (np.searchsorted(self._starts, na, side="right") - 1).tolist(), (np.searchsorted(self._starts, nb, side="right") - 1).tolist()
+
     def _piece_of_node(self, node: int) -> int:
         return int(np.searchsorted(self._starts, node, side="right") - 1)
 
@@ -529,12 +536,12 @@ class FloorSlam:
                         continue
                     if pts:
                         own[k] = _similarity_fit(np.asarray(src), np.asarray(dst))
-                rel = self._relative_layout(members, own)
+                rel = self._relative_layout(members, own, links)
                 for k in members:
                     init[k] = rel[k]
                     status[k] = MARKS if k in anchors.marks else MAP if k in anchors.fixes else LOOPS
                 continue
-            rel = self._relative_layout(members, {})
+            rel = self._relative_layout(members, {}, links)
             if self.field is None:
                 for k in members:
                     init[k] = rel[k]
@@ -599,8 +606,9 @@ class FloorSlam:
             for b, k, gid in self._beacon_loop_ids:
                 beacon_w[(b, k)] = float(sol.loop_weight[gid])
         records = []
+        piece_a, piece_b = self._pieces_of_loops(self.loops)
         for li, lp in enumerate(self.loops):
-            ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
+            ka, kb = piece_a[li], piece_b[li]
             records.append(
                 LoopRecord(
                     self.pieces[ka].name,
@@ -646,11 +654,11 @@ class FloorSlam:
             self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0, converged=converged, last_step=last_step
         )
 
-    def _relative_layout(self, members: list[int], own: dict[int, tuple]) -> dict[int, np.ndarray]:
+    def _relative_layout(self, members: list[int], own: dict[int, tuple], all_links: list | None = None) -> dict[int, np.ndarray]:
         """Initial node positions of a component's pieces: pieces with their own anchor transform are
         placed by it; the others follow along accepted loops (breadth first: a piece linked to a placed
         one is shifted by the median loop offset), and the first piece of a free component sits at its
-        own frame."""
+        own frame. ``all_links``: :meth:`_links` when the caller holds them (made here otherwise)."""
         placed: dict[int, np.ndarray] = {}
         for k, (T, t) in own.items():
             placed[k] = self.pieces[k].q @ T.T + t
@@ -659,7 +667,7 @@ class FloorSlam:
             placed[k] = self.pieces[k].q.copy()
         links: dict[int, list] = {}
         mset = set(members)
-        for ka, ia, kb, ib in self._links():
+        for ka, ia, kb, ib in self._links() if all_links is None else all_links:
             if ka in mset and kb in mset:
                 links.setdefault(ka, []).append((kb, ia, ib))
                 links.setdefault(kb, []).append((ka, ib, ia))
