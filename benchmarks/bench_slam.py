@@ -230,6 +230,38 @@ def run_case(w: CrowdWorld, label: str, backends: list[str]) -> dict:
     return out
 
 
+def marginals_vs_dense(w: CrowdWorld, sample: int = 400) -> dict:
+    """Every node's 2x2 marginal by the selected inverse (Solution.marginals) and, on a seeded sample of
+    nodes, by the plain method it replaced (solving H X = E for their identity columns, whose cost is
+    linear in the nodes asked: extrapolated to all); the largest difference on the sample."""
+    g = build_graph(w)
+    sol = solve(g, SolveOptions())
+    nodes = np.arange(g.n_nodes)
+    m = sol._marg
+    sol.marginals(nodes[:1])  # the factorisation at the final state and Numba's kernels (compiled or loaded), for both
+    m._z = None  # the selected inverse made again in the timing
+    t0 = time.perf_counter()
+    fast = sol.marginals(nodes)
+    t_fast = time.perf_counter() - t0
+    pick = np.sort(np.random.default_rng(23).choice(g.n_nodes, size=min(sample, g.n_nodes), replace=False))
+    dense = np.zeros((pick.size, 2, 2))
+    t0 = time.perf_counter()
+    m._dense(m.colmap[2 * pick], np.arange(pick.size), dense, 2e7)
+    t_dense = (time.perf_counter() - t0) * g.n_nodes / pick.size
+    rel = float(np.max(np.abs(fast[pick] - dense)) / np.max(np.abs(dense)))
+    print(
+        f"  {g.n_nodes} nodes: selected inverse {t_fast:.2f} s for all; dense solves {t_dense:.1f} s for all "
+        f"(extrapolated from {pick.size}); {t_dense / max(t_fast, 1e-9):.0f}x; largest difference {rel:.1e} of the largest variance"
+    )
+    return {
+        "marginals_nodes": int(g.n_nodes),
+        "marginals_seconds": t_fast,
+        "marginals_dense_seconds": t_dense,
+        "marginals_speedup": t_dense / max(t_fast, 1e-9),
+        "marginals_max_rel_diff": rel,
+    }
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--nodes", type=int, default=100_000)
@@ -273,6 +305,9 @@ def main(argv: list[str] | None = None) -> None:
     for b in backends:
         print(f"  {n_walks:5d} walks ({near.truth.shape[0]} nodes) {b:6s} {res_near[b]['seconds']:6.2f} s ({res_near[b]['iterations']} it)")
 
+    print("marginal covariances of every node (the labels' sigmas), on the N-walk graph: selected inversion against dense solves:")
+    marg = marginals_vs_dense(crowd_world(np.random.default_rng([22, 1]), max(4, n_walks // 4), "near", passes=args.passes))
+
     print("adding one walk to the solved graph (case (a): the last walk back at its dead reckoning, its nodes and segments free, the rest held):")
     last = n_walks - 1
     new_nodes = np.flatnonzero(near.walk == last)
@@ -300,6 +335,7 @@ def main(argv: list[str] | None = None) -> None:
         "scipy_random_seconds": res_far["scipy"]["seconds"],
         "scipy_random_wrong_p95_weight": res_far["scipy"]["wrong_p95_w"],
         "scipy_add_walk_seconds": incr["scipy"],
+        **marg,
     }
     if "gtsam" in backends:
         fig.update(

@@ -216,10 +216,10 @@ def test_marginals_from_the_selected_inverse_equal_the_dense_solves(monkeypatch)
     """Takahashi's recurrences on the factor's pattern (slam/_selinv.py) give the blocks the dense solve
     of H X = E gives, to rounding: loops, robust fixes and the walkable field, held nodes (zeros); and
     the dense path answers where the pattern is refused."""
-    for seed in (0, 4, 6):
-        # a phone's step is surer across its direction than along it (anisotropic odometry), so each
-        # node's x and y are coupled in H and its block lies on the factor's pattern
-        g = _corridor_grid_walks(seed, along_cross_var=(0.08, 0.02))
+    for seed, var in ((0, (0.08, 0.02)), (4, None), (6, (0.08, 0.02))):
+        # anisotropic odometry couples each node's x and y in H; isotropic odometry does not, and the
+        # x-y entries are then added to the pattern the recurrences run on
+        g = _corridor_grid_walks(seed, along_cross_var=var)
         sol = solve(g, SolveOptions(max_iters=60))
         nodes = np.arange(g.n_nodes)
         fast = sol.marginals(nodes)
@@ -238,8 +238,34 @@ def test_marginals_from_the_selected_inverse_equal_the_dense_solves(monkeypatch)
     # a refused pattern falls back to the dense solves
     import hybridloc.slam._selinv as selinv
 
-    monkeypatch.setattr(selinv, "selected_inverse", lambda L, U: (None, None, None, False))
+    monkeypatch.setattr(selinv, "selected_inverse", lambda L, U, pairs=None: (None, None, None, False))
     np.testing.assert_allclose(solve(g, SolveOptions(max_iters=60)).marginals(nodes), sol.marginals(nodes), rtol=0, atol=1e-9 * scale)
+
+
+def test_symbolic_factor_is_the_pattern_of_the_cholesky_factor():
+    """The elimination-tree construction gives the nonzeros of the dense Cholesky factor of a random
+    sparse SPD matrix (random values: no cancellation), and Takahashi's entries on it are H^-1's."""
+    import scipy.sparse as sps
+
+    from hybridloc.slam._selinv import symbolic_factor, takahashi
+
+    n = 60
+    A = sps.random(n, n, density=0.05, random_state=np.random.RandomState(31))
+    H = (A @ A.T + sps.eye(n) * n).tocsc()
+    low = sps.tril(H).tocsc()
+    low.sort_indices()
+    ptr, idx = symbolic_factor(low.indptr.astype(np.int64), low.indices.astype(np.int64), n)
+    C = np.linalg.cholesky(H.toarray())
+    got = np.zeros((n, n), bool)
+    got[idx, np.repeat(np.arange(n), np.diff(ptr))] = True
+    np.testing.assert_array_equal(got, np.abs(C) > 1e-300)
+    # L D L^T from the Cholesky factor, Z on the pattern
+    dia = np.diag(C)
+    Lu = C / dia
+    z, ok = takahashi(ptr, idx, Lu[idx, np.repeat(np.arange(n), np.diff(ptr))], dia**2)
+    assert ok
+    Z = np.linalg.inv(H.toarray())
+    np.testing.assert_allclose(z, Z[idx, np.repeat(np.arange(n), np.diff(ptr))], rtol=1e-9, atol=1e-14)
 
 
 def test_marginals_with_cholmod_match_superlu():

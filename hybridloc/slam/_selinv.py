@@ -19,6 +19,7 @@ reported, and the caller solves densely instead.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 
 
@@ -84,14 +85,82 @@ def gather(indptr, indices, z, rows, cols):  # pragma: no cover - compiled
     return out, found
 
 
-def selected_inverse(L, U):
+@njit(cache=True, nogil=True)
+def symbolic_factor(indptr, indices, n):  # pragma: no cover - compiled
+    """The pattern (CSC, the diagonal first, rows sorted) of the Cholesky factor of a symmetric matrix
+    of n columns given by its lower pattern (indptr, indices): column j holds the rows of column j below
+    the diagonal and those of its children in the elimination tree other than j (the parent of a
+    column is its first row below the diagonal). Every pair of rows of a column is then an entry of
+    the pattern, which is what :func:`takahashi` needs."""
+    head = np.full(n, -1, np.int64)  # the children of each column, as linked lists
+    nxt = np.full(n, -1, np.int64)
+    mark = np.full(n, -1, np.int64)
+    buf = np.empty(n, np.int64)
+    cap = 2 * indices.size + n
+    out = np.empty(cap, np.int64)
+    ptr = np.zeros(n + 1, np.int64)
+    pos = 0
+    for j in range(n):
+        m = 0
+        mark[j] = j
+        for p in range(indptr[j], indptr[j + 1]):
+            r = indices[p]
+            if r > j and mark[r] != j:
+                mark[r] = j
+                buf[m] = r
+                m += 1
+        c = head[j]
+        while c != -1:
+            for p in range(ptr[c] + 1, ptr[c + 1]):
+                r = out[p]
+                if r > j and mark[r] != j:
+                    mark[r] = j
+                    buf[m] = r
+                    m += 1
+            c = nxt[c]
+        rows = np.sort(buf[:m])
+        if pos + m + 1 > cap:
+            cap = 2 * (pos + m + 1)
+            grown = np.empty(cap, np.int64)
+            grown[:pos] = out[:pos]
+            out = grown
+        out[pos] = j
+        out[pos + 1 : pos + 1 + m] = rows
+        pos += m + 1
+        ptr[j + 1] = pos
+        if m:
+            nxt[j] = head[rows[0]]
+            head[rows[0]] = j
+    return ptr, out[:pos].copy()
+
+
+@njit(cache=True, nogil=True)
+def _place(fptr, fidx, fval, ptr, idx):  # pragma: no cover - compiled
+    """The values of a factor (fptr, fidx, fval) on a pattern (ptr, idx) that holds its own (rows sorted
+    in both): zeros where the factor has no entry; False when one of its entries is missing."""
+    val = np.zeros(idx.size)
+    for j in range(ptr.size - 1):
+        q = ptr[j]
+        for p in range(fptr[j], fptr[j + 1]):
+            r = fidx[p]
+            while q < ptr[j + 1] and idx[q] < r:
+                q += 1
+            if q == ptr[j + 1] or idx[q] != r:
+                return val, False
+            val[q] = fval[p]
+    return val, True
+
+
+def selected_inverse(L, U, pairs: tuple[np.ndarray, np.ndarray] | None = None):
     """(indptr, indices, z, ok) of Z = (L U)^-1 on the factor's pattern for SuperLU's factors of a
     symmetric positive definite matrix in symmetric mode (L unit lower, U = D L^T): module docstring.
 
     The factor is read from U: L_ij = U_ji / U_jj. SuperLU's exported factors leave out entries that came
     out exactly zero, and not always the same ones in L and in U (an F1 matrix of 6,710 columns: one
     entry of U^T missing from L, which broke the recurrences' pattern); entries only L holds are added
-    with L's values."""
+    with L's values. The pattern the recurrences run on is the symbolic factor (:func:`symbolic_factor`)
+    of the factor's own pattern with ``pairs`` (rows, cols) added: entries of Z the caller will read
+    that the factor need not hold (a node's x-y entry, where no factor couples its x and y)."""
     d = np.asarray(U.diagonal(), dtype=np.float64)
     Ut = U.T.tocsc(copy=True)
     Ut.sort_indices()
@@ -102,6 +171,16 @@ def selected_inverse(L, U):
     only_l = L - L.multiply(mask)  # L's entries where U^T has none (the others cancel and drop)
     F = (Ut + only_l).tocsc() if only_l.nnz else Ut
     F.sort_indices()
-    indptr, indices = F.indptr.astype(np.int64), F.indices.astype(np.int64)
-    z, ok = takahashi(indptr, indices, np.asarray(F.data, dtype=np.float64), d)
+    n = d.size
+    A = F.copy()
+    A.data = np.ones_like(A.data)  # the pattern only: a sum of ones cannot cancel
+    if pairs is not None and len(pairs[0]):
+        r, c = np.maximum(pairs[0], pairs[1]), np.minimum(pairs[0], pairs[1])
+        A = (A + sp.csc_matrix((np.ones(r.size), (r, c)), shape=(n, n))).tocsc()
+        A.sort_indices()
+    indptr, indices = symbolic_factor(A.indptr.astype(np.int64), A.indices.astype(np.int64), n)
+    lval, placed = _place(F.indptr.astype(np.int64), F.indices.astype(np.int64), np.asarray(F.data, dtype=np.float64), indptr, indices)
+    if not placed:
+        return indptr, indices, np.zeros(indices.size), False
+    z, ok = takahashi(indptr, indices, lval, d)
     return indptr, indices, z, bool(ok)

@@ -150,15 +150,19 @@ class _Marginals:
         from ._selinv import gather, selected_inverse  # Numba imported on first use
 
         lu = self.lu
+        pinv = np.empty_like(lu.perm)
+        pinv[lu.perm] = np.arange(lu.perm.size)
         if self._z is None:
             n = self.n_free
             natural = np.array_equal(lu.lu.perm_r, np.arange(n)) and np.array_equal(lu.lu.perm_c, np.arange(n))
-            self._z = selected_inverse(lu.lu.L, lu.lu.U) if natural else (None, None, None, False)
+            # every free node's x-y entry on the pattern (the held nodes' columns are -1)
+            cx = self.colmap[0 : 2 * self.problem.N : 2]
+            cx = cx[cx >= 0]
+            pairs = (pinv[cx + 1], pinv[cx])
+            self._z = selected_inverse(lu.lu.L, lu.lu.U, pairs) if natural else (None, None, None, False)
         indptr, indices, z, ok = self._z
         if not ok:
             return idx
-        pinv = np.empty_like(lu.perm)
-        pinv[lu.perm] = np.arange(lu.perm.size)
         px, py = pinv[c0[idx]], pinv[c0[idx] + 1]
         vals, found = gather(indptr, indices, z, np.concatenate([px, py, px]), np.concatenate([px, py, py]))
         m = idx.size
