@@ -86,6 +86,18 @@ def gather(indptr, indices, z, rows, cols):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def _rows_below(rows, lo, hi, j, mark, buf, m):  # pragma: no cover - compiled
+    """Append to buf[m:] the rows of rows[lo:hi] below j not yet marked for column j; the new count."""
+    for p in range(lo, hi):
+        r = rows[p]
+        if r > j and mark[r] != j:
+            mark[r] = j
+            buf[m] = r
+            m += 1
+    return m
+
+
+@njit(cache=True, nogil=True)
 def symbolic_factor(indptr, indices, n):  # pragma: no cover - compiled
     """The pattern (CSC, the diagonal first, rows sorted) of the Cholesky factor of a symmetric matrix
     of n columns given by its lower pattern (indptr, indices): column j holds the rows of column j below
@@ -101,22 +113,11 @@ def symbolic_factor(indptr, indices, n):  # pragma: no cover - compiled
     ptr = np.zeros(n + 1, np.int64)
     pos = 0
     for j in range(n):
-        m = 0
         mark[j] = j
-        for p in range(indptr[j], indptr[j + 1]):
-            r = indices[p]
-            if r > j and mark[r] != j:
-                mark[r] = j
-                buf[m] = r
-                m += 1
+        m = _rows_below(indices, indptr[j], indptr[j + 1], j, mark, buf, 0)
         c = head[j]
         while c != -1:
-            for p in range(ptr[c] + 1, ptr[c + 1]):
-                r = out[p]
-                if r > j and mark[r] != j:
-                    mark[r] = j
-                    buf[m] = r
-                    m += 1
+            m = _rows_below(out, ptr[c] + 1, ptr[c + 1], j, mark, buf, m)
             c = nxt[c]
         rows = np.sort(buf[:m])
         if pos + m + 1 > cap:
