@@ -37,7 +37,10 @@ def shifted(lines: list[str], shift_ms: int) -> list[str]:
                         ln = head + key + str(int(num) + shift_ms) + tail[len(num) :]
             out.append(ln)
         elif ln.strip():
-            t, rest = ln.split("\t", 1)
+            t, _, rest = ln.partition("\t")
+            if not t.strip().isdigit() or not rest:
+                out.append(ln)  # a line the reader skips and counts: copied as it is
+                continue
             parts = rest.split("\t")
             if parts[0] in TIMED_ROWS and parts[-1].strip().isdigit():
                 parts[-1] = str(int(parts[-1]) + shift_ms)

@@ -415,9 +415,9 @@ def test_walkable_field_solves_settle_with_the_line_search(monkeypatch):
     real = S._backtrack
 
     def traced(problem, x, x_new, mu):
-        out = real(problem, x, x_new, mu)
+        out, ok = real(problem, x, x_new, mu)
         trace.append((mu, problem.objective(x, mu), problem.objective(out, mu)))
-        return out
+        return out, ok
 
     monkeypatch.setattr(S, "_backtrack", traced)
     cycled = 0

@@ -506,23 +506,24 @@ def _settled(dx: np.ndarray, tol: float) -> bool:
 MAX_HALVINGS = 8
 
 
-def _backtrack(problem: _Problem, x: np.ndarray, x_new: np.ndarray, mu: float) -> np.ndarray:
+def _backtrack(problem: _Problem, x: np.ndarray, x_new: np.ndarray, mu: float) -> tuple[np.ndarray, bool]:
     """The Gauss-Newton step x -> x_new shortened by halving until the robust objective (at the same
     GNC width) is no larger than at x (Armijo's rule with constant 0, Nocedal & Wright 3.1). The IRLS
     part of a step never raises it (majorise-minimise); the walkable-field rows do: each is linearised
     as e + g.(q - q_t), which keeps pulling past the margin where the hinge is flat, and the distance
     field's gradient turns at the ridges inside obstacles, so undamped steps cycle (site1's floor
     solves with the field stopped at 30 iterations with 0.3-0.5 m RMS steps). No decrease within
-    :data:`MAX_HALVINGS` halvings: x is kept (a stationary point of the objective along the step)."""
+    :data:`MAX_HALVINGS` halvings: (x, False), and the solve stops there unsettled (the field's kinks can
+    leave a point where the Gauss-Newton direction is no descent direction at all)."""
     f0 = problem.objective(x, mu)
     step = x_new - x
     t = 1.0
     for _ in range(MAX_HALVINGS + 1):
         cand = x + t * step
         if problem.objective(cand, mu) <= f0:
-            return cand
+            return cand, True
         t *= 0.5
-    return x
+    return x, False
 
 
 def _has_nonlinear(problem: _Problem) -> tuple[bool, bool]:
@@ -620,7 +621,9 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
             x_free = lu.solve(rhs)
         x_new = problem.scatter(x, x_free)
         if search:
-            x_new = _backtrack(problem, x, x_new, mu)
+            x_new, descended = _backtrack(problem, x, x_new, mu)
+            if not descended:  # no step lowers the objective: stop here, not settled
+                break
             x_free = x_new[free_cols]
         move = (x_new - x)[problem.colmap >= 0]
         last_step = float(np.max(np.abs(move))) if move.size else 0.0
