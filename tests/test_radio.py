@@ -419,6 +419,28 @@ def test_fingerprint_matrix_writes_what_a_loop_over_the_readings_writes():
     assert fingerprint_matrix([], idx).shape == (0, 3)
 
 
+def test_fingerprint_matrix_across_a_new_transmitter_registry(monkeypatch):
+    """Past TX_REGISTRY_MAX ids a new registry starts: scans cached under the old one are coded again
+    and the matrices stay what the readings say."""
+    import hybridloc.radio.locate as L
+
+    monkeypatch.setattr(L, "TX_REGISTRY_MAX", 5)
+    monkeypatch.setattr(L, "_TX", L._TxRegistry(0))
+    a = RfScan(0.0, "wifi", {"x1": -50.0, "x2": -60.0, "x3": -70.0})
+    b = RfScan(1.0, "wifi", {f"y{i}": -40.0 - i for i in range(8)})
+    idx = {"x2": 0, "y3": 1, "x1": 2}
+    first = L.fingerprint_matrix([a, b], idx)
+    gen = L._TX.gen
+    assert len(L._TX.codes) > 5  # the next call starts a new registry
+    again = L.fingerprint_matrix([b, a], idx)
+    assert L._TX.gen == gen + 1
+    expect = np.full((2, 3), L.MISSING_DBM, dtype=np.float32)
+    expect[0, [0, 2]] = [-60.0, -50.0]
+    expect[1, 1] = -43.0
+    np.testing.assert_array_equal(first, expect)
+    np.testing.assert_array_equal(again, expect[::-1])
+
+
 def test_route_groups_and_folds_hold_a_repeated_route_together():
     """Walks of one route (same floor, the same marks give or take 0.3 m) share a group whatever their
     direction; the same marks on another floor, or a route 3 m aside, do not. Route folds never split

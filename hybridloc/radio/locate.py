@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import threading
 import weakref
 from dataclasses import dataclass, field
@@ -219,33 +220,73 @@ class FloorMapView:
         self.cells, self.mu, self.sd, self.pd = f.cells[keep], f.mu[keep], f.sd[keep], f.pd[keep]
 
 
-#: every transmitter id this process has read, as a small integer (:func:`scan_readings`): the codes only
-#: ever grow, so a scan's cached codes stay valid
-_TX_CODE: dict[str, int] = {}
-_TX_LOCK = threading.Lock()
+class _TxRegistry:
+    """Transmitter ids numbered as small integers, for the scans' cached readings (:func:`scan_readings`).
+    A registry only grows; past :data:`TX_REGISTRY_MAX` ids (a server locating phones for months meets
+    ever new randomised hotspot addresses) the next call starts a new one, and a scan whose codes came
+    from another registry has them made again."""
+
+    __slots__ = ("codes", "gen", "lock")
+
+    def __init__(self, gen: int):
+        self.codes: dict[str, int] = {}
+        self.gen = gen
+        self.lock = threading.Lock()
+
+    def encode(self, keys) -> np.ndarray:
+        codes = self.codes
+        out = [codes.get(k, -1) for k in keys]
+        if -1 in out:
+            with self.lock:  # the first sight of a transmitter: numbered once, whatever thread sees it
+                out = [codes.setdefault(k, len(codes)) for k in keys]
+        return np.array(out, dtype=np.int64)
 
 
-def _tx_codes(keys) -> np.ndarray:
-    codes = _TX_CODE
-    out = [codes.get(k, -1) for k in keys]
-    if -1 in out:
-        with _TX_LOCK:  # the first sight of a transmitter: numbered once, whatever thread sees it
-            out = [codes.setdefault(k, len(codes)) for k in keys]
-    return np.array(out, dtype=np.int64)
+#: ids a registry holds before the next one starts (~100 MB of ids)
+TX_REGISTRY_MAX = 1_000_000
+_TX = _TxRegistry(0)
+_TX_SWAP = threading.Lock()
 
 
-def scan_readings(scan: RfScan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """A scan's readings as arrays, in the order of its ``rssi_dbm``: (transmitter codes, dBm as float64,
-    ages in s or None when the scan has none). Made once per scan and kept on it (a scan is immutable;
-    the SLAM batch turns the same scans into fingerprint rows for every locator of every EM round)."""
+def _registry() -> _TxRegistry:
+    global _TX
+    reg = _TX
+    if len(reg.codes) > TX_REGISTRY_MAX:
+        with _TX_SWAP:
+            if _TX is reg:
+                _TX = _TxRegistry(reg.gen + 1)
+            reg = _TX
+    return reg
+
+
+def _after_fork_in_child() -> None:
+    # a thread of the parent may have held a lock at the fork: the child's copies start free
+    global _TX_SWAP
+    _TX_SWAP = threading.Lock()
+    _TX.lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
+def scan_readings(scan: RfScan, reg: _TxRegistry | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """A scan's readings as arrays, in the order of its ``rssi_dbm``: (transmitter codes in ``reg``, the
+    current registry by default; dBm as float64; ages in s or None when the scan has none). Made once
+    per scan and kept on it (a scan is immutable; the SLAM batch turns the same scans into fingerprint
+    rows for every locator of every EM round); the codes made again for another registry."""
+    reg = reg or _registry()
     got = scan.__dict__.get("_readings")
-    if got is None:
+    if got is None or got[0] != reg.gen:
         keys = list(scan.rssi_dbm)
-        vals = np.fromiter(scan.rssi_dbm.values(), dtype=np.float64, count=len(keys))
-        ages = np.array([scan.age_s.get(k, 0.0) for k in keys], dtype=np.float64) if scan.age_s else None
-        got = (_tx_codes(keys), vals, ages)
+        if got is None:
+            vals = np.fromiter(scan.rssi_dbm.values(), dtype=np.float64, count=len(keys))
+            ages = np.array([scan.age_s.get(k, 0.0) for k in keys], dtype=np.float64) if scan.age_s else None
+        else:
+            vals, ages = got[2], got[3]
+        got = (reg.gen, reg.encode(keys), vals, ages)
         scan.__dict__["_readings"] = got  # not a field: repr, equality and pickling leave it out
-    return got
+    return got[1], got[2], got[3]
 
 
 def fingerprint_matrix(
@@ -260,19 +301,22 @@ def fingerprint_matrix(
     X = np.full((len(scans), len(tx_index)), MISSING_DBM, dtype=np.float32)
     if not scans or not tx_index:
         return X
-    tx_codes = _tx_codes(list(tx_index))
-    parts = [scan_readings(s) for s in scans]
+    reg = _registry()  # one registry for the whole call
+    tx_codes = reg.encode(list(tx_index))
+    parts = [scan_readings(s, reg) for s in scans]
     counts = np.array([len(p[0]) for p in parts], dtype=np.int64)
     if not counts.sum():
         return X
-    # the column of every transmitter code (-1: not in tx_index), made after the scans' codes so that
-    # it covers every code they hold
-    lookup = np.full(len(_TX_CODE), -1, dtype=np.int64)
-    lookup[tx_codes] = np.fromiter(tx_index.values(), dtype=np.int64, count=len(tx_index))
+    # the column of each reading's transmitter (-1: not in tx_index), by a search of tx_index's sorted
+    # codes (a cost in the readings, not in every id the process has met)
+    order = np.argsort(tx_codes, kind="stable")
+    sorted_codes = tx_codes[order]
+    tx_cols = np.fromiter(tx_index.values(), dtype=np.int64, count=len(tx_index))[order]
     codes = np.concatenate([p[0] for p in parts])
     vals = np.concatenate([p[1] for p in parts])
     rows = np.repeat(np.arange(len(scans)), counts)
-    cols = lookup[codes]
+    at = np.minimum(np.searchsorted(sorted_codes, codes), len(sorted_codes) - 1)
+    cols = np.where(sorted_codes[at] == codes, tx_cols[at], -1)
     keep = cols >= 0
     if max_age_s is not None:
         ages = np.concatenate([p[2] if p[2] is not None else np.zeros(len(p[0])) for p in parts])
