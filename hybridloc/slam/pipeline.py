@@ -434,10 +434,9 @@ class FloorSlam:
                 for i in range(self.pieces[k].n):
                     g.add_position_prior(base + i, z_all[i], np.eye(2) * sd**2)
         loop_ids: list[tuple[int, int]] = []  # (loop index in self.loops, graph loop id)
-        for li, lp in enumerate(self.loops):
+        for li, (lp, ka, kb) in enumerate(zip(self.loops, *self._pieces_of_loops(self.loops))):
             if not lp.accepted:
                 continue
-            ka, kb = self._piece_of_node(lp.node_a), self._piece_of_node(lp.node_b)
             if ka not in local0 or kb not in local0:
                 continue
             ia = local0[ka] + (lp.node_a - self.pieces[ka].node0)
@@ -466,15 +465,13 @@ class FloorSlam:
         return g, local0, nuis, loop_ids
 
     def _pieces_of_loops(self, loops) -> tuple[list[int], list[int]]:
-        """The pieces of each loop's two nodes (:meth:`_piece_of_node` of node_a and node_b), in one search."""
+        """The pieces holding each loop's node_a and node_b (nodes are numbered piece by piece from
+        ``_starts``), in one search for all loops."""
         if not loops:
             return [], []
         na = np.fromiter((lp.node_a for lp in loops), dtype=np.int64, count=len(loops))
         nb = np.fromiter((lp.node_b for lp in loops), dtype=np.int64, count=len(loops))
         return (np.searchsorted(self._starts, na, side="right") - 1).tolist(), (np.searchsorted(self._starts, nb, side="right") - 1).tolist()
-
-    def _piece_of_node(self, node: int) -> int:
-        return int(np.searchsorted(self._starts, node, side="right") - 1)
 
     def node_status(self, status: list[str]) -> np.ndarray:
         """The per-piece ``status`` repeated for each node of the piece (nodes are numbered piece by piece)."""
@@ -654,29 +651,29 @@ class FloorSlam:
             self.floor, self.pieces, pos, cov, nuisance, status, records, time.monotonic() - t0, converged=converged, last_step=last_step
         )
 
-    def _relative_layout(self, members: list[int], own: dict[int, tuple], all_links: list | None = None) -> dict[int, np.ndarray]:
+    def _relative_layout(self, members: list[int], own: dict[int, tuple], links: list[tuple[int, int, int, int]]) -> dict[int, np.ndarray]:
         """Initial node positions of a component's pieces: pieces with their own anchor transform are
         placed by it; the others follow along accepted loops (breadth first: a piece linked to a placed
         one is shifted by the median loop offset), and the first piece of a free component sits at its
-        own frame. ``all_links``: :meth:`_links` when the caller holds them (made here otherwise)."""
+        own frame. ``links``: the floor's :meth:`_links`."""
         placed: dict[int, np.ndarray] = {}
         for k, (T, t) in own.items():
             placed[k] = self.pieces[k].q @ T.T + t
         if not placed:
             k = members[0]
             placed[k] = self.pieces[k].q.copy()
-        links: dict[int, list] = {}
+        adj: dict[int, list] = {}
         mset = set(members)
-        for ka, ia, kb, ib in self._links() if all_links is None else all_links:
+        for ka, ia, kb, ib in links:
             if ka in mset and kb in mset:
-                links.setdefault(ka, []).append((kb, ia, ib))
-                links.setdefault(kb, []).append((ka, ib, ia))
+                adj.setdefault(ka, []).append((kb, ia, ib))
+                adj.setdefault(kb, []).append((ka, ib, ia))
         frontier = list(placed)
         while frontier:
             nxt = []
             for k in frontier:
                 by: dict[int, list] = {}
-                for other, i_self, i_other in links.get(k, []):
+                for other, i_self, i_other in adj.get(k, []):
                     if other not in placed:
                         by.setdefault(other, []).append(placed[k][i_self] - self.pieces[other].q[i_other])
                 for other, offs in by.items():

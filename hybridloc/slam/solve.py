@@ -334,6 +334,7 @@ class _Problem:
         self.colmap = np.full(2 * (N + K), -1, dtype=np.int64)
         self.colmap[free_col] = np.arange(int(free_col.sum()))
         self.n_free = int(free_col.sum())
+        self.free_cols = np.flatnonzero(self.colmap >= 0)  # the state's free coordinates, in column order
         self.free_var = free_var
         self.perm: np.ndarray | None = None
         fn, fk = free_var[:N], free_var[N:]
@@ -426,8 +427,7 @@ class _Problem:
         """The robust objective the iterations minimise at GNC width factor mu: 1/2 |r|^2 of every plain
         row, rho(|r_e|) of every robust prior and loop (:func:`~.factors.kernel_rho`, whose IRLS weights
         these are) and 1/2 (e / sigma)^2 of every walkable-field factor at q(x) itself (not linearised)."""
-        cols = np.flatnonzero(self.colmap >= 0)
-        res = self.A_free @ x[cols] - self.b
+        res = self.A_free @ x[self.free_cols] - self.b
         lo, hi = self.prior_row0, self.loop_row0 + 2 * self.loop_sel.size
         total = 0.5 * float(res[:lo] @ res[:lo]) + 0.5 * float(res[hi:] @ res[hi:])
         g = self.g
@@ -488,7 +488,7 @@ class _Problem:
 
     def scatter(self, x: np.ndarray, x_free: np.ndarray) -> np.ndarray:
         out = x.copy()
-        cols = np.flatnonzero(self.colmap >= 0)
+        cols = self.free_cols
         out[cols] = x_free[self.colmap[cols]]
         return out
 
@@ -601,7 +601,6 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
     x_free = None
     last_step = 0.0
     search = options.line_search and bool(problem.fields)
-    free_cols = np.flatnonzero(problem.colmap >= 0)
     for it in range(1, options.max_iters + 1):
         mu = widths[min(it - 1, len(widths) - 1)]
         fresh = True
@@ -624,8 +623,8 @@ def solve(graph: FactorGraph, options: SolveOptions | None = None, x0: Solution 
             x_new, descended = _backtrack(problem, x, x_new, mu)
             if not descended:  # no step lowers the objective: stop here, not settled
                 break
-            x_free = x_new[free_cols]
-        move = (x_new - x)[problem.colmap >= 0]
+            x_free = x_new[problem.free_cols]
+        move = (x_new - x)[problem.free_cols]
         last_step = float(np.max(np.abs(move))) if move.size else 0.0
         step = _settled(move, options.tol)
         x = x_new
