@@ -65,6 +65,13 @@ class CrowdOutcome:
     maps: list  # [(version, source, RadioMap)] of every map version the site got, oldest first
     crowd_walks: frozenset = frozenset()  # the phone clients' walk ids, as the labels' ``source`` names them
 
+    @property
+    def baseline(self) -> tuple:
+        """The map the crowd's coverage is measured against: the operator's survey map (the first version
+        from the surveys; a SLAM batch over the survey walks can publish a version before it), else the
+        oldest."""
+        return next((m for m in self.maps if m[1] == "survey"), self.maps[0])
+
 
 @dataclass
 class PlatformRun:
@@ -307,7 +314,7 @@ def run_demo(
     cover = None
     if crowd is not None:
         # walkable area within reach of the survey map's labels and of the newest map's
-        cover = (map_coverage(plan, crowd.maps[0][2]), map_coverage(plan, crowd.maps[-1][2])) if crowd.maps else None
+        cover = (map_coverage(plan, crowd.baseline[2]), map_coverage(plan, crowd.maps[-1][2])) if crowd.maps else None
         _crowd_lines(results, crowd, live_same, corr_same, cover)
     _write_outputs(out, plan, results, crowd, cover)
     print(f"[demo] done in {time.monotonic() - t_start:.1f} s; outputs in {out} (demo.png, demo.geojson, poses/)")
@@ -362,7 +369,7 @@ def _crowd_lines(results, crowd: CrowdOutcome, live_same: list, corr_same: list,
         f"corrections while walking and re-anchored their filters with {applied}"
     )
     if cover is not None:
-        v0, src0, m0 = crowd.maps[0]
+        v0, src0, m0 = crowd.baseline
         v1, src1, m1 = crowd.maps[-1]
         c0, c1 = cover
         cov = sm.get("coverage")
@@ -902,7 +909,7 @@ def plot_coverage(ax, plan, crowd: CrowdOutcome, cover: tuple[float, float], rad
 
     fl = plan.floors[0]
     _draw_floor(ax, fl)
-    v0, _, m0 = crowd.maps[0]
+    v0, _, m0 = crowd.baseline
     v1, src1, m1 = crowd.maps[-1]
     p0 = np.array([ls.pos_enu for ls in m0.references if ls.floor == fl.name], float).reshape(-1, 2)
     # the crowd's labels in the newest map: its scans of the phone clients' walks (the map's survey

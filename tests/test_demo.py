@@ -14,7 +14,7 @@ def test_demo_runs_end_to_end(tmp_path):
     assert "overall at" in r.stdout and "PDR alone mean" in r.stdout and "fused mean" in r.stdout
     # the server's crowd SLAM: live against corrected, and the coverage the crowd added (two shares)
     assert "crowd SLAM on the server" in r.stdout and "corrected mean" in r.stdout, r.stdout[-3000:]
-    cov = re.search(r"radio-map label ([0-9.]+) % \(map v1, survey.*-> ([0-9.]+) % \(map v(\d+)", r.stdout)
+    cov = re.search(r"radio-map label ([0-9.]+) % \(map v\d+, survey.*-> ([0-9.]+) % \(map v(\d+)", r.stdout)
     assert cov, r.stdout[-3000:]
     assert 0.0 < float(cov[1]) <= 100.0 and 0.0 < float(cov[2]) <= 100.0
     assert (tmp_path / "demo.png").read_bytes()[:4] == b"\x89PNG"
