@@ -278,3 +278,46 @@ def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, ca
     assert fig["map_versions"] == 1 and fig["crowd_map_gain"] == 0.0
     assert math.isfinite(fig["survey_only_mean_first_third_m"]) and "survey-only baseline" in out
     assert (tmp_path / "server.db").is_file()
+
+
+def test_double_site_copies_walks_later_under_other_ids(tmp_path):
+    """scripts/double_site.py (the 500-walk load test): every chosen walk is copied under another id with
+    every time shifted by the same amount; lines the reader skips are copied as they are."""
+    import subprocess
+
+    site = tmp_path / "site"
+    day_ms = 86400 * 1000
+    for fl, ids in (("F1", ("5dd9a", "5dd9b")), ("F2", ("5dda1", "5dda2"))):
+        (site / fl / "path_data_files").mkdir(parents=True)
+        (site / fl / "floor_info.json").write_text("{}")
+        for i, wid in enumerate(ids):
+            t0 = 1574560000000 + 1000 * i
+            rows = [
+                f"#\tstartTime:{t0}",
+                f"{t0 + 10}\tTYPE_WAYPOINT\t1.0\t2.0",
+                f"{t0 + 20}\tTYPE_WIFI\tap\t00:11\t-60\t2412\t{t0 + 15}",
+                "not a row",
+                f"#\tendTime:{t0 + 30}",
+            ]
+            (site / fl / "path_data_files" / f"{wid}.txt").write_text("\n".join(rows))
+    script = Path(__file__).resolve().parents[1] / "scripts" / "double_site.py"
+    out = tmp_path / "out"
+    done = subprocess.run(
+        [sys.executable, str(script), str(site), str(out), "--copies", "2", "--days", "1"], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert "6 walks (4 and copies of 2 of them" in done.stdout
+    made = sorted(p.name for p in out.glob("*/path_data_files/*.txt"))
+    assert len(made) == 6 and (out / "F1" / "floor_info.json").is_file()
+    copies = [p for p in out.glob("*/path_data_files/f*.txt")]
+    assert len(copies) == 2 and {p.parent.parent.name for p in copies} == {"F1", "F2"}  # spread over the floors
+    for cp in copies:
+        src = (site / cp.parent.parent.name / "path_data_files" / ("5" + cp.name[1:])).read_text().split("\n")
+        got = cp.read_text().split("\n")
+        assert got[3] == src[3] == "not a row"
+        assert int(got[0].split(":")[1]) - int(src[0].split(":")[1]) == day_ms
+        assert int(got[1].split("\t")[0]) - int(src[1].split("\t")[0]) == day_ms
+        assert int(got[2].split("\t")[-1]) - int(src[2].split("\t")[-1]) == day_ms  # the WiFi row's last-seen time
+        assert got[2].split("\t")[1:-1] == src[2].split("\t")[1:-1]
+    bad = subprocess.run([sys.executable, str(script), str(site), str(tmp_path / "o2"), "--copies", "9"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "--copies must be in [0, 4]" in bad.stderr
