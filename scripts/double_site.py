@@ -8,9 +8,9 @@ The copies repeat their originals' routes and scans exactly, so loop detection f
 the accuracy figures of a run mean nothing: only its time does (the server stores, adds and re-solves
 twice the walks, and every batch solves floors of twice the size).
 
-``--copies N`` copies only N walks (every walk's copy when left out), chosen evenly over the walks in
-file-name order on every floor (each floor in proportion), so site1 (305 walks) with ``--copies 195``
-makes a site of 500 walks.
+``--copies N`` copies only N walks (every walk when left out), spaced evenly along all the walks in
+floor-then-file-name order, so each floor gets its share give or take one walk; site1 (305 walks)
+with ``--copies 195`` makes a site of 500 walks.
 
 Usage: python scripts/double_site.py SITE_DIR OUT_DIR [--days 7] [--copies N]
 then:  hybridloc eval crowd OUT_DIR --survey-fraction 0.1 --out RUN_DIR"""

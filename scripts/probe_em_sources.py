@@ -1,8 +1,10 @@
 """Which labels place the badly placed crowd walks (issue #21, correction)? Runs ``hybridloc eval slam``'s
 split of SITE_DIR (the same walks, survey draw and SLAM), then, for every crowd walk piece the final
 solve placed by radio-map fixes (``anchored`` = ``map``), prints its error at its hidden waypoints, how
-many of its fixes came from the survey map and from the crowd map (EM), and which crowd labels its scans
-match: the 5 nearest labels of other walks in fingerprint space, their truth error and their walks.
+many of its fixes came from the survey map and from the crowd map (EM), and which labels its scans
+match in the map EM locates it with: the labels of the other EM folds (every anchored walk's, the
+survey walks' included; at their final positions), the ``knn_k`` nearest in fingerprint space, with
+their truth error and their walks.
 
 The truth only measures; nothing here feeds back into the SLAM.
 
@@ -70,10 +72,18 @@ def truth_err(name: str, t: float, pos) -> float:
     return float(np.linalg.norm(np.asarray(pos)[:2] - ev._truth_at(wp, np.array([t]))[0]))
 
 
-labels = [ls for ls in res.labels if ls.scan.technology.value == "wifi"]
+cfg = pl.SlamConfig()
+wifi = [i for i, ls in enumerate(res.labels) if ls.scan.technology.value == "wifi"]
+labels = [res.labels[i] for i in wifi]
 lab_src = np.array([ls.source for ls in labels])
 lab_err = np.array([truth_err(ls.source, ls.scan.t, ls.pos_enu) for ls in labels])
-loc = KnnLocator(labels, k=15, max_age_s=8.0)
+# EM's folds (run_slam): walk index mod em_folds; a walk is located with the labels of the other folds
+n_folds = max(cfg.em_folds, 2)
+lab_fold = np.array([res.label_walk[i] % n_folds for i in wifi])
+locs = {
+    f: (KnnLocator([labels[i] for i in np.flatnonzero(lab_fold != f)], k=cfg.knn_k, max_age_s=cfg.knn_max_age_s), np.flatnonzero(lab_fold != f))
+    for f in range(n_folds)
+}
 rows = []
 for fname, fs in sorted(res.floors.items()):
     fsl = slams[fname]
@@ -92,25 +102,36 @@ for fname, fs in sorted(res.floors.items()):
         scans = [s for s in scans if s.technology.value == "wifi"]
         nb_err, nb_src = [], []
         if scans:
+            loc, at = locs[pc.walk % n_folds]
             for row in loc.nearest(scans)[1]:
-                other = [j for j in row if lab_src[j] != name][:5]
-                nb_err.extend(lab_err[other].tolist())
-                nb_src.extend(lab_src[other].tolist())
+                nb_err.extend(lab_err[at[row]].tolist())
+                nb_src.extend(lab_src[at[row]].tolist())
         rows.append(dict(floor=fname, walk=name, err_m=err, fixes=n_fix, survey_fixes=n_survey, nb_err=nb_err, nb_src=nb_src))
-walk_err = {r["walk"]: r["err_m"] for r in rows}
-survey_of = {r["walk"]: r["survey_fixes"] for r in rows}
+# a matched label's walk: its piece on the same floor (error, survey-map fixes), or what placed it otherwise
+walk_err = {(r["walk"], r["floor"]): r["err_m"] for r in rows}
+survey_of = {(r["walk"], r["floor"]): r["survey_fixes"] for r in rows}
+surveyed = {res.names[w] for w in range(len(res.walks)) if res.walks[w].marks}
+
+
+def source_text(src: str, n: int, floor: str) -> str:
+    if (src, floor) in walk_err:
+        return f"{src[:8]} x{n} ({walk_err[(src, floor)]:.1f}, {survey_of[(src, floor)]})"
+    return f"{src[:8]} x{n} ({'survey walk' if src in surveyed else 'not map-placed'})"
+
+
 print(f"{len(rows)} crowd pieces placed by map fixes (eval slam split of {args.site_dir}, F = {args.survey_fraction:g}, seed {args.seed})")
-print("worst: floor walk  error m  fixes (survey map)  matched labels: median error m, share > 15 m, their walks (error m, survey fixes)")
+print("worst: floor walk  error m  fixes (survey map)  matched labels: median error m, share > 15 m, their walks (error m, survey-map fixes)")
 for r in sorted(rows, key=lambda r: -r["err_m"])[: args.worst]:
     e = np.asarray(r["nb_err"], float)
     top = Counter(r["nb_src"]).most_common(3)
-    srcs = ", ".join(f"{s[:8]} x{n} ({walk_err.get(s, float('nan')):.1f}, {survey_of.get(s, 'marks')})" for s, n in top)
-    med = f"{np.nanmedian(e):5.1f}" if np.isfinite(e).any() else "    -"
-    share = f"{np.nanmean(e > 15):.2f}" if np.isfinite(e).any() else "   -"
+    srcs = ", ".join(source_text(s, n, r["floor"]) for s, n in top)
+    known = e[np.isfinite(e)]
+    med = f"{np.median(known):5.1f}" if len(known) else "    -"
+    share = f"{np.mean(known > 15):.2f}" if len(known) else "   -"
     print(f"  {r['floor']} {r['walk'][:8]} {r['err_m']:6.1f}  {r['fixes']:3d} ({r['survey_fixes']:2d})  {med} {share}  {srcs}")
 bins = {}
 print("by survey-map fixes among those that placed the piece:")
-for lo, hi, key in ((0, 0, "0"), (1, 2, "1-2"), (3, 5, "3-5"), (6, 10**9, ">=6")):
+for lo, hi, key in ((0, 0, "0"), (1, 2, "1-2"), (3, 10**9, ">=3")):
     s = [r for r in rows if lo <= r["survey_fixes"] <= hi]
     if not s:
         continue
@@ -120,11 +141,13 @@ for lo, hi, key in ((0, 0, "0"), (1, 2, "1-2"), (3, 5, "3-5"), (6, 10**9, ">=6")
     print(f"  {key:>4}: {len(s)} pieces, mean error {mean:.2f} m, {bad} over 20 m")
 bad = [r for r in rows if r["err_m"] > 20]
 own = [x for r in bad for x in r["nb_err"] if np.isfinite(x)]
+own_em = [x for r in bad if r["survey_fixes"] == 0 for x in r["nb_err"] if np.isfinite(x)]
 fig = dict(
     pieces_map=len(rows),
     over_20m=len(bad),
     over_20m_without_survey_fixes=sum(r["survey_fixes"] == 0 for r in bad),
     over_20m_matched_label_err_median_m=round(float(np.median(own)), 2) if own else None,
+    over_20m_without_survey_fixes_matched_label_err_median_m=round(float(np.median(own_em)), 2) if own_em else None,
     by_survey_fixes=bins,
     crowd_mean_m=round(summary["crowd_mean_m"], 2),
     seed=args.seed,

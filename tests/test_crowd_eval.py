@@ -282,12 +282,13 @@ def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, ca
 
 def test_double_site_copies_walks_later_under_other_ids(tmp_path):
     """scripts/double_site.py (the 500-walk load test): every chosen walk is copied under another id with
-    every time shifted by the same amount; lines the reader skips are copied as they are."""
+    every time shifted by the same amount; lines the reader skips are copied as they are; ``--copies N``
+    spreads the N copies over the floors by their shares of the walks; without it every walk is copied."""
     import subprocess
 
     site = tmp_path / "site"
     day_ms = 86400 * 1000
-    for fl, ids in (("F1", ("5dd9a", "5dd9b")), ("F2", ("5dda1", "5dda2"))):
+    for fl, ids in (("F1", ("5dd9a", "5dd9b", "5dd9c", "5dd9d", "5dd9e", "5dd9f")), ("F2", ("5dda1", "5dda2"))):
         (site / fl / "path_data_files").mkdir(parents=True)
         (site / fl / "floor_info.json").write_text("{}")
         for i, wid in enumerate(ids):
@@ -303,14 +304,15 @@ def test_double_site_copies_walks_later_under_other_ids(tmp_path):
     script = Path(__file__).resolve().parents[1] / "scripts" / "double_site.py"
     out = tmp_path / "out"
     done = subprocess.run(
-        [sys.executable, str(script), str(site), str(out), "--copies", "2", "--days", "1"], capture_output=True, text=True, timeout=120
+        [sys.executable, str(script), str(site), str(out), "--copies", "4", "--days", "1"], capture_output=True, text=True, timeout=120
     )
     assert done.returncode == 0, done.stderr
-    assert "6 walks (4 and copies of 2 of them" in done.stdout
+    assert "12 walks (8 and copies of 4 of them" in done.stdout
     made = sorted(p.name for p in out.glob("*/path_data_files/*.txt"))
-    assert len(made) == 6 and (out / "F1" / "floor_info.json").is_file()
+    assert len(made) == 12 and (out / "F1" / "floor_info.json").is_file()
     copies = [p for p in out.glob("*/path_data_files/f*.txt")]
-    assert len(copies) == 2 and {p.parent.parent.name for p in copies} == {"F1", "F2"}  # spread over the floors
+    # F1 holds 6 of the 8 walks, F2 2: 3 and 1 of the 4 copies
+    assert sorted(p.parent.parent.name for p in copies) == ["F1", "F1", "F1", "F2"]
     for cp in copies:
         src = (site / cp.parent.parent.name / "path_data_files" / ("5" + cp.name[1:])).read_text().split("\n")
         got = cp.read_text().split("\n")
@@ -319,5 +321,8 @@ def test_double_site_copies_walks_later_under_other_ids(tmp_path):
         assert int(got[1].split("\t")[0]) - int(src[1].split("\t")[0]) == day_ms
         assert int(got[2].split("\t")[-1]) - int(src[2].split("\t")[-1]) == day_ms  # the WiFi row's last-seen time
         assert got[2].split("\t")[1:-1] == src[2].split("\t")[1:-1]
+    every = subprocess.run([sys.executable, str(script), str(site), str(tmp_path / "all")], capture_output=True, text=True, timeout=120)
+    assert every.returncode == 0 and "16 walks (8 and copies of 8 of them" in every.stdout
+    assert len(list((tmp_path / "all").glob("*/path_data_files/f*.txt"))) == 8
     bad = subprocess.run([sys.executable, str(script), str(site), str(tmp_path / "o2"), "--copies", "9"], capture_output=True, text=True, timeout=120)
-    assert bad.returncode == 2 and "--copies must be in [0, 4]" in bad.stderr
+    assert bad.returncode == 2 and "--copies must be in [0, 8]" in bad.stderr
