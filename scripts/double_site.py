@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     # which walks get a copy: evenly spaced over all walks in (floor, file name) order
     order = [(fl, f) for fl in floors for f in files[fl]]
-    pick = {order[i] for i in np.unique(np.floor(np.arange(n_copy) * n_all / max(n_copy, 1)).astype(int))} if n_copy else set()
+    pick = {order[i] for i in np.unique(np.floor(np.arange(n_copy) * n_all / n_copy).astype(int))} if n_copy else set()
     n = 0
     for fl in floors:
         dst = args.out / fl.name

@@ -41,6 +41,7 @@ is not SuperLU's in the nested-dissection order (CHOLMOD, the MMD order).
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -150,8 +151,7 @@ class _Marginals:
         from ._selinv import gather, selected_inverse  # Numba imported on first use
 
         lu = self.lu
-        pinv = np.empty_like(lu.perm)
-        pinv[lu.perm] = np.arange(lu.perm.size)
+        pinv = lu.pinv
         if self._z is None:
             n = self.n_free
             natural = np.array_equal(lu.lu.perm_r, np.arange(n)) and np.array_equal(lu.lu.perm_c, np.arange(n))
@@ -248,6 +248,13 @@ class _PermutedLU:
         x = np.empty_like(b, dtype=float)
         x[self.perm] = self.lu.solve(np.ascontiguousarray(b[self.perm]))
         return x
+
+    @functools.cached_property
+    def pinv(self) -> np.ndarray:
+        """The inverse permutation: column c of H is column pinv[c] of the factor."""
+        out = np.empty_like(self.perm)
+        out[self.perm] = np.arange(self.perm.size)
+        return out
 
 
 def factor_spd(H: sp.spmatrix, linear_solver: str = "superlu", perm: np.ndarray | None = None):
