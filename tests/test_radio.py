@@ -469,6 +469,90 @@ def test_route_groups_and_folds_hold_a_repeated_route_together():
     assert f[0] == f[1] and f[3] == f[4] and set(f) == {0, 1, 2}
 
 
+def test_knn_subset_answers_as_a_locator_built_afresh():
+    """A locator sliced to some of its references answers every query exactly as one built over them:
+    the same neighbours and distances to the bit, the transmitters only the others heard out of its
+    index (a query reading one must not count it), stale readings left out alike; with one phone model
+    left the automatic representation changes as a fresh build's does; bad indices are refused."""
+    rng = np.random.default_rng(11)
+    refs = synth_survey(rng, n=300)
+    # another phone model 6 dB weaker, some stale readings, and a transmitter only the last refs heard
+    for i in range(0, 300, 3):
+        r = refs[i]
+        refs[i] = LabelledScan(
+            RfScan(r.scan.t, "wifi", {k: v - 6.0 for k, v in r.scan.rssi_dbm.items()}, age_s={"ap1": 20.0}, device_model="phoneB"),
+            r.pos_enu,
+            0.5,
+            "F1",
+        )
+    for i in range(280, 300):
+        r = refs[i]
+        refs[i] = LabelledScan(RfScan(r.scan.t, "wifi", {**r.scan.rssi_dbm, "lonely": -50.0}, device_model=r.scan.device_model), r.pos_enu, 0.5, "F1")
+    queries = [RfScan(1e6 + i, "wifi", {**rssi_at(p, rng), "lonely": -55.0}) for i, p in enumerate(rng.uniform(0, 30, (40, 2)))]
+    keep = np.ones(300, bool)
+    keep[250:] = False
+    for kw in ({"k": 5, "max_age_s": 8.0}, {"k": 3, "representation": "raw", "metric": "euclidean"}):
+        full = KnnLocator(refs, **kw)
+        for sel in (keep, np.flatnonzero(keep)):
+            sub, fresh = full.subset(sel), KnnLocator([r for r, m in zip(refs, keep) if m], **kw)
+            assert "lonely" in full.tx_index and sub.tx_index == fresh.tx_index and "lonely" not in sub.tx_index
+            for a, b in zip(sub._search(queries), fresh._search(queries)):
+                np.testing.assert_array_equal(a, b)
+            fa, fb = sub.locate_many(queries, regions=False), fresh.locate_many(queries, regions=False)
+            assert [x.fix.floor for x in fa] == [x.fix.floor for x in fb]
+            np.testing.assert_array_equal([x.fix.pos_enu for x in fa], [x.fix.pos_enu for x in fb])
+    full = KnnLocator(refs, k=5)
+    assert full.representation == "powed-rel"
+    only_a = np.array([r.scan.device_model == "phoneA" for r in refs])
+    sub = full.subset(only_a)
+    assert sub.representation == "powed" == KnnLocator([r for r, m in zip(refs, only_a) if m], k=5).representation
+    with pytest.raises(ValueError, match="ascending"):
+        full.subset(np.array([3, 1]))
+    with pytest.raises(ValueError, match="reference scans"):
+        full.subset(np.zeros(300, bool))
+
+
+def test_leave_one_route_out_keeps_the_route_out_and_chooses_settings_on_other_floors():
+    """Two floors of synthetic walks (path loss, 2 dB noise) with one route walked twice with the very
+    same scans. Left out with its twin, the route's scans cannot find themselves in the map (every error
+    above zero; with the twin in the map the exact match would pull each onto its own label). Each
+    floor's setting is the best on the other floor alone, and the score is each scan answered with its
+    floor's choice. A 5-NN on a map 1.5 m dense is far better than a guess at the centre (~11 m)."""
+    from hybridloc.radio.evaluate import TraceData, evaluate_ilc_loro
+
+    rng = np.random.default_rng(5)
+
+    def walk(name, floor, y, shift_db, scans_from=None):
+        wp_t = np.array([0.0, 30.0])
+        wp_xy = np.array([[0.0, y], [30.0, y]])
+        if scans_from is not None:  # the very same scans at the same times
+            scans = scans_from.scans
+        else:
+            scans = [RfScan(t, "wifi", {f"{floor}{k}": v + shift_db for k, v in rssi_at((t, y), rng).items()}) for t in np.arange(0.5, 30.0, 1.0)]
+        lab = [LabelledScan(s, np.array([s.t, y]), 0.5, floor) for s in scans]
+        return TraceData(name, floor, lab, wp_t, wp_xy, scans)
+
+    traces = []
+    for floor, shift in (("F1", 0.0), ("F2", -3.0)):
+        for j, y in enumerate(np.arange(1.0, 30.0, 1.5)):
+            traces.append(walk(f"{floor}-{j}", floor, y, shift))
+    traces.append(walk("F1-twin", "F1", 1.0, 0.0, scans_from=traces[0]))
+    settings = ((1, 8.0), (5, 8.0), (9, 8.0))
+    lo = evaluate_ilc_loro(traces, settings)
+    assert lo.n_routes == len(traces) - 1  # the twin shares its route
+    # the route walked twice: no scan of it found itself (with k = 1 it would be exact)
+    single = {s: evaluate_ilc_loro(traces, (s,)) for s in settings}
+    first = np.array(single[(1, 8.0)].held_out.errors[: len(traces[0].scans)])  # route 0 comes first
+    assert np.all(np.isfinite(first)) and first.min() > 0.05
+    for fl, other in (("F1", "F2"), ("F2", "F1")):
+        best = min(settings, key=lambda s: single[s].floor_mean_m[other][0])
+        assert lo.chosen[fl] == best
+        assert lo.floor_mean_m[fl][0] == pytest.approx(single[best].floor_mean_m[fl][0])
+    assert np.mean(lo.held_out.floor_hits) > 0.95
+    assert np.nanmean(lo.held_out.errors) < 4.0
+    assert np.isfinite(np.nanmean(lo.plain.errors))
+
+
 def test_hierarchical_vote_building_then_floor_then_position():
     """Synthetic neighbour lists with known answers: the building vote overrides a nearer stray
     neighbour, the floor is voted inside that building, the position averages that floor only."""

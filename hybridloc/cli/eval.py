@@ -550,7 +550,46 @@ def print_fingerprint(res) -> None:
                 f"  routes held out whole, cell likelihood on maps with the path-loss prior {label}: floor hit {100 * np.mean(sc.floor_hits):.2f}%  "
                 f"error on the right floor: {_fmt(ep)}; by distance to the nearest label: " + "; ".join(by)
             )
-        print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %)")
+        lo = res.routes_left_out
+        if lo is not None:
+            _print_routes_left_out(lo)
+        print("  (goal: mean <= 5 m, floor >= 97 %, region hit >= 90 %; routes held out: mean <= 6 m)")
+
+
+def _print_routes_left_out(lo) -> None:
+    """The leave-one-route-out lines of ``eval fingerprint`` (:class:`~hybridloc.radio.evaluate.RoutesLeftOut`)."""
+    import numpy as np
+
+    from ..radio.evaluate import _fmt
+
+    def setting(s) -> str:
+        return f"k {s[0]}, readings <= {s[1]:g} s old"
+
+    h, p = lo.held_out, lo.plain
+    eh, ep = np.array(h.errors), np.array(p.errors)
+    best = min(lo.fitted_mean_m, key=lambda s: lo.fitted_mean_m[s])
+    print(
+        f"  leave one route out ({lo.n_routes} routes, each located with every other walk in the map: no repeat of the route, all the rest of the site), "
+        f"weighted kNN with its setting chosen per floor on the other floors ("
+        + "; ".join(f"{fl}: {setting(s)}" for fl, s in lo.chosen.items())
+        + "): "
+        f"floor hit {100 * np.mean(h.floor_hits):.2f}%  error on the right floor: {_fmt(eh)}; no fix {h.no_fix}"
+    )
+    print(
+        "    per floor, held out (plain): "
+        + "; ".join(f"{fl} {a:.2f} m ({b:.2f})" for fl, (a, b) in lo.floor_mean_m.items())
+        + f"; fitted on all floors ({setting(best)}): {lo.fitted_mean_m[best]:.2f} m, the held-out choice costs {_finite_mean(eh) - lo.fitted_mean_m[best]:+.2f} m"
+    )
+    print(
+        f"    plain 3-NN, Euclidean, raw dBm, the same scans: floor hit {100 * np.mean(p.floor_hits):.2f}%  error on the right floor: {_fmt(ep)}; "
+        f"ratio ours/plain {_finite_mean(eh) / _finite_mean(ep):.2f}"
+    )
+    cov = np.array(h.cover_m)
+    parts = [
+        f"{a:g}-{b:g} m: {100 * ((cov >= a) & (cov < b)).mean():.0f} % of scans, mean {_finite_mean(eh[(cov >= a) & (cov < b)]):.2f} m"
+        for a, b in _COVER_BINS
+    ]
+    print("    by the distance from the truth to the nearest reference label on its floor: " + "; ".join(parts))
 
 
 def _finite_mean(x) -> float:
@@ -660,6 +699,15 @@ def fingerprint_headline(res) -> dict:
             out[f"{key}_mean_m"] = np.nanmean(ep) if ep.size else float("nan")
             out[f"{key}_floor_hit_pct"] = 100 * float(np.mean(sc.floor_hits))
             out[f"{key}_far_mean_m"] = _finite_mean(ep[cp >= 5.0])
+    lo = res.routes_left_out
+    if lo is not None:
+        eh, ep = np.array(lo.held_out.errors), np.array(lo.plain.errors)
+        out["ilc_loro_mean_m"] = _finite_mean(eh)
+        out["ilc_loro_floor_hit_pct"] = 100 * float(np.mean(lo.held_out.floor_hits))
+        out["ilc_loro_fitted_mean_m"] = min(lo.fitted_mean_m.values())
+        out["ilc_loro_plain_mean_m"] = _finite_mean(ep)
+        out["ilc_loro_plain_floor_hit_pct"] = 100 * float(np.mean(lo.plain.floor_hits))
+        out["ilc_loro_ratio_plain"] = out["ilc_loro_mean_m"] / out["ilc_loro_plain_mean_m"]
     sp = res.uji_phone_split
     if sp is not None:
         for name, key in (("kfold", "uji_phone_cv_split"), ("lopo", "uji_lopo_split")):

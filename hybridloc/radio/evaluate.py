@@ -13,7 +13,9 @@
   the standard split (every training row a reference, every validation row a query), also answered
   with the split votes chosen on the whole training file.
 * Indoor Location Competition routes held out whole: each scan's error beside the distance from its
-  truth to the nearest reference label on its floor (what limits it: the map's coverage).
+  truth to the nearest reference label on its floor (what limits it: the map's coverage), in route
+  folds (a quarter of the routes out of the map at once) and leaving one route out (every other walk
+  in the map, the kNN's settings chosen per floor on the other floors; a plain 3-NN beside it).
 """
 
 from __future__ import annotations
@@ -115,6 +117,14 @@ def route_folds(traces: list[TraceData], folds: int, rng: np.random.Generator) -
     return order[g] % folds
 
 
+def _trace_truth(t: TraceData) -> tuple[list[RfScan], np.ndarray]:
+    """The scans of trace ``t`` between its first and last waypoints, and the waypoints interpolated to
+    each scan's time (N, 2) m: what a scan is scored against."""
+    scans = [s for s in t.scans if t.wp_t[0] <= s.t <= t.wp_t[-1]]
+    ts = [s.t for s in scans]
+    return scans, np.column_stack([np.interp(ts, t.wp_t, t.wp_xy[:, 0]), np.interp(ts, t.wp_t, t.wp_xy[:, 1])]).reshape(-1, 2)
+
+
 def evaluate_ilc(
     traces: list[TraceData],
     folds: int = 4,
@@ -143,10 +153,9 @@ def evaluate_ilc(
         else:
             loc = KnnLocator(refs, **loc_kw)
         for t in test:
-            scans = [s for s in t.scans if t.wp_t[0] <= s.t <= t.wp_t[-1]]
+            scans, truth = _trace_truth(t)
             if not scans:
                 continue
-            truth = np.column_stack([np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 0]), np.interp([s.t for s in scans], t.wp_t, t.wp_xy[:, 1])])
             results = [loc.locate(s) for s in scans] if method == "prob" else loc.locate_many(scans)
             n0 = len(score.errors)
             cover = trees[t.floor].query(truth)[0] if t.floor in trees else np.full(len(truth), np.inf)
@@ -154,6 +163,96 @@ def evaluate_ilc(
                 score.add(res, xy, t.floor, float(c))
             score.by_trace[t.name] = score.errors[n0:]
     return score
+
+
+#: The weighted kNN's settings a leave-one-route-out evaluation chooses among, per floor on the other
+#: floors: (k, max_age_s) - the neighbours, and how old a cached reading may be at scan time, s.
+LORO_SETTINGS: tuple[tuple[int, float], ...] = tuple((k, a) for a in (4.0, 8.0, 16.0) for k in (3, 4, 5, 7, 9))
+
+
+@dataclass
+class RoutesLeftOut:
+    """Leave one route out: each route's walks (:func:`route_groups`) located with every other walk of
+    the site in the map, so no repeat of the route is in it and the rest of the building is. The weighted
+    kNN's settings are chosen for each floor on the other floors' scans (leave one floor out), and the
+    plain 3-NN (Euclidean, raw dBm) of the literature is measured on the same scans."""
+
+    n_routes: int
+    settings: tuple[tuple[int, float], ...]
+    #: every candidate setting's mean error on the right floor over all floors, m (what fitting on the
+    #: scored scans themselves would pick from)
+    fitted_mean_m: dict[tuple[int, float], float]
+    chosen: dict[str, tuple[int, float]]  # floor -> the setting chosen on the other floors
+    held_out: FingerprintScore  # each scan answered with its floor's chosen setting
+    plain: FingerprintScore
+    floor_mean_m: dict[str, tuple[float, float]]  # floor -> (held out, plain) mean on the right floor, m
+
+
+def _right_floor_mean(results: list[LocateResult], truth_floor: np.ndarray, truth_xy: np.ndarray, mask: np.ndarray) -> float:
+    """Mean horizontal error of the answers in ``mask`` that name the right floor, m (inf when none do)."""
+    e = [
+        float(np.linalg.norm(r.fix.pos_enu[:2] - xy))
+        for r, fl, xy, m in zip(results, truth_floor, truth_xy, mask)
+        if m and r.fix is not None and r.fix.floor == fl
+    ]
+    return float(np.mean(e)) if e else math.inf
+
+
+def evaluate_ilc_loro(traces: list[TraceData], settings: tuple[tuple[int, float], ...] = LORO_SETTINGS) -> RoutesLeftOut:
+    """Leave one route out (:class:`RoutesLeftOut`). One locator per reading age is built over every
+    reference once and sliced for each route (:meth:`KnnLocator.subset`: the answers of a fresh build
+    without the route's walks)."""
+    from scipy.spatial import cKDTree
+
+    if not settings:
+        raise ValueError("leave one route out needs at least one kNN setting")
+    groups = route_groups(traces)
+    refs = [ls for t in traces for ls in t.labelled]
+    if not refs:
+        raise ValueError("leave one route out needs labelled scans")
+    owner = np.concatenate([np.full(len(t.labelled), g) for t, g in zip(traces, groups)])
+    ages = list(dict.fromkeys(a for _, a in settings))
+    full = {a: KnnLocator(refs, k=max(k for k, b in settings if b == a), max_age_s=a) for a in ages}
+    full_plain = KnnLocator(refs, k=3, representation="raw", metric="euclidean")
+    ref_xy = np.array([r.pos_enu[:2] for r in refs])
+    ref_floor = np.array([r.floor for r in refs])
+    answers: dict[tuple[int, float], list[LocateResult]] = {s: [] for s in settings}
+    plain: list[LocateResult] = []
+    truth_xy, truth_floor, cover = [], [], []
+    n_routes = int(groups.max()) + 1 if len(groups) else 0
+    for r in range(n_routes):
+        keep = owner != r
+        test = [t for t, g in zip(traces, groups) if g == r]
+        if not keep.any():
+            continue  # the site's only route: no map left to locate it with
+        subs = {a: full[a].subset(keep) for a in ages}
+        sub_plain = full_plain.subset(keep)
+        for t in test:
+            scans, xy = _trace_truth(t)
+            if not scans:
+                continue
+            on = keep & (ref_floor == t.floor)
+            cover.extend(cKDTree(ref_xy[on]).query(xy)[0] if on.any() else np.full(len(xy), np.inf))
+            truth_xy.extend(xy)
+            truth_floor.extend([t.floor] * len(scans))
+            for k, a in settings:
+                answers[(k, a)].extend(subs[a].with_k(k).locate_many(scans, regions=False))
+            plain.extend(sub_plain.locate_many(scans, regions=False))
+    txy, tfl = np.array(truth_xy).reshape(-1, 2), np.array(truth_floor)
+    everywhere = np.ones(len(tfl), bool)
+    fitted = {s: _right_floor_mean(answers[s], tfl, txy, everywhere) for s in settings}
+    # each floor's setting: the lowest mean on the other floors' scans (ties to the earlier candidate)
+    chosen = {}
+    for fl in dict.fromkeys(tfl.tolist()):
+        others = tfl != fl
+        chosen[fl] = min(settings, key=lambda s: _right_floor_mean(answers[s], tfl, txy, others)) if others.any() else settings[0]
+    held, pl = FingerprintScore(), FingerprintScore()
+    held_answers = [answers[chosen[fl]][i] for i, fl in enumerate(tfl)]
+    for res, res_plain, fl, xy, c in zip(held_answers, plain, tfl, txy, cover):
+        held.add(res, xy, fl, float(c))
+        pl.add(res_plain, xy, fl, float(c))
+    by_floor = {fl: (_right_floor_mean(held_answers, tfl, txy, tfl == fl), _right_floor_mean(plain, tfl, txy, tfl == fl)) for fl in chosen}
+    return RoutesLeftOut(n_routes, tuple(settings), fitted, chosen, held, pl, by_floor)
 
 
 #: A UJIIndoorLoc test scan is "inside the map" when another user's reference on its floor lies this close, m.
@@ -483,6 +582,7 @@ class FingerprintEval:
     n_ilc_traces: int = 0
     ilc_methods: list[IlcMethodScore] = field(default_factory=list)
     routes: RoutesHeldOut | None = None
+    routes_left_out: RoutesLeftOut | None = None
 
 
 def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji_validation: str | None = None) -> FingerprintEval:
@@ -541,4 +641,7 @@ def run_fingerprint_eval(uji: str, ilc: str, folds: int = 4, every: int = 1, uji
         for reach, attr in ((None, "pathloss"), (PATHLOSS_FAR_REACH_M, "pathloss_far")):
             bp = BuildParams(max_age_s=8.0, prior="path-loss", reach_m=reach)
             setattr(out.routes, attr, evaluate_ilc(traces, folds, "prob", plan=plan, params=bp, fold_of=rfolds, max_age_s=8.0, region=False))
+        # The folds above take a quarter of the routes out of the map at once; leaving one route out
+        # keeps the rest of the site in it, as a client on a route no survey walked meets it.
+        out.routes_left_out = evaluate_ilc_loro(traces)
     return out

@@ -26,6 +26,7 @@ the detection floor, or a map of another site.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import threading
@@ -396,8 +397,9 @@ class KnnLocator:
     ):
         if not refs:
             raise ValueError("kNN needs reference scans")
-        if representation == "auto":  # several phone models: make fingerprints offset-free
-            representation = "powed-rel" if len({r.scan.device_model for r in refs}) > 1 else "powed"
+        auto = representation == "auto"
+        if auto:
+            representation = self._auto_representation(refs)
         if representation not in ("powed", "powed-rel", "raw"):
             raise ValueError(f"unknown representation {representation!r}")
         if metric not in ("sorensen", "euclidean"):
@@ -407,6 +409,8 @@ class KnnLocator:
         self.refs = refs
         txs = tx or sorted({k for r in refs for k in r.scan.rssi_dbm})
         self.tx_index = {t: i for i, t in enumerate(txs)}
+        self._tx_given = bool(tx)  # a fixed index: a subset keeps it (subset)
+        self._auto = auto
         self.representation = representation
         self.metric = metric
         self.k = min(k, len(refs))
@@ -423,6 +427,65 @@ class KnnLocator:
         else:
             self._X = X  # with_k fits its own search on it (scikit-learn picks its algorithm by k)
             self._nn = NearestNeighbors(n_neighbors=self.k).fit(X)
+
+    @staticmethod
+    def _auto_representation(refs: list[LabelledScan]) -> str:
+        """``representation="auto"``: several phone models make fingerprints offset-free."""
+        return "powed-rel" if len({r.scan.device_model for r in refs}) > 1 else "powed"
+
+    def subset(self, keep) -> KnnLocator:
+        """This locator over the references ``keep`` (a boolean mask over ``refs`` or indices into it,
+        in ascending order) with the answers of a locator built afresh over them: the transmitters only
+        the others heard leave the index, as from a map that never met them. The fingerprints are
+        sliced out of this locator's instead of read and represented again, the cost of building one;
+        a leave-one-group-out evaluation builds one per group. A row of the representation depends
+        only on its own scan's readings, all of them in both indexes, so the slice holds the very
+        numbers a fresh build computes."""
+        keep = np.asarray(keep)
+        rows = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(np.int64)
+        if rows.size and np.any(np.diff(rows) <= 0):
+            raise ValueError("subset: indices must be ascending and distinct")
+        refs = [self.refs[i] for i in rows]
+        if not refs:
+            raise ValueError("kNN needs reference scans")
+        if self._auto and self._auto_representation(refs) != self.representation:  # the fresh build's choice differs
+            return KnnLocator(
+                refs,
+                k=self.k,
+                tx=list(self.tx_index) if self._tx_given else None,
+                max_age_s=self.max_age_s,
+                metric=self.metric,
+                memo=self._memo is not None,
+            )
+        names = list(self.tx_index)
+        if self._tx_given:
+            cols = np.arange(len(names))
+        else:  # the transmitters the kept references heard (stale or not), in this index's sorted order
+            cols = np.flatnonzero(np.asarray(self._heard[rows].sum(axis=0)).ravel() > 0)
+        out = copy.copy(self)
+        out.__dict__.pop("_heard", None)  # this locator's, over its own references
+        out.tx_index = {names[c]: i for i, c in enumerate(cols)}
+        out.k = min(self.k, len(refs))
+        out._memo = {} if self._memo is not None else None
+        if self.metric == "sorensen":
+            # the rows' stored entries (no explicit zeros: a fresh build stores the same ones) and their
+            # sums, which differ from a fresh build's only by the zeros of the columns dropped
+            out._R = self._R[rows][:, cols]
+            out._R_sum = self._R_sum[rows]
+        else:
+            out._X = self._X[np.ix_(rows, cols)]
+            out._nn = NearestNeighbors(n_neighbors=out.k).fit(out._X)
+        out._set_labels(refs)
+        return out
+
+    @functools.cached_property
+    def _heard(self) -> sparse.csr_array:
+        """(references, transmitters) 1 where a reference's scan holds the transmitter at all (stale or
+        not: the index a build makes), for :meth:`subset`."""
+        cols = [self.tx_index[t] for r in self.refs for t in r.scan.rssi_dbm if t in self.tx_index]
+        counts = [sum(t in self.tx_index for t in r.scan.rssi_dbm) for r in self.refs]
+        rows = np.repeat(np.arange(len(self.refs)), counts)
+        return sparse.csr_array((np.ones(len(cols), np.int32), (rows, np.array(cols, dtype=np.int64))), shape=(len(self.refs), len(self.tx_index)))
 
     #: Entries a memo holds before it starts again (~1 kB each at k = 30; the scans are not held)
     MEMO_MAX = 200_000
