@@ -506,8 +506,11 @@ def test_knn_subset_answers_as_a_locator_built_afresh():
     only_a = np.array([r.scan.device_model == "phoneA" for r in refs])
     sub = full.subset(only_a)
     assert sub.representation == "powed" == KnnLocator([r for r, m in zip(refs, only_a) if m], k=5).representation
-    with pytest.raises(ValueError, match="ascending"):
-        full.subset(np.array([3, 1]))
+    for bad in (np.array([3, 1]), np.array([-1, 2]), np.array([0, 300])):
+        with pytest.raises(ValueError, match="ascending"):
+            full.subset(bad)
+    with pytest.raises(ValueError, match="one entry per reference"):
+        full.subset(np.ones(299, bool))
     with pytest.raises(ValueError, match="reference scans"):
         full.subset(np.zeros(300, bool))
 

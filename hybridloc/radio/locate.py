@@ -440,11 +440,15 @@ class KnnLocator:
         sliced out of this locator's instead of read and represented again, the cost of building one;
         a leave-one-group-out evaluation builds one per group. A row of the representation depends
         only on its own scan's readings, all of them in both indexes, so the slice holds the very
-        numbers a fresh build computes."""
+        numbers a fresh build computes; each row's sum is this locator's, the same float32 numbers
+        summed in float64 with the dropped columns' zeros between them (equal to a fresh build's to
+        the bit on the tests' and site1's references)."""
         keep = np.asarray(keep)
+        if keep.dtype == bool and keep.shape != (len(self.refs),):
+            raise ValueError(f"subset: a mask needs one entry per reference ({len(self.refs)}), got shape {keep.shape}")
         rows = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(np.int64)
-        if rows.size and np.any(np.diff(rows) <= 0):
-            raise ValueError("subset: indices must be ascending and distinct")
+        if rows.size and (np.any(np.diff(rows) <= 0) or rows[0] < 0 or rows[-1] >= len(self.refs)):
+            raise ValueError("subset: indices must be ascending, distinct and index the references")
         refs = [self.refs[i] for i in rows]
         if not refs:
             raise ValueError("kNN needs reference scans")
