@@ -371,6 +371,34 @@ def test_leave_one_group_out_never_sees_the_held_group():
     assert chosen.tolist() == [1, 1, 0] and held.tolist() == [2.0, 2.0, 3.0]
 
 
+def test_joint_foot_candidates_start_with_the_thresholds_alone():
+    """The joint search's first candidates are the threshold-only search's (the other constants at their
+    defaults), so the threshold-only figures come out of the same grid; every candidate differs."""
+    from dataclasses import astuple
+
+    from hybridloc.ins.evaluate import FOOT_BIAS_PRIORS, FOOT_ZUPT_SIGMAS, foot_joint_candidates
+    from hybridloc.ins.foot import FootInsConfig
+
+    decades = [0.3, 0.5]
+    cands = foot_joint_candidates(decades)
+    assert len(cands) == len(decades) * len(FOOT_ZUPT_SIGMAS) * len(FOOT_BIAS_PRIORS)
+    assert cands[: len(decades)] == [FootInsConfig(detector_threshold=d) for d in decades]
+    assert len({(c.detector_threshold, c.zupt_sigma, astuple(c.noise)) for c in cands}) == len(cands)
+
+
+@pytest.mark.shared_data
+def test_armse_grid_in_processes_equals_the_serial_one(pyshoe_dir):
+    """Two PyShoe trials under two configs: the grid from two worker processes is the serial one, to the bit."""
+    from hybridloc.ins.evaluate import pyshoe_armse_grid
+    from hybridloc.ins.foot import FootInsConfig
+
+    files = sorted(pyshoe_dir.glob("*.mat"))[:2]
+    configs = [FootInsConfig(detector_threshold=0.3), FootInsConfig(detector_threshold=0.5, zupt_sigma=0.02)]
+    serial = pyshoe_armse_grid(files, configs)
+    assert serial.shape == (2, 2) and np.all(np.isfinite(serial))
+    np.testing.assert_array_equal(pyshoe_armse_grid(files, configs, workers=2), serial)
+
+
 @pytest.mark.shared_data
 def test_gait_walk_counts_strides_as_walked(shared_data):
     """SensorConnectData_34: 24 strides walked. The adaptive detector alone calls a third more (mid-swing

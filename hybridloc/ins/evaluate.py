@@ -18,6 +18,8 @@ import numpy as np
 
 from ..io.imu_files import read_pyshoe_mat
 from ..metrics import pyshoe_align, pyshoe_armse, return_to_start_error
+from ..units import DEG
+from .eskf import ImuNoise
 from .foot import FootInsConfig, dedrift_i, run_foot_ins, still_prefix
 from .stance import gyro_minimum
 
@@ -225,14 +227,50 @@ def leave_one_group_out(scores: np.ndarray, groups: list[str]) -> tuple[np.ndarr
     return chosen, scores[np.arange(len(g)), chosen]
 
 
-def pyshoe_armse_grid(paths: list[Path], configs: list[FootInsConfig]) -> np.ndarray:
-    """2-D ARMSE (the smoothed track, as `pdr foot` writes it) of each trial under each config, (n, c)."""
-    out = np.zeros((len(paths), len(configs)))
-    for i, p in enumerate(paths):
-        rec = read_pyshoe_mat(p)
-        for j, c in enumerate(configs):
-            out[i, j] = pyshoe_armse(*pyshoe_align(run_foot_ins(rec.imu, c).pos_enu, rec.truth.pos_enu), 2)
-    return out
+def _trial_armse(job: tuple[Path, list[FootInsConfig]]) -> np.ndarray:
+    """One trial's 2-D ARMSE under each config (a process pool's task)."""
+    path, configs = job
+    rec = read_pyshoe_mat(path)
+    return np.array([pyshoe_armse(*pyshoe_align(run_foot_ins(rec.imu, c).pos_enu, rec.truth.pos_enu), 2) for c in configs])
+
+
+def pyshoe_armse_grid(paths: list[Path], configs: list[FootInsConfig], workers: int = 1) -> np.ndarray:
+    """2-D ARMSE (the smoothed track, as `pdr foot` writes it) of each trial under each config, (n, c);
+    the trials in ``workers`` processes (each trial's figures are the same either way)."""
+    jobs = [(Path(p), list(configs)) for p in paths]
+    if workers <= 1 or len(jobs) < 2:
+        rows = [_trial_armse(j) for j in jobs]
+    else:
+        from ..pools import process_pool
+
+        with process_pool(workers) as ex:
+            rows = list(ex.map(_trial_armse, jobs))
+    return np.array(rows).reshape(len(paths), len(configs))
+
+
+#: The foot filter's constants besides the stance threshold that were set on the PyShoe trials, with the
+#: candidates ``eval pdr-foot`` chooses among jointly with the threshold, leaving one recording day out:
+#: the ZUPT's velocity sigma (m/s; the default, half and twice) and the turn-on bias priors
+#: (accelerometer m/s^2, gyroscope rad/s; the default, half, and the wider pair eskf.ImuNoise's comment
+#: measured against). The defaults come first, so the threshold-only search is the joint one's subset.
+FOOT_ZUPT_SIGMAS = (FootInsConfig().zupt_sigma, 0.005, 0.02)
+FOOT_BIAS_PRIORS = (
+    (ImuNoise().accel_bias_sigma0, ImuNoise().gyro_bias_sigma0),
+    (0.005, 0.01 * DEG),
+    (0.05, 0.2 * DEG),
+)
+
+
+def foot_joint_candidates(decades: list[float]) -> list[FootInsConfig]:
+    """Every (threshold, ZUPT sigma, bias priors) of ``decades`` x :data:`FOOT_ZUPT_SIGMAS` x
+    :data:`FOOT_BIAS_PRIORS`, the threshold varying fastest: the first ``len(decades)`` are the
+    thresholds alone with the other constants at their defaults."""
+    return [
+        FootInsConfig(detector_threshold=d, zupt_sigma=z, noise=replace(ImuNoise(), accel_bias_sigma0=a, gyro_bias_sigma0=g))
+        for (a, g) in FOOT_BIAS_PRIORS
+        for z in FOOT_ZUPT_SIGMAS
+        for d in decades
+    ]
 
 
 # ---------------------------------------------------------------- simulated closed loops
