@@ -8,7 +8,7 @@ import pytest
 from hybridloc.ins import stance
 from hybridloc.ins.eskf import ErrorStateEkf, ImuNoise
 from hybridloc.ins.foot import dedrift_i, run_foot_ins, strides
-from hybridloc.ins.measurements import Heading, PositionFix, StrideHeading, ZeroAngularRate, ZeroVelocity, jacobian_fd
+from hybridloc.ins.measurements import Heading, PositionFix, StrideHeading, ZeroAngularRate, ZeroVelocity, ZeroYawRate, jacobian_fd
 from hybridloc.ins.strapdown import NominalState, level_from_accel, mechanise, quat_from_rotvec, quat_mult_floats, quat_to_dcm
 from hybridloc.types import ImuBlock
 from hybridloc.units import G0
@@ -32,6 +32,7 @@ def test_plus_minus_round_trip():
     [
         ZeroVelocity(),
         ZeroAngularRate(np.array([0.01, -0.02, 0.03])),
+        ZeroYawRate(np.array([0.3, -0.02, 0.03]), np.array([0.6, 0.0, 0.8])),
         Heading(),
         Heading((0.3, -0.2, 0.9)),
         StrideHeading((0.3, -0.2, 0.9), offset=0.4),
@@ -81,6 +82,36 @@ def test_correct_rejects_outliers_through_the_gate_and_stays_spd():
     assert kf.stats.rejected == {"position": 1} and kf.stats.accepted == {"position": 1}
     assert kf.correct(ZeroVelocity(), np.array([5.0, 0.0, 0.0]), gate=False).accepted
     assert np.allclose(kf.P, kf.P.T) and np.linalg.eigvalsh(kf.P).min() > 0
+
+
+def test_vertical_zaru_learns_the_heading_bias_while_the_foot_rolls():
+    """A stance rolling heel to toe at 20 deg/s about a horizontal axis, on a gyro whose bias is 0.3 deg/s
+    along the body's up axis and 0.02 deg/s across it. The 3-D ZARU's gate (sigma 0.5 deg/s) turns every
+    sample away; the vertical ZARU ignores the roll and takes the up component of the bias to within its
+    own noise after a few hundred samples (two stances at 200 Hz), leaving the roll out of the bias."""
+    from hybridloc.ins.strapdown import quat_to_dcm
+
+    deg = math.pi / 180
+    q = np.array([math.cos(0.05), 0.0, math.sin(0.05), 0.0])  # a foot pitched 0.1 rad: its up axis is not body z
+    x = NominalState(np.zeros(3), np.zeros(3), q, np.zeros(3), np.zeros(3))
+    R = quat_to_dcm(q)
+    up_body = R[2]
+    bias = 0.3 * deg * up_body + 0.02 * deg * np.array([0.0, 1.0, 0.0])
+    roll_nav = np.array([0.0, 20 * deg, 0.0])  # about the horizontal (nav y) axis: no vertical component
+    omega = bias + R.T @ roll_nav
+    P0 = np.eye(15) * 1e-4
+    P0[12:15, 12:15] = np.eye(3) * (1.0 * deg) ** 2
+    kf3 = ErrorStateEkf(x.copy(), P0.copy(), ImuNoise(), G0)
+    assert not any(kf3.correct(ZeroAngularRate(omega), np.zeros(3)).accepted for _ in range(50))
+    kf = ErrorStateEkf(x.copy(), P0.copy(), ImuNoise(), G0)
+    model = ZeroYawRate(omega, up_body, sigma=5 * deg)
+    for _ in range(400):
+        assert kf.correct(model, np.zeros(1)).accepted
+    # noiseless readings: the posterior mean of a 1 deg/s prior and 400 readings of 5 deg/s noise is the
+    # truth shrunk by (400 / 5^2) / (400 / 5^2 + 1 / 1^2) = 16 / 17; the roll does not enter it, and the
+    # bias across the up axis is untouched by a vertical measurement
+    assert kf.x.b_g @ up_body == pytest.approx(0.3 * deg * 16 / 17, rel=1e-6)
+    assert np.linalg.norm(kf.x.b_g - (kf.x.b_g @ up_body) * up_body) < 1e-9
 
 
 def _synthetic_walk(rng, strides_n=20, rate=200.0, noise=True):
@@ -213,6 +244,13 @@ def test_cli_rejects_g_units_and_wrong_rate(tmp_path):
     assert r.returncode == 0 and "drift elimination:" in r.stdout, r.stderr
     r = run("--accel-unit", "g", "--hde", "east")
     assert r.returncode == 2 and "--hde 'east'" in r.stderr
+    # the vertical zero angular rate: opt-in, a sigma in deg/s above 0
+    r = run("--accel-unit", "g", "--zaru-up", "5")
+    assert r.returncode == 0, r.stderr
+    assert len((tmp_path / "o" / "walk" / "trajectory.csv").read_text().splitlines()) == len(imu) + 1
+    for bad in ("0", "nan"):
+        r = run("--accel-unit", "g", "--zaru-up", bad)
+        assert r.returncode == 2 and "--zaru-up" in r.stderr
 
 
 def test_filter_prediction_equals_reference_mechanisation():

@@ -251,6 +251,7 @@ def _cmd_eval_pdr_foot(args: argparse.Namespace) -> int:
         head["loop_end_error_max_pct"] = net.max()
     if gait_walks_rs is not None:
         _foot_hde(*gait_walks_rs, files, args.sim_loops, head)
+        _foot_zaru_up(*gait_walks_rs, files, args.sim_loops, head)
     print_headline(head)
     return 0
 
@@ -435,24 +436,7 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
         "first straight stretch, modulo 90 deg - is measured as that direction through the filter's gated update; window 15 deg, sigma 3 deg), "
         "robust detector; candidates: " + "; ".join(f"{k}: {describe(c)}" for k, c in enumerate(cands))
     )
-    print("chosen on the other walks' mean final-point error (leave one walk out), and on the other sessions' (leave one session out)")
-    print(f"{'walk':<22} {'session':>9} {'no HDE':>7} {'LOWO':>7} {'cand':>4} {'LOSO':>7} {'cand':>4} {'fitted':>7} {'closes':>6}")
-    for i, r in enumerate(rs):
-        print(
-            f"{r.name:<22} {sessions[i]:>9} {r.final_pct:6.2f}% {held_w[i]:6.2f}% {ch_w[i]:4d} {held_s[i]:6.2f}% {ch_s[i]:4d} {fin[i, bj]:6.2f}% "
-            f"{'yes' if r.closes else '':>6}"
-        )
-    before = np.array([r.final_pct for r in rs])
-    for label, v in (
-        ("no HDE", before),
-        ("held out by walk", held_w),
-        ("held out by session", held_s),
-        (f"fitted on all (candidate {bj})", fin[:, bj]),
-    ):
-        print(
-            f"  {label:<28} return ({int(closes.sum())} closing walks) median {np.median(v[closes]):.2f} %, max {v[closes].max():.2f} %; "
-            f"final point (all {len(v)}) median {np.median(v):.2f} %, max {v.max():.2f} %"
-        )
+    _print_gait_choice(rs, sessions, fin, (ch_w, held_w), (ch_s, held_s), bj, "no HDE")
     head["gait_hde_return_error_held_out_median_pct"] = np.median(held_w[closes])
     head["gait_hde_return_error_held_out_max_pct"] = held_w[closes].max()
     head["gait_hde_return_error_session_held_out_median_pct"] = np.median(held_s[closes])
@@ -472,6 +456,83 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
         )
         head["sim_hde_return_error_median_pct"] = np.median(sim)
         head["sim_hde_return_error_max_pct"] = sim.max()
+
+
+def _print_gait_choice(rs: list, sessions: list[str], fin, by_walk, by_session, bj: int, none_label: str) -> None:
+    """A setting chosen on the gait-driven walks: per walk its final-point error without it, held out by
+    walk and by session (with the candidate chosen) and fitted on all; then the return and final-point
+    summaries of each. ``fin`` (walks, candidates) of final-point errors, %."""
+    import numpy as np
+
+    (ch_w, held_w), (ch_s, held_s) = by_walk, by_session
+    closes = np.array([r.closes for r in rs])
+    print("chosen on the other walks' mean final-point error (leave one walk out), and on the other sessions' (leave one session out)")
+    print(f"{'walk':<22} {'session':>9} {none_label:>7} {'LOWO':>7} {'cand':>4} {'LOSO':>7} {'cand':>4} {'fitted':>7} {'closes':>6}")
+    for i, r in enumerate(rs):
+        print(
+            f"{r.name:<22} {sessions[i]:>9} {r.final_pct:6.2f}% {held_w[i]:6.2f}% {ch_w[i]:4d} {held_s[i]:6.2f}% {ch_s[i]:4d} {fin[i, bj]:6.2f}% "
+            f"{'yes' if r.closes else '':>6}"
+        )
+    before = np.array([r.final_pct for r in rs])
+    for label, v in (
+        (none_label, before),
+        ("held out by walk", held_w),
+        ("held out by session", held_s),
+        (f"fitted on all (candidate {bj})", fin[:, bj]),
+    ):
+        print(
+            f"  {label:<28} return ({int(closes.sum())} closing walks) median {np.median(v[closes]):.2f} %, max {v[closes].max():.2f} %; "
+            f"final point (all {len(v)}) median {np.median(v):.2f} %, max {v.max():.2f} %"
+        )
+
+
+def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict) -> None:
+    """The vertical ZARU (measurements.ZeroYawRate) on the gait-driven walks, its sigma (or none) chosen
+    leave one walk out and leave one session out; the sigma chosen on all the gait walks scored on PyShoe
+    (a set it never saw) and on simulated loops."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from ..ins.evaluate import FOOT_ZARU_UP_SIGMAS, evaluate_gait_walk, leave_one_group_out, pyshoe_armse_grid, simulated_loop_errors
+    from ..ins.foot import FootInsConfig
+    from ..units import DEG
+
+    cands = FOOT_ZARU_UP_SIGMAS
+    base = FootInsConfig(detector="robust")
+    fin = np.array(
+        [[r.final_pct if c is None else evaluate_gait_walk(w, replace(base, zaru_up_sigma=c)).final_pct for c in cands] for w, r in zip(walks, rs)]
+    )
+    sessions = [r.session for r in rs]
+    ch_w, held_w = leave_one_group_out(fin, [w.name for w in walks])
+    ch_s, held_s = leave_one_group_out(fin, sessions)
+    bj = int(np.argmin(fin.mean(axis=0)))
+    print(
+        "\nvertical zero angular rate (at every stance sample with an accepted ZUPT, the gyro's reading about the body's up axis measured "
+        "as its bias along it, gated: the rolling stance that trips the 3-D ZARU's gate has no vertical component), robust detector; "
+        "candidates: " + "; ".join(f"{k}: {'off' if c is None else f'sigma {c / DEG:g} deg/s'}" for k, c in enumerate(cands))
+    )
+    _print_gait_choice(rs, sessions, fin, (ch_w, held_w), (ch_s, held_s), bj, "off")
+    closes = np.array([r.closes for r in rs])
+    head["gait_zaru_up_return_error_held_out_median_pct"] = np.median(held_w[closes])
+    head["gait_zaru_up_return_error_held_out_max_pct"] = held_w[closes].max()
+    head["gait_zaru_up_return_error_session_held_out_median_pct"] = np.median(held_s[closes])
+    head["gait_zaru_up_return_error_fitted_median_pct"] = np.median(fin[closes, bj])
+    head["gait_zaru_up_final_error_held_out_median_pct"] = np.median(held_w)
+    cfg = FootInsConfig(zaru_up_sigma=cands[bj])
+    armse = pyshoe_armse_grid(files, [cfg], workers=2)[:, 0]
+    print(
+        f"  PyShoe with the setting chosen on the gait walks (held out by set: never fitted on PyShoe; default detector): mean 2-D ARMSE "
+        f"{armse.mean():.4f} m (median {np.median(armse):.4f}); off see above"
+    )
+    head["armse_zaru_up_mean_m"] = armse.mean()
+    if sim_loops:
+        sim = simulated_loop_errors(sim_loops, config=cfg)
+        print(
+            f"  simulated closed loops ({sim_loops}) with it: return error median {np.median(sim):.2f} %, max {sim.max():.2f} % ({', '.join(f'{x:.2f}' for x in sim)})"
+        )
+        head["sim_zaru_up_return_error_median_pct"] = np.median(sim)
+        head["sim_zaru_up_return_error_max_pct"] = sim.max()
 
 
 def _cmd_eval_fingerprint(args: argparse.Namespace) -> int:

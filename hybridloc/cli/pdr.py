@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -85,6 +86,11 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             hde = replace(HDE_DEFAULT, grid=None if args.hde == "learn" else parse_start(f"0,0,{args.hde}")[2])
         except ValueError as exc:
             raise BadInput(f"--hde {args.hde!r}: a grid direction in rad or e.g. 30deg ({exc})") from exc
+    zaru_up = None
+    if args.zaru_up is not None:
+        if not (math.isfinite(args.zaru_up) and args.zaru_up > 0):
+            raise BadInput(f"--zaru-up {args.zaru_up}: a standard deviation in deg/s, above 0")
+        zaru_up = math.radians(args.zaru_up)
     out = Path(args.out)
     status = 0
     for p in args.files:
@@ -97,7 +103,10 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         except Exception as exc:  # one line per unreadable input, then the next input
             status = max(status, report_input_error(p, exc))
             continue
-        res = run_foot_ins(imu, FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward, hde=hde))
+        res = run_foot_ins(
+            imu,
+            FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward, hde=hde, zaru_up_sigma=zaru_up),
+        )
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
         with open(d / "trajectory.csv", "w", newline="", encoding="utf-8") as f:
@@ -176,5 +185,12 @@ def register(sub) -> None:
         help="heuristic drift elimination: straight strides near a dominant direction of the building (GRID + k 90 deg in the INS frame, "
         "rad or e.g. 30deg; without GRID learned from the walk's first straight stretch) are measured as that direction (hybridloc.ins.hde); "
         "off by default",
+    )
+    ft.add_argument(
+        "--zaru-up",
+        type=float,
+        metavar="DEG_S",
+        help="vertical zero angular rate at stance with this sigma in deg/s (hybridloc.ins.measurements.ZeroYawRate): the gyro's bias about "
+        "the body's up axis, which a foot that rolls through its stance keeps from the 3-D update; off by default (eval pdr-foot chooses it)",
     )
     ft.set_defaults(func=_cmd_pdr_foot)

@@ -261,6 +261,12 @@ FOOT_BIAS_PRIORS = (
 )
 
 
+#: The vertical ZARU's sigma (rad/s; None: off, the filter as it is) that ``eval pdr-foot`` chooses on the
+#: gait-driven walks, leaving one walk out and one session out: decades around the 3-D ZARU's 0.5 deg/s
+#: and the foot's residual turning at stance (a few deg/s)
+FOOT_ZARU_UP_SIGMAS: tuple[float | None, ...] = (None, 0.5 * DEG, 2 * DEG, 5 * DEG, 10 * DEG)
+
+
 def foot_joint_candidates(decades: list[float]) -> list[FootInsConfig]:
     """Every (threshold, ZUPT sigma, bias priors) of ``decades`` x :data:`FOOT_ZUPT_SIGMAS` x
     :data:`FOOT_BIAS_PRIORS`, the threshold varying fastest: the first ``len(decades)`` are the

@@ -46,7 +46,7 @@ from ..units import G0, wrap_angle
 from . import stance as stance_mod
 from .eskf import ErrorStateEkf, ImuNoise
 from .hde import DriftEliminator, HdeConfig
-from .measurements import Heading, StrideHeading, ZeroAngularRate, ZeroVelocity
+from .measurements import Heading, StrideHeading, ZeroAngularRate, ZeroVelocity, ZeroYawRate
 from .smoother import IntervalRts
 from .strapdown import NominalState, level_from_accel, quat_to_dcm
 
@@ -64,6 +64,9 @@ class FootInsConfig:
     gate_zupt: bool = False  # chi-square gate on every ZUPT (see the module docstring)
     vet: bool = True  # chi-square gate on the doubtful ZUPTs only: gentle gait, weak stances (module docstring)
     zaru: bool = True  # zero angular rate at stance: observes the gyro biases (heading drift over minutes)
+    # vertical ZARU (measurements.ZeroYawRate) at every stance sample with an accepted ZUPT, its sigma in
+    # rad/s, gated; None: off. ``eval pdr-foot`` chooses it on the gait-driven walks (FOOT_ZARU_UP_SIGMAS)
+    zaru_up_sigma: float | None = None
     gravity: float | None = None  # m/s^2; None: measured from the initial still period
     init_seconds: float = 0.5  # still period used for alignment (at most)
     max_gap: float = 0.1  # s
@@ -191,6 +194,8 @@ def run_foot_ins(
     kf = ErrorStateEkf(x0, P0, nz, g)
     zupt = ZeroVelocity(cfg.zupt_sigma)
     zaru = ZeroAngularRate(np.zeros(3))
+    zaru_up = ZeroYawRate(np.zeros(3), np.array([0.0, 0.0, 1.0]), cfg.zaru_up_sigma) if cfg.zaru_up_sigma is not None else None
+    zero1 = np.zeros(1)
     hde = DriftEliminator(cfg.hde) if cfg.hde is not None else None
     if hde is not None:
         # the foot's heading is that of the body axis most level at the start (x or y), made level there
@@ -271,6 +276,11 @@ def run_foot_ins(
                 rejected_run += 1
                 if rejected_run >= reinit_after:
                     reinit_pending = True
+            if zaru_up is not None and c.accepted:  # before the 3-D ZARU, whose gate the rolling foot trips
+                zaru_up.omega, zaru_up.up_body = gyr[i], kf.x.R[2]
+                cu = kf.correct(zaru_up, zero1)
+                if cu.accepted:
+                    dx = dx + cu.dx
             if cfg.zaru and c.accepted:  # a vetoed stance is no stance: no zero angular rate either
                 zaru.omega = gyr[i]  # one model, its reading updated (no per-sample construction)
                 cz = kf.correct(zaru, zero3)
