@@ -520,12 +520,21 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
     head["gait_zaru_up_return_error_fitted_median_pct"] = np.median(fin[closes, bj])
     head["gait_zaru_up_final_error_held_out_median_pct"] = np.median(held_w)
     cfg = FootInsConfig(zaru_up_sigma=cands[bj])
-    armse = pyshoe_armse_grid(files, [cfg], workers=2)[:, 0]
+    grid = pyshoe_armse_grid(files, [FootInsConfig(zaru_up_sigma=c) for c in cands], workers=2)
+    armse = grid[:, bj]
     print(
         f"  PyShoe with the setting chosen on the gait walks (held out by set: never fitted on PyShoe; default detector): mean 2-D ARMSE "
         f"{armse.mean():.4f} m (median {np.median(armse):.4f}); off see above"
     )
+    pj = int(np.argmin(grid.mean(axis=0)))
+    print(
+        f"  cross-set, the other way: fitted on PyShoe (candidate {pj}; per-candidate mean ARMSE "
+        + ", ".join(f"{k}: {v:.5f} m" for k, v in enumerate(grid.mean(axis=0)))
+        + f") -> gait return ({int(closes.sum())} closing walks) median {np.median(fin[closes, pj]):.2f} %, max {fin[closes, pj].max():.2f} %; "
+        f"final point median {np.median(fin[:, pj]):.2f} %"
+    )
     head["armse_zaru_up_mean_m"] = armse.mean()
+    head["gait_zaru_up_pyshoe_fitted_return_median_pct"] = np.median(fin[closes, pj])
     if sim_loops:
         sim = simulated_loop_errors(sim_loops, config=cfg)
         print(
