@@ -418,7 +418,7 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
 
     import numpy as np
 
-    from ..ins.evaluate import evaluate_gait_walk, leave_one_group_out, pyshoe_armse_grid, simulated_loop_errors
+    from ..ins.evaluate import evaluate_gait_walk, pyshoe_armse_grid, simulated_loop_errors
     from ..ins.foot import FootInsConfig
     from ..ins.hde import HDE_CANDIDATES, describe
 
@@ -426,22 +426,12 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
     base = FootInsConfig(detector="robust")
     res = [[evaluate_gait_walk(w, replace(base, hde=c)) for c in cands] for w in walks]
     fin = np.array([[r.final_pct for r in row] for row in res])  # (walks, candidates)
-    closes = np.array([r.closes for r in rs])
-    sessions = [row[0].session for row in res]  # per walk
-    ch_w, held_w = leave_one_group_out(fin, [w.name for w in walks])
-    ch_s, held_s = leave_one_group_out(fin, sessions)
-    bj = int(np.argmin(fin.mean(axis=0)))
-    print(
+    intro = (
         "\nheuristic drift elimination (HDE/iHDE: a straight stride near a dominant direction of the building - learned from the walk's "
         "first straight stretch, modulo 90 deg - is measured as that direction through the filter's gated update; window 15 deg, sigma 3 deg), "
         "robust detector; candidates: " + "; ".join(f"{k}: {describe(c)}" for k, c in enumerate(cands))
     )
-    _print_gait_choice(rs, sessions, fin, (ch_w, held_w), (ch_s, held_s), bj, "no HDE")
-    head["gait_hde_return_error_held_out_median_pct"] = np.median(held_w[closes])
-    head["gait_hde_return_error_held_out_max_pct"] = held_w[closes].max()
-    head["gait_hde_return_error_session_held_out_median_pct"] = np.median(held_s[closes])
-    head["gait_hde_return_error_fitted_median_pct"] = np.median(fin[closes, bj])
-    head["gait_hde_final_error_held_out_median_pct"] = np.median(held_w)
+    bj = _gait_choice(walks, rs, fin, intro, "no HDE", "gait_hde", head)
     cfg = replace(base, detector="adaptive", hde=cands[bj])
     armse = pyshoe_armse_grid(files, [cfg])[:, 0]
     print(
@@ -458,13 +448,21 @@ def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) ->
         head["sim_hde_return_error_max_pct"] = sim.max()
 
 
-def _print_gait_choice(rs: list, sessions: list[str], fin, by_walk, by_session, bj: int, none_label: str) -> None:
-    """A setting chosen on the gait-driven walks: per walk its final-point error without it, held out by
+def _gait_choice(walks: list, rs: list, fin, intro: str, none_label: str, key: str, head: dict) -> int:
+    """A setting chosen on the gait-driven walks by their mean final-point error, leaving one walk out
+    and one session out: ``intro``, then per walk its final-point error without it (``rs``), held out by
     walk and by session (with the candidate chosen) and fitted on all; then the return and final-point
-    summaries of each. ``fin`` (walks, candidates) of final-point errors, %."""
+    summaries of each, and the held-out figures as ``key``_... in ``head``. ``fin`` (walks, candidates)
+    of final-point errors, %. Returns the candidate fitted on all the walks."""
     import numpy as np
 
-    (ch_w, held_w), (ch_s, held_s) = by_walk, by_session
+    from ..ins.evaluate import leave_one_group_out
+
+    sessions = [r.session for r in rs]
+    ch_w, held_w = leave_one_group_out(fin, [w.name for w in walks])
+    ch_s, held_s = leave_one_group_out(fin, sessions)
+    bj = int(np.argmin(fin.mean(axis=0)))
+    print(intro)
     closes = np.array([r.closes for r in rs])
     print("chosen on the other walks' mean final-point error (leave one walk out), and on the other sessions' (leave one session out)")
     print(f"{'walk':<22} {'session':>9} {none_label:>7} {'LOWO':>7} {'cand':>4} {'LOSO':>7} {'cand':>4} {'fitted':>7} {'closes':>6}")
@@ -484,6 +482,12 @@ def _print_gait_choice(rs: list, sessions: list[str], fin, by_walk, by_session, 
             f"  {label:<28} return ({int(closes.sum())} closing walks) median {np.median(v[closes]):.2f} %, max {v[closes].max():.2f} %; "
             f"final point (all {len(v)}) median {np.median(v):.2f} %, max {v.max():.2f} %"
         )
+    head[f"{key}_return_error_held_out_median_pct"] = np.median(held_w[closes])
+    head[f"{key}_return_error_held_out_max_pct"] = held_w[closes].max()
+    head[f"{key}_return_error_session_held_out_median_pct"] = np.median(held_s[closes])
+    head[f"{key}_return_error_fitted_median_pct"] = np.median(fin[closes, bj])
+    head[f"{key}_final_error_held_out_median_pct"] = np.median(held_w)
+    return bj
 
 
 def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict) -> None:
@@ -494,7 +498,7 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
 
     import numpy as np
 
-    from ..ins.evaluate import FOOT_ZARU_UP_SIGMAS, evaluate_gait_walk, leave_one_group_out, pyshoe_armse_grid, simulated_loop_errors
+    from ..ins.evaluate import FOOT_ZARU_UP_SIGMAS, evaluate_gait_walk, pyshoe_armse_grid, simulated_loop_errors
     from ..ins.foot import FootInsConfig
     from ..units import DEG
 
@@ -503,22 +507,13 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
     fin = np.array(
         [[r.final_pct if c is None else evaluate_gait_walk(w, replace(base, zaru_up_sigma=c)).final_pct for c in cands] for w, r in zip(walks, rs)]
     )
-    sessions = [r.session for r in rs]
-    ch_w, held_w = leave_one_group_out(fin, [w.name for w in walks])
-    ch_s, held_s = leave_one_group_out(fin, sessions)
-    bj = int(np.argmin(fin.mean(axis=0)))
-    print(
+    intro = (
         "\nvertical zero angular rate (at every stance sample with an accepted ZUPT, the gyro's reading about the body's up axis measured "
         "as its bias along it, gated: the rolling stance that trips the 3-D ZARU's gate has no vertical component), robust detector; "
         "candidates: " + "; ".join(f"{k}: {'off' if c is None else f'sigma {c / DEG:g} deg/s'}" for k, c in enumerate(cands))
     )
-    _print_gait_choice(rs, sessions, fin, (ch_w, held_w), (ch_s, held_s), bj, "off")
+    bj = _gait_choice(walks, rs, fin, intro, "off", "gait_zaru_up", head)
     closes = np.array([r.closes for r in rs])
-    head["gait_zaru_up_return_error_held_out_median_pct"] = np.median(held_w[closes])
-    head["gait_zaru_up_return_error_held_out_max_pct"] = held_w[closes].max()
-    head["gait_zaru_up_return_error_session_held_out_median_pct"] = np.median(held_s[closes])
-    head["gait_zaru_up_return_error_fitted_median_pct"] = np.median(fin[closes, bj])
-    head["gait_zaru_up_final_error_held_out_median_pct"] = np.median(held_w)
     cfg = FootInsConfig(zaru_up_sigma=cands[bj])
     grid = pyshoe_armse_grid(files, [FootInsConfig(zaru_up_sigma=c) for c in cands], workers=2)
     armse = grid[:, bj]
