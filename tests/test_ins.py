@@ -455,6 +455,31 @@ def test_gait_walk_counts_strides_as_walked(shared_data):
     assert evaluate_gait_walk(p, FootInsConfig()).n_detected > 24
 
 
+@pytest.mark.shared_data
+def test_gated_demoted_runs_keep_a_mid_swing_dip_from_cutting_a_stride(shared_data):
+    """SensorConnectData_34, its sixth stride (2.00 m by the footprints): the adaptive test calls a
+    5-sample dip mid-swing (56-68 deg/s) a stance, and its ZUPT, applied as any stance's, stops the foot
+    in flight: the stride comes out 0.74 m short. Gated like a weak stance (``vet_demoted``), the dip's
+    ZUPT is judged by the filter's own velocity, and the stride comes within the other strides' few cm."""
+    from hybridloc.ins.foot import FootInsConfig, stance_points
+    from hybridloc.io.imu_files import footprints_beside, read_sensorconnect_csv
+
+    p = shared_data / "gait-driven-own" / "SensorConnectData_34.csv.gz"
+    if not p.is_file():
+        pytest.skip(f"{p} is absent")
+    fp, rec = footprints_beside(p), read_sensorconnect_csv(p)
+    true_len = np.linalg.norm(np.diff(fp.pos_xy, axis=0), axis=1)
+    lens = {}
+    for vd in (False, True):
+        res = run_foot_ins(rec.imu, FootInsConfig(detector="robust", vet_demoted=vd))
+        pts = stance_points(res)
+        assert len(pts) - 1 == fp.n_strides
+        lens[vd] = np.linalg.norm(np.diff(res.pos_enu[pts, :2][fp.stride], axis=0), axis=1)
+    assert true_len[5] - lens[False][5] > 0.5  # the dip's ZUPT cut the stride
+    assert abs(lens[True][5] - true_len[5]) < 0.15
+    assert np.mean(np.abs(lens[True] - true_len)) < np.mean(np.abs(lens[False] - true_len))
+
+
 def test_simulated_closed_loop_returns_to_its_start():
     """A simulated closed loop (1 min, industrial-grade foot IMU at 200 Hz, default detector): the INS
     ends within 2 % of the path of the true end. Ojeda reports 0.6-0.9 % with a sensor of this class,

@@ -502,20 +502,30 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
     from ..ins.foot import FootInsConfig
     from ..units import DEG
 
-    cands = FOOT_ZARU_UP_SIGMAS
+    # (sigma, vet the demoted runs' ZUPTs): the second is the robust detector's, so PyShoe (adaptive) sees the first only
+    cands = [(c, vd) for vd in (False, True) for c in FOOT_ZARU_UP_SIGMAS]
     base = FootInsConfig(detector="robust")
-    fin = np.array(
-        [[r.final_pct if c is None else evaluate_gait_walk(w, replace(base, zaru_up_sigma=c)).final_pct for c in cands] for w, r in zip(walks, rs)]
-    )
+
+    def final_pct(w, r, c, vd) -> float:
+        return r.final_pct if (c, vd) == (None, False) else evaluate_gait_walk(w, replace(base, zaru_up_sigma=c, vet_demoted=vd)).final_pct
+
+    fin = np.array([[final_pct(w, r, c, vd) for c, vd in cands] for w, r in zip(walks, rs)])
+
+    def label(c, vd) -> str:
+        return ("off" if c is None else f"sigma {c / DEG:g} deg/s") + (", demoted runs' ZUPTs gated" if vd else "")
+
     intro = (
         "\nvertical zero angular rate (at every stance sample with an accepted ZUPT, the gyro's reading about the body's up axis measured "
-        "as its bias along it, gated: the rolling stance that trips the 3-D ZARU's gate has no vertical component), robust detector; "
-        "candidates: " + "; ".join(f"{k}: {'off' if c is None else f'sigma {c / DEG:g} deg/s'}" for k, c in enumerate(cands))
+        "as its bias along it, gated: the rolling stance that trips the 3-D ZARU's gate has no vertical component), robust detector, with "
+        "or without the chi-square gate on the ZUPTs of the stance runs not kept as a step's (mid-swing dips, fragments of a rolling "
+        "stance); candidates: " + "; ".join(f"{k}: {label(*c)}" for k, c in enumerate(cands))
     )
     bj = _gait_choice(walks, rs, fin, intro, "off", "gait_zaru_up", head)
     closes = np.array([r.closes for r in rs])
-    cfg = FootInsConfig(zaru_up_sigma=cands[bj])
-    grid = pyshoe_armse_grid(files, [FootInsConfig(zaru_up_sigma=c) for c in cands], workers=2)
+    sigmas = [c for c, _ in cands]
+    cfg = FootInsConfig(zaru_up_sigma=sigmas[bj])
+    grid_s = pyshoe_armse_grid(files, [FootInsConfig(zaru_up_sigma=c) for c in FOOT_ZARU_UP_SIGMAS], workers=2)
+    grid = grid_s[:, [FOOT_ZARU_UP_SIGMAS.index(c) for c in sigmas]]  # the adaptive detector has no demoted runs
     armse = grid[:, bj]
     print(
         f"  PyShoe with the setting chosen on the gait walks (held out by set: never fitted on PyShoe; default detector): mean 2-D ARMSE "

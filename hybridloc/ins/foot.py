@@ -67,6 +67,9 @@ class FootInsConfig:
     # vertical ZARU (measurements.ZeroYawRate) at every stance sample with an accepted ZUPT, its sigma in
     # rad/s, gated; None: off. ``eval pdr-foot`` chooses it on the gait-driven walks (FOOT_ZARU_UP_SIGMAS)
     zaru_up_sigma: float | None = None
+    # "robust" detector: the ZUPTs of the runs not kept as a step's stance (mid-swing dips, fragments of a
+    # rolling stance) go through the chi-square gate like weak stances; False: applied as any stance
+    vet_demoted: bool = False
     gravity: float | None = None  # m/s^2; None: measured from the initial still period
     init_seconds: float = 0.5  # still period used for alignment (at most)
     max_gap: float = 0.1  # s
@@ -160,13 +163,16 @@ def run_foot_ins(
             stance = stance_mod.adaptive_mask(T, rate, **({"decades": cfg.detector_threshold} if cfg.detector_threshold else {}))
             if cfg.detector == "robust":
                 # the ZUPTs stay the adaptive detector's; only the strides are cut at one stance per
-                # step. Vetting the demoted runs' ZUPTs instead (through the gate, like weak stances)
-                # cost PyShoe VICON 0.0529 -> 0.0635 m mean ARMSE (one running trial 0.055 -> 0.258 m)
-                # and moved the gait-driven walks' final-point errors both ways (34: 2.27 -> 1.47 %,
-                # 35: 2.59 -> 3.11 %)
-                step_stance = stance_mod.one_stance_per_step(stance, T, rate, cfg.min_swing)[0] & finite
+                # step. Vetting the demoted runs' ZUPTs instead (``vet_demoted``: through the gate, like
+                # weak stances) cost PyShoe VICON 0.0529 -> 0.0635 m mean ARMSE (one running trial 0.055 ->
+                # 0.258 m) and moved the gait-driven walks' final-point errors both ways (34: 2.27 -> 1.47 %,
+                # 35: 2.59 -> 3.11 %), so it is off; eval pdr-foot chooses it with the vertical ZARU
+                step_stance, demoted = stance_mod.one_stance_per_step(stance, T, rate, cfg.min_swing)
+                step_stance &= finite
             if cfg.vet:
                 weak = stance_mod.weak_stance(T, rate, stance)
+                if cfg.detector == "robust" and cfg.vet_demoted:
+                    weak |= demoted
         else:
             stance = detect_stance(imu, cfg.detector, cfg.detector_threshold, g)
     gentle = stance_mod.swing_level(T, rate) < stance_mod.GENTLE_SWING_LOG10 if cfg.vet else np.zeros(n, bool)
