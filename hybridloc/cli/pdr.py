@@ -105,7 +105,14 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             continue
         res = run_foot_ins(
             imu,
-            FootInsConfig(detector=args.detector, detector_threshold=args.threshold, smooth=not args.forward, hde=hde, zaru_up_sigma=zaru_up),
+            FootInsConfig(
+                detector=args.detector,
+                detector_threshold=args.threshold,
+                smooth=not args.forward,
+                hde=hde,
+                zaru_up_sigma=zaru_up,
+                vet_demoted=args.vet_demoted,
+            ),
         )
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
@@ -192,5 +199,11 @@ def register(sub) -> None:
         metavar="DEG_S",
         help="vertical zero angular rate at stance with this sigma in deg/s (hybridloc.ins.measurements.ZeroYawRate): the gyro's bias about "
         "the body's up axis, which a foot that rolls through its stance keeps from the 3-D update; off by default (eval pdr-foot chooses it)",
+    )
+    ft.add_argument(
+        "--vet-demoted",
+        action="store_true",
+        help="with --detector robust: the ZUPTs of the stance runs not kept as a step's (mid-swing dips, fragments of a rolling stance) "
+        "pass the chi-square gate instead of being applied as any stance's (FootInsConfig.vet_demoted); off by default",
     )
     ft.set_defaults(func=_cmd_pdr_foot)
