@@ -188,14 +188,22 @@ class RoutesLeftOut:
     floor_mean_m: dict[str, tuple[float, float]]  # floor -> (held out, plain) mean on the right floor, m
 
 
-def _right_floor_mean(results: list[LocateResult], truth_floor: np.ndarray, truth_xy: np.ndarray, mask: np.ndarray) -> float:
-    """Mean horizontal error of the answers in ``mask`` that name the right floor, m (inf when none do)."""
-    e = [
-        float(np.linalg.norm(r.fix.pos_enu[:2] - xy))
-        for r, fl, xy, m in zip(results, truth_floor, truth_xy, mask)
-        if m and r.fix is not None and r.fix.floor == fl
-    ]
-    return float(np.mean(e)) if e else math.inf
+def _right_floor_errors(results: list[LocateResult], truth_floor: np.ndarray, truth_xy: np.ndarray) -> np.ndarray:
+    """Horizontal error of each answer, m; NaN where it names another floor or has no fix."""
+    return np.array(
+        [
+            float(np.linalg.norm(r.fix.pos_enu[:2] - xy)) if r.fix is not None and r.fix.floor == fl else np.nan
+            for r, fl, xy in zip(results, truth_floor, truth_xy)
+        ],
+        dtype=float,
+    )
+
+
+def _right_floor_mean(errors: np.ndarray, mask: np.ndarray) -> float:
+    """Mean of the finite ``errors`` in ``mask`` (:func:`_right_floor_errors`), m; inf when there are none."""
+    e = errors[mask]
+    e = e[np.isfinite(e)]
+    return float(np.mean(e)) if e.size else math.inf
 
 
 def evaluate_ilc_loro(traces: list[TraceData], settings: tuple[tuple[int, float], ...] = LORO_SETTINGS) -> RoutesLeftOut:
@@ -239,19 +247,22 @@ def evaluate_ilc_loro(traces: list[TraceData], settings: tuple[tuple[int, float]
                 answers[(k, a)].extend(subs[a].with_k(k).locate_many(scans, regions=False))
             plain.extend(sub_plain.locate_many(scans, regions=False))
     txy, tfl = np.array(truth_xy).reshape(-1, 2), np.array(truth_floor)
+    errors = {s: _right_floor_errors(answers[s], tfl, txy) for s in settings}  # once per setting
     everywhere = np.ones(len(tfl), bool)
-    fitted = {s: _right_floor_mean(answers[s], tfl, txy, everywhere) for s in settings}
+    fitted = {s: _right_floor_mean(errors[s], everywhere) for s in settings}
     # each floor's setting: the lowest mean on the other floors' scans (ties to the earlier candidate)
     chosen = {}
     for fl in dict.fromkeys(tfl.tolist()):
         others = tfl != fl
-        chosen[fl] = min(settings, key=lambda s: _right_floor_mean(answers[s], tfl, txy, others)) if others.any() else settings[0]
+        chosen[fl] = min(settings, key=lambda s: _right_floor_mean(errors[s], others)) if others.any() else settings[0]
     held, pl = FingerprintScore(), FingerprintScore()
     held_answers = [answers[chosen[fl]][i] for i, fl in enumerate(tfl)]
     for res, res_plain, fl, xy, c in zip(held_answers, plain, tfl, txy, cover):
         held.add(res, xy, fl, float(c))
         pl.add(res_plain, xy, fl, float(c))
-    by_floor = {fl: (_right_floor_mean(held_answers, tfl, txy, tfl == fl), _right_floor_mean(plain, tfl, txy, tfl == fl)) for fl in chosen}
+    held_errors = np.array([errors[chosen[fl]][i] for i, fl in enumerate(tfl)], dtype=float)
+    plain_errors = _right_floor_errors(plain, tfl, txy)
+    by_floor = {fl: (_right_floor_mean(held_errors, tfl == fl), _right_floor_mean(plain_errors, tfl == fl)) for fl in chosen}
     return RoutesLeftOut(n_routes, tuple(settings), fitted, chosen, held, pl, by_floor)
 
 
