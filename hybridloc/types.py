@@ -66,6 +66,41 @@ SATURATION_SHARE = 0.995
 #: With the full scale unknown, this many consecutive identical readings of an axis beyond what the
 #: carrier can plausibly produce are a clipped plateau (a live signal does not repeat exactly there).
 SATURATION_REPEATS = 3
+#: ... or a ceiling: a sensor that filters or calibrates after its converter clips at a level its
+#: readings then wander about by a few tenths of a percent, never repeating exactly (the 3DM-GX5-25
+#: of the gait-driven set: its rate plateaus at 497-511 deg/s, e.g. 505.8, 507.3, 507.5, 507.3). The
+#: readings within CEILING_SHARE of an axis's extreme (one sign) are clipped when that extreme is
+#: beyond the plausible range, within CEILING_NEAR_MAX of the block's largest reading on any axis (one
+#: sensor, one full scale), and reached in at least CEILING_RUNS separate runs: a live signal's peaks
+#: spread over tens of deg/s from swing to swing. Measured on the 13 gait-driven walks (0-226 clipped
+#: samples, 7.6 % of walk 35's) and the 28 PyShoe trials (0-99): every level flagged lies at 497-556
+#: deg/s; without the CEILING_NEAR_MAX condition, 356-469 deg/s coincidences of 3 peaks were flagged too.
+CEILING_SHARE = 0.99
+CEILING_NEAR_MAX = 0.95
+CEILING_RUNS = 3
+
+
+def _ceiling(x: np.ndarray, plausible: float) -> np.ndarray:
+    """Per sample, a reading at a clipping ceiling on any axis (see :data:`CEILING_SHARE`), (N,) bool."""
+    out = np.zeros(len(x), bool)
+    with np.errstate(invalid="ignore"):
+        a = np.abs(x)
+        top = np.nanmax(a) if np.isfinite(a).any() else np.nan
+        if not top >= plausible:
+            return out
+        for k in range(x.shape[1]):
+            for sign in (1.0, -1.0):
+                y = sign * x[:, k]
+                if not np.isfinite(y).any():
+                    continue
+                level = np.nanmax(y)
+                if not (level >= plausible and level >= CEILING_NEAR_MAX * top):
+                    continue
+                near = y >= CEILING_SHARE * level
+                starts = np.count_nonzero(np.diff(near.astype(np.int8), prepend=np.int8(0)) == 1)
+                if starts >= CEILING_RUNS:
+                    out |= near
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
@@ -145,7 +180,7 @@ class ImuBlock:
             mask = flat.copy()
             for d in range(1, repeats):
                 mask[:-d] |= flat[d:]
-            out.append(np.any(mask, axis=1))
+            out.append(np.any(mask, axis=1) | _ceiling(x, plausible))
         return out[0], out[1]
 
     @property

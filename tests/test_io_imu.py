@@ -165,3 +165,26 @@ def test_sensorconnect_real_trials_and_their_footprints(shared_data):
     assert fp is not None and fp.pos_xy.shape[1] == 2 and fp.stride[0] == 0
     # a walk of fp.n_strides strides of 0.5-2 m each (walking to running)
     assert 0.3 * fp.n_strides < fp.distance_m < 2.5 * fp.n_strides
+
+
+def test_sensorconnect_clipped_rate_is_told_though_it_never_repeats(shared_data):
+    """Walk 35 runs: its 3DM-GX5-25 clips the pitch rate at a ceiling its readings wander about
+    (never an exact repeat). The foot INS counts those samples as saturated (each within 1 % of the
+    axis's extreme, in several swings); walk 32, whose largest rate stays below the ceiling, has none."""
+    from hybridloc.ins.foot import PLATEAU_ACCEL, PLATEAU_GYRO
+    from hybridloc.ins.stance import stance_runs
+    from hybridloc.io.imu_files import read_sensorconnect_csv
+
+    d = shared_data / "gait-driven-own"
+    if not (d / "SensorConnectData_35.csv.gz").exists():
+        pytest.skip("gait-driven-own is absent from ../shared/data")
+    imu = read_sensorconnect_csv(d / "SensorConnectData_35.csv.gz").imu
+    _, sg = imu.saturated(PLATEAU_ACCEL, PLATEAU_GYRO)
+    g = imu.gyro_body
+    assert len(stance_runs(sg)[0]) >= 3
+    near = (g[sg] >= 0.99 * g.max(axis=0)) | (g[sg] <= 0.99 * g.min(axis=0))
+    assert near.any(axis=1).all()
+    # not one reading up there repeats its predecessor: the exact-repeat test alone would miss them
+    assert not np.any((g[1:] == g[:-1]) & (np.abs(g[1:]) >= PLATEAU_GYRO))
+    imu32 = read_sensorconnect_csv(d / "SensorConnectData_32.csv.gz").imu
+    assert not imu32.saturated(PLATEAU_ACCEL, PLATEAU_GYRO)[1].any()

@@ -216,3 +216,31 @@ def test_imu_block_tells_saturated_readings():
     assert sa.all() and sg.nonzero()[0].tolist() == [3, 4, 5, 6, 9, 10]
     with pytest.raises(ValueError, match="full scale"):
         ImuBlock(t, acc, gyr, gyro_range=-1.0)
+
+
+def test_imu_block_tells_a_clipping_ceiling_whose_readings_wander():
+    """A sensor that filters after its converter clips at a level its readings wander about (never an
+    exact repeat): the readings within 1 % of an axis's extreme, reached in 3 or more separate swings,
+    are saturated. Peaks that spread as a live signal's do, a level reached in only 2 swings, and a
+    level 6 swings share a third below the sensor's largest reading are not."""
+    rng = np.random.default_rng(4)
+    rate, n_swings = 200.0, 8
+    t = np.arange(int(n_swings * rate)) / rate
+    acc = np.tile([0.0, 0.0, 9.8], (len(t), 1))
+    peaks = np.linspace(9.0, 12.0, n_swings)  # rad/s, one bell per second, each swing's own peak
+    phase = (t % 1.0) - 0.5
+    bell = np.exp(-0.5 * (phase / 0.05) ** 2)
+    live = np.zeros((len(t), 3))
+    live[:, 1] = peaks[(t // 1.0).astype(int)] * bell
+    live[:, 2] = -4.0 * bell  # a quieter axis: 8 equal peaks, inside the plausible range
+    assert not ImuBlock(t, acc, live).saturated(50.0, 5.0)[1].any()
+    level = 8.85  # the gait-driven set's ~507 deg/s
+    clipped = live.copy()
+    over = clipped[:, 1] > level
+    clipped[over, 1] = level * (1.0 + 0.002 * rng.standard_normal(int(over.sum())))  # wanders +-0.2 %
+    sg = ImuBlock(t, acc, clipped).saturated(50.0, 5.0)[1]
+    assert np.all(sg[over]) and sg.sum() <= over.sum() + 2 * n_swings  # the plateaus and their edges only
+    two = live.copy()
+    top = np.where(t < 2.0, 9.2, 6.0) * (1.0 + 0.002 * rng.standard_normal(len(t)))
+    two[:, 1] = np.minimum(two[:, 1], top)  # 2 swings at a wandering top; 6 at another, a third below it
+    assert not ImuBlock(t, acc, two).saturated(50.0, 5.0)[1].any()
