@@ -653,3 +653,50 @@ def test_split_vote_finds_known_buildings_and_floors_held_out_by_phone():
     assert s["building_hit_pct"] == 100.0
     assert s["floor_hit_pct"] >= 95.0
     assert s["mean_m"] < 8.0  # a 40 x 20 m floor: a guess at its centre would be ~11 m off
+
+
+def test_position_search_scores_every_candidate_as_split_vote_does():
+    """split_search scores the position votes with what they share computed once; each score must be
+    the one split_vote gives that candidate alone, to the bit, fallbacks included (short lists leave
+    rows with no neighbour on the chosen floor in one representation's list)."""
+    from hybridloc.radio.hierarchy import (
+        Representation,
+        _position_penalties,
+        floor_grid,
+        other_group_neighbours,
+        position_grid,
+        restricted_neighbours,
+        score,
+        split_search,
+        split_vote,
+        vote_floors,
+    )
+
+    rng = np.random.default_rng(11)
+    X, pos, b, f, ph = _synthetic_buildings(rng)
+    reps = [Representation("powed", np.e, True), Representation("exponential", 24.0, True), Representation("powed", np.e, False)]
+    base = {r: (r(X), *other_group_neighbours(r(X), ph, 30)) for r in reps}
+    p0 = np.unique(ph)[0]
+    tr = np.flatnonzero(ph != p0)
+    lists = {r: restricted_neighbours(R, D, I, ph, tr, {p0}, 4) for r, (R, D, I) in base.items()}
+    # every 5th query's list in the third representation holds only references of another floor
+    D3, I3 = (a.copy() for a in lists[reps[2]])
+    for q in range(0, len(tr), 5):
+        other = tr[(b[tr] == b[tr[q]]) & (f[tr] != f[tr[q]])]
+        I3[q] = other[: I3.shape[1]]
+    lists[reps[2]] = (D3, I3)
+    positions = position_grid(reps, (1, 3, 4), (1.0, 4.0, 16.0))
+    fallbacks = 0
+    for fv in floor_grid(reps, (3,), (3,), (1.0,)):
+        voted = vote_floors(*lists[fv.rep], b, f, pos, fv)
+        fast = _position_penalties(lists, fv, positions, voted, b, f, pos, b[tr], f[tr], pos[tr])
+        for pv in positions:
+            one = float(score(*split_vote(lists, fv, pv, b, f, pos, voted), b[tr], f[tr], pos[tr]).penalised_m.mean())
+            assert fast[pv] == one
+        for r in reps:
+            D, I = lists[r]
+            on = (I >= 0) & (b[np.maximum(I, 0)] == voted[0][:, None]) & (f[np.maximum(I, 0)] == voted[1][:, None])
+            fallbacks += int((~on.any(axis=1)).sum())
+    assert fallbacks > 0  # the fallback path was exercised
+    c = split_search(lists, tr, b, f, pos, floor_grid(reps, (3,), (3,), (1.0,)), positions)
+    assert c.position in positions

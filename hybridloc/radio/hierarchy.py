@@ -355,7 +355,11 @@ def floor_grid(reps, k_floors=(5, 10, 20), k_buildings=(5, 20), weight_powers=(1
     return [FloorVote(r, *c) for r in reps for c in itertools.product(k_floors, k_buildings, weight_powers)]
 
 
-def position_grid(reps, ks=(1, 2, 3, 5, 7, 10, 15), weight_powers=(1.0, 2.0, 3.0, 4.0)) -> list[PositionVote]:
+POSITION_KS = (1, 2, 3, 5, 7, 10, 15)
+POSITION_WEIGHT_POWERS = (1.0, 2.0, 3.0, 4.0)
+
+
+def position_grid(reps, ks=POSITION_KS, weight_powers=POSITION_WEIGHT_POWERS) -> list[PositionVote]:
     return [PositionVote(r, *c) for r in reps for c in itertools.product(ks, weight_powers)]
 
 
@@ -394,10 +398,46 @@ def split_search(
     assert best_f is not None
     fv = best_f[1]
     voted = vote_floors(*lists[fv.rep], building, floor, pos, fv)
+    pens = _position_penalties(lists, fv, positions, voted, building, floor, pos, b, f, p)
     best_p = None
-    for pv in positions:
-        pen = float(score(*split_vote(lists, fv, pv, building, floor, pos, voted), b, f, p).penalised_m.mean())
-        if best_p is None or pen < best_p[0]:
-            best_p = (pen, pv)
+    for pv in positions:  # in the grid's order: the first of equal scores wins
+        if best_p is None or pens[pv] < best_p[0]:
+            best_p = (pens[pv], pv)
     assert best_p is not None
     return SplitChoice(fv, best_p[1], best_p[0])
+
+
+def _position_penalties(lists, fv, positions, voted, building, floor, pos, b, f, p) -> dict:
+    """Each position vote's mean penalised score, the same numbers as scoring
+    ``split_vote(lists, fv, pv, ..., voted)`` one candidate at a time, with what the candidates share
+    computed once: per representation the on-floor mask, its running count and the neighbours'
+    positions, per weight power the weights (:func:`position_on_floor`'s expressions, element for
+    element)."""
+    bb, ff = voted
+    out: dict = {}
+    for rep in dict.fromkeys(pv.rep for pv in positions):
+        D, I = lists[rep]
+        valid = I >= 0
+        Ii = np.maximum(I, 0)
+        on = valid & (building[Ii] == bb[:, None]) & (floor[Ii] == ff[:, None])
+        count = np.cumsum(on, axis=1)
+        near = pos[Ii]
+        dist = np.maximum(np.where(valid, D, 1.0), 1e-9)
+        mine = [pv for pv in positions if pv.rep == rep]
+        for wp in dict.fromkeys(pv.weight_power for pv in mine):
+            inv = 1.0 / dist**wp
+            for pv in (q for q in mine if q.weight_power == wp):
+                w = np.where(on & (count <= pv.k), inv, 0.0)
+                tot = w.sum(axis=1)
+                found = tot > 0
+                P = np.full((len(I), 2), np.nan)
+                P[found] = np.einsum("nk,nkd->nd", w[found], near[found]) / tot[found, None]
+                if not found.all():  # split_vote's fallbacks (row by row): the floor list's neighbours, else its nearest
+                    miss = np.flatnonzero(~found)
+                    Df, If = lists[fv.rep]
+                    P2, found2 = position_on_floor(Df[miss], If[miss], bb[miss], ff[miss], building, floor, pos, pv.k, pv.weight_power)
+                    P[miss] = P2
+                    rest = miss[~found2]
+                    P[rest] = pos[np.maximum(If[rest, 0], 0)]
+                out[pv] = float(score(bb, ff, P, b, f, p).penalised_m.mean())
+    return out
