@@ -72,9 +72,10 @@ SATURATION_REPEATS = 3
 #: readings within CEILING_SHARE of an axis's extreme (one sign) are clipped when that extreme is
 #: beyond the plausible range, within CEILING_NEAR_MAX of the block's largest reading on any axis (one
 #: sensor, one full scale), and reached in at least CEILING_RUNS separate runs: a live signal's peaks
-#: spread over tens of deg/s from swing to swing. Measured on the 13 gait-driven walks (0-226 clipped
-#: samples, 7.6 % of walk 35's) and the 28 PyShoe trials (0-99): every level flagged lies at 497-556
-#: deg/s; without the CEILING_NEAR_MAX condition, 356-469 deg/s coincidences of 3 peaks were flagged too.
+#: spread over tens of deg/s from swing to swing. Measured on the 13 gait-driven walks (0-226 samples
+#: flagged; walk 35's 226 are 3.8 % of it, its readings at 495 deg/s or more 7.6 %) and the 28 PyShoe
+#: trials (0-99): every level flagged lies at 497-556 deg/s; without the CEILING_NEAR_MAX condition,
+#: 356-469 deg/s coincidences of 3 peaks were flagged too.
 CEILING_SHARE = 0.99
 CEILING_NEAR_MAX = 0.95
 CEILING_RUNS = 3
@@ -162,7 +163,8 @@ class ImuBlock:
         With the full scale known, a reading at ``share`` of it or beyond on any axis. Unknown, the same
         reading on ``repeats`` consecutive samples of an axis beyond what the carrier can plausibly
         produce (``plausible_accel`` m/s^2, ``plausible_gyro`` rad/s): a clipped plateau; a live signal
-        does not repeat exactly up there."""
+        does not repeat exactly up there. Also unknown: the readings at a ceiling they wander about
+        (:data:`CEILING_SHARE`)."""
         out = []
         for x, full, plausible in ((self.accel_body, self.accel_range, plausible_accel), (self.gyro_body, self.gyro_range, plausible_gyro)):
             with np.errstate(invalid="ignore"):
