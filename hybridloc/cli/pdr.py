@@ -126,7 +126,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         s = res.stats
         print(
             f"{p}: {len(res.t)} samples at {imu.rate_hz:.1f} Hz, {len(st)} strides, {s['stance_samples']} stance samples, "
-            f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']}, re-initialisations {s['reinit']}; "
+            f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']} ({100 * s['saturated_samples'] / max(len(res.t), 1):.1f} %), re-initialisations {s['reinit']}; "
             f"input: {report.summary()} -> {d}"
             + (f"; drift elimination: {s['hde_accepted']} of {s['hde_strides']} strides measured as a dominant direction" if hde is not None else "")
         )
