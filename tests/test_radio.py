@@ -665,6 +665,7 @@ def test_position_search_scores_every_candidate_as_split_vote_does():
         floor_grid,
         other_group_neighbours,
         position_grid,
+        position_on_floor,
         restricted_neighbours,
         score,
         split_search,
@@ -693,6 +694,13 @@ def test_position_search_scores_every_candidate_as_split_vote_does():
         for pv in positions:
             one = float(score(*split_vote(lists, fv, pv, b, f, pos, voted), b[tr], f[tr], pos[tr]).penalised_m.mean())
             assert fast[pv] == one
+            # the fallback rows, against the floor list's answer computed over every row
+            D, I = lists[pv.rep]
+            miss = ~((I >= 0) & (b[np.maximum(I, 0)] == voted[0][:, None]) & (f[np.maximum(I, 0)] == voted[1][:, None])).any(axis=1)
+            Df, If = lists[fv.rep]
+            P2, found2 = position_on_floor(Df, If, *voted, b, f, pos, pv.k, pv.weight_power)
+            want = np.where(found2[:, None], P2, pos[np.maximum(If[:, 0], 0)])
+            assert np.array_equal(split_vote(lists, fv, pv, b, f, pos, voted)[2][miss], want[miss])
         for r in reps:
             D, I = lists[r]
             on = (I >= 0) & (b[np.maximum(I, 0)] == voted[0][:, None]) & (f[np.maximum(I, 0)] == voted[1][:, None])

@@ -316,16 +316,40 @@ def position_on_floor(
     """Weighted mean position of each query's first ``k`` neighbours in (D, I) that lie on its chosen
     building ``bb`` and floor ``ff``. Returns (positions (n, 2), found (n,) bool); rows with no such
     neighbour are NaN and not found."""
+    on, count, near, dist = _on_floor(D, I, bb, ff, building, floor, pos)
+    return _weighted_mean(on, count, near, 1.0 / dist**weight_power, k)
+
+
+def _on_floor(D, I, bb, ff, building, floor, pos):
+    """What :func:`position_on_floor` needs whatever its k and weight power: (each neighbour on the
+    chosen building and floor (n, K), their running count, the neighbours' positions (n, K, 2), the
+    distances with padding at 1 and floored at 1e-9 (n, K))."""
     valid = I >= 0
     Ii = np.maximum(I, 0)
     on = valid & (building[Ii] == bb[:, None]) & (floor[Ii] == ff[:, None])
-    use = on & (np.cumsum(on, axis=1) <= k)
-    w = np.where(use, 1.0 / np.maximum(np.where(valid, D, 1.0), 1e-9) ** weight_power, 0.0)
+    return on, np.cumsum(on, axis=1), pos[Ii], np.maximum(np.where(valid, D, 1.0), 1e-9)
+
+
+def _weighted_mean(on, count, near, inv, k):
+    """The ``inv``-weighted mean of the first ``k`` neighbours ``on`` the floor: (positions, found)."""
+    w = np.where(on & (count <= k), inv, 0.0)
     tot = w.sum(axis=1)
     found = tot > 0
-    P = np.full((len(I), 2), np.nan)
-    P[found] = np.einsum("nk,nkd->nd", w[found], pos[Ii[found]]) / tot[found, None]
+    P = np.full((len(on), 2), np.nan)
+    P[found] = np.einsum("nk,nkd->nd", w[found], near[found]) / tot[found, None]
     return P, found
+
+
+def _fall_back(P, found, floor_list, bb, ff, building, floor, pos, k, weight_power) -> np.ndarray:
+    """:func:`split_vote`'s fallbacks, row by row: a row whose position list held no neighbour on the
+    chosen floor takes the floor list's weighted mean there, else the floor list's nearest neighbour."""
+    miss = np.flatnonzero(~found)
+    if len(miss):
+        Df, If = floor_list
+        P[miss], found2 = position_on_floor(Df[miss], If[miss], bb[miss], ff[miss], building, floor, pos, k, weight_power)
+        rest = miss[~found2]
+        P[rest] = pos[np.maximum(If[rest, 0], 0)]
+    return P
 
 
 def split_vote(
@@ -343,12 +367,7 @@ def split_vote(
     Df, If = lists[fv.rep]
     bb, ff = floors_voted if floors_voted is not None else vote_floors(Df, If, building, floor, pos, fv)
     P, found = position_on_floor(*lists[pv.rep], bb, ff, building, floor, pos, pv.k, pv.weight_power)
-    if not found.all():
-        P2, found2 = position_on_floor(Df, If, bb, ff, building, floor, pos, pv.k, pv.weight_power)
-        P[~found] = P2[~found]
-        rest = ~found & ~found2
-        P[rest] = pos[np.maximum(If[rest, 0], 0)]
-    return bb, ff, P
+    return bb, ff, _fall_back(P, found, (Df, If), bb, ff, building, floor, pos, pv.k, pv.weight_power)
 
 
 def floor_grid(reps, k_floors=(5, 10, 20), k_buildings=(5, 20), weight_powers=(1.0, 2.0)) -> list[FloorVote]:
@@ -416,34 +435,15 @@ def split_search(
 def _position_penalties(lists, fv, positions, voted, building, floor, pos, b, f, p) -> dict:
     """Each position vote's mean penalised score, the same numbers as scoring
     ``split_vote(lists, fv, pv, ..., voted)`` one candidate at a time, with what the candidates share
-    computed once: per representation the on-floor mask, its running count and the neighbours'
-    positions, per weight power the weights (:func:`position_on_floor`'s expressions, element for
-    element)."""
+    computed once: per representation :func:`_on_floor`, per weight power the weights."""
     bb, ff = voted
     out: dict = {}
     for rep in dict.fromkeys(pv.rep for pv in positions):
-        D, I = lists[rep]
-        valid = I >= 0
-        Ii = np.maximum(I, 0)
-        on = valid & (building[Ii] == bb[:, None]) & (floor[Ii] == ff[:, None])
-        count = np.cumsum(on, axis=1)
-        near = pos[Ii]
-        dist = np.maximum(np.where(valid, D, 1.0), 1e-9)
+        on, count, near, dist = _on_floor(*lists[rep], bb, ff, building, floor, pos)
         mine = [pv for pv in positions if pv.rep == rep]
         for wp in dict.fromkeys(pv.weight_power for pv in mine):
             inv = 1.0 / dist**wp
             for pv in (q for q in mine if q.weight_power == wp):
-                w = np.where(on & (count <= pv.k), inv, 0.0)
-                tot = w.sum(axis=1)
-                found = tot > 0
-                P = np.full((len(I), 2), np.nan)
-                P[found] = np.einsum("nk,nkd->nd", w[found], near[found]) / tot[found, None]
-                if not found.all():  # split_vote's fallbacks (row by row): the floor list's neighbours, else its nearest
-                    miss = np.flatnonzero(~found)
-                    Df, If = lists[fv.rep]
-                    P2, found2 = position_on_floor(Df[miss], If[miss], bb[miss], ff[miss], building, floor, pos, pv.k, pv.weight_power)
-                    P[miss] = P2
-                    rest = miss[~found2]
-                    P[rest] = pos[np.maximum(If[rest, 0], 0)]
+                P = _fall_back(*_weighted_mean(on, count, near, inv, pv.k), lists[fv.rep], bb, ff, building, floor, pos, pv.k, wp)
                 out[pv] = float(score(bb, ff, P, b, f, p).penalised_m.mean())
     return out
