@@ -379,6 +379,29 @@ def test_one_stance_per_step_keeps_the_deepest_run_of_each_cluster():
     assert len(stance.stance_runs(stance.one_stance_per_step(mask, T, rate, min_swing=0.15)[0])[0]) == 3
 
 
+def test_one_stance_per_step_demotes_runs_too_brief_for_a_stance():
+    """A 2-sample dip (10 ms at 200 Hz: the swing's pitch rate reversing) is no step's stance, however
+    deep; it is demoted outright and does not chain the stances either side of it into one cluster."""
+    rate = 200.0
+    logT = np.full(1000, 9.0)
+    logT[100:140] = 6.5  # step 1
+    logT[180:182] = 5.0  # a mid-swing dip, 0.2 s after step 1 and 0.19 s before step 2: deepest of all
+    logT[220:260] = 6.4  # step 2
+    T = 10**logT
+    mask = logT < 8.0
+    strong, demoted = stance.one_stance_per_step(mask, T, rate, min_swing=0.25, min_stance=0.02)
+    assert list(zip(*stance.stance_runs(strong))) == [(100, 140), (220, 260)]
+    assert demoted[180:182].all() and demoted.sum() == 2
+    # with no bound the dip is kept as the cluster's stance and swallows both steps around it
+    strong0, _ = stance.one_stance_per_step(mask, T, rate, min_swing=0.25, min_stance=0.0)
+    assert list(zip(*stance.stance_runs(strong0))) == [(180, 182)]
+    # a run of exactly the bound (4 samples = 20 ms) is long enough
+    logT[180:184] = 5.0
+    mask4 = logT < 8.0
+    strong4, _ = stance.one_stance_per_step(mask4, 10**logT, rate, min_swing=0.25, min_stance=0.02)
+    assert list(zip(*stance.stance_runs(strong4))) == [(180, 184)]
+
+
 def test_stance_points_are_one_more_than_the_strides():
     imu = _synthetic_walk(np.random.default_rng(2), noise=False)
     res = run_foot_ins(imu, stance=_true_stance(imu))
@@ -478,6 +501,29 @@ def test_gated_demoted_runs_keep_a_mid_swing_dip_from_cutting_a_stride(shared_da
     assert true_len[5] - lens[False][5] > 0.5  # the dip's ZUPT cut the stride
     assert abs(lens[True][5] - true_len[5]) < 0.15
     assert np.mean(np.abs(lens[True] - true_len)) < np.mean(np.abs(lens[False] - true_len))
+
+
+@pytest.mark.shared_data
+def test_a_mid_swing_dip_no_longer_splits_a_stride(shared_data):
+    """SensorConnectData_45, its twelfth stride (1.27 m by the footprints): 0.47 s after the stance the
+    statistic dips for 3 samples (12 ms at 250 Hz, |a| - g 1-4 m/s^2: the foot in flight) and, with no
+    shortest stance, the robust detector cut the stride there (0.14 + 0.51 m). With it the walk's 74
+    strides are counted as walked, and each is within the 0.2 m of a footprint's own marking."""
+    from hybridloc.ins.evaluate import evaluate_gait_walk
+    from hybridloc.ins.foot import FootInsConfig, stance_points
+    from hybridloc.io.imu_files import footprints_beside, read_sensorconnect_csv
+
+    p = shared_data / "gait-driven-own" / "SensorConnectData_45.csv.gz"
+    if not p.is_file():
+        pytest.skip(f"{p} is absent")
+    assert evaluate_gait_walk(p, FootInsConfig(detector="robust", min_stance=0.0)).n_detected > 74
+    fp, rec = footprints_beside(p), read_sensorconnect_csv(p)
+    res = run_foot_ins(rec.imu, FootInsConfig(detector="robust"))
+    pts = stance_points(res)
+    assert len(pts) - 1 == fp.n_strides == 74
+    true_len = np.linalg.norm(np.diff(fp.pos_xy, axis=0), axis=1)
+    est_len = np.linalg.norm(np.diff(res.pos_enu[pts, :2][fp.stride], axis=0), axis=1)
+    assert np.median(np.abs(est_len - true_len)) < 0.2
 
 
 def test_simulated_closed_loop_returns_to_its_start():

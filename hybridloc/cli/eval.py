@@ -338,8 +338,9 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
     rs_ad = [evaluate_gait_walk(w, FootInsConfig()) for w in walks]
     rs = [evaluate_gait_walk(w, base) for w in walks]
     print(
-        f"\ngait-driven walks ({folder}, {len(walks)} walks, 3DM-GX5-25, other walkers): settings as above, none fitted on this set "
-        f"(robust: the adaptive detector's ZUPTs, strides cut at one stance per step, shortest swing {base.min_swing:g} s, a physical bound)"
+        f"\ngait-driven walks ({folder}, {len(walks)} walks, 3DM-GX5-25, other walkers): settings as above, none fitted on this set but the shortest stance "
+        f"(robust: the adaptive detector's ZUPTs, strides cut at one stance per step, shortest swing {base.min_swing:g} s, a physical bound, and shortest stance "
+        f"{base.min_stance:g} s, chosen on these walks' stride counts below)"
     )
     print(
         f"footprints: the stance middles; the estimate starts at the true start, its heading turned so that its first footprint "
@@ -391,6 +392,23 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
         f"(mean {cnt[:, bj].mean():.2f}); the default {base.min_swing:g} s (not fitted): {int((cnt[:, swings.index(base.min_swing)] == 0).sum())}"
     )
     head["gait_stride_count_exact_held_out"] = int((held == 0).sum())
+    # the shortest stance of a step, chosen alike (a shorter run is a mid-swing dip: stance.MIN_STANCE_S)
+    stances = stance_mod.MIN_STANCE_CANDIDATES_S
+    cnt = np.zeros((len(walks), len(stances)))
+    for j, ms in enumerate(stances):
+        for i, w in enumerate(walks):
+            r = rs[i] if ms == base.min_stance else evaluate_gait_walk(w, replace(base, min_stance=ms))
+            cnt[i, j] = abs(r.n_detected - r.n_walked)
+    chosen, held = leave_one_group_out(cnt, [w.name for w in walks])
+    bj = int(np.argmin(cnt.mean(axis=0)))
+    same = int((np.asarray(stances)[chosen] == base.min_stance).sum())
+    print(
+        f"shortest stance ({','.join(f'{x:g}' for x in stances)} s) chosen leave one walk out on |stride count error|: held out exact on "
+        f"{int((held == 0).sum())} of {len(walks)} (mean |error| {held.mean():.2f}; the default {base.min_stance:g} s chosen in {same} of "
+        f"{len(walks)} folds), fitted on all ({stances[bj]:g} s) {int((cnt[:, bj] == 0).sum())} (mean {cnt[:, bj].mean():.2f}); "
+        f"with no bound (0 s): {int((cnt[:, stances.index(0.0)] == 0).sum())}"
+    )
+    head["gait_stride_count_exact_held_out_min_stance"] = int((held == 0).sum())
     if grid is not None and decades:
         # the reverse: the adaptive threshold fitted on the gait walks' final-point error, scored on PyShoe
         fin = np.zeros((len(walks), len(decades)))

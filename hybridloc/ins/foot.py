@@ -76,6 +76,7 @@ class FootInsConfig:
     reinit_after_s: float = 1.0  # s of stance with every ZUPT rejected before re-initialising
     smooth: bool = True  # RTS-smooth each stride back from its stance (smoother.py); the forward track is kept too
     min_swing: float = stance_mod.MIN_SWING_S  # s, the "robust" detector's shortest swing (stance.one_stance_per_step)
+    min_stance: float = stance_mod.MIN_STANCE_S  # s, the "robust" detector's shortest stance of a step (the same)
     smooth_max_s: float = 2.0  # longest smoothing interval, s (a long standing still is cut into pieces)
     noise: ImuNoise = field(default_factory=ImuNoise)
     hde: HdeConfig | None = None  # heuristic drift elimination (hde.py): straight strides measured as a dominant direction; None: off
@@ -167,7 +168,7 @@ def run_foot_ins(
                 # weak stances) cost PyShoe VICON 0.0529 -> 0.0635 m mean ARMSE (one running trial 0.055 ->
                 # 0.258 m) and moved the gait-driven walks' final-point errors both ways (34: 2.27 -> 1.47 %,
                 # 35: 2.59 -> 3.11 %), so it is off; eval pdr-foot chooses it with the vertical ZARU
-                step_stance, demoted = stance_mod.one_stance_per_step(stance, T, rate, cfg.min_swing)
+                step_stance, demoted = stance_mod.one_stance_per_step(stance, T, rate, cfg.min_swing, cfg.min_stance)
                 step_stance &= finite
             if cfg.vet:
                 weak = stance_mod.weak_stance(T, rate, stance)
