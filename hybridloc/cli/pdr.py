@@ -198,7 +198,7 @@ def register(sub) -> None:
         type=float,
         metavar="DEG_S",
         help="vertical zero angular rate at stance with this sigma in deg/s (hybridloc.ins.measurements.ZeroYawRate): the gyro's bias about "
-        "the body's up axis, which a foot that rolls through its stance keeps from the 3-D update; off by default (eval pdr-foot chooses it)",
+        "the body's up axis, which a foot that rolls through its stance keeps from the 3-D update; off by default (eval pdr-foot chooses it: 5 with --detector robust --vet-demoted on the gait-driven walks)",
     )
     ft.add_argument(
         "--vet-demoted",

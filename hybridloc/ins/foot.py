@@ -166,8 +166,9 @@ def run_foot_ins(
                 # the ZUPTs stay the adaptive detector's; only the strides are cut at one stance per
                 # step. Vetting the demoted runs' ZUPTs instead (``vet_demoted``: through the gate, like
                 # weak stances) cost PyShoe VICON 0.0529 -> 0.0635 m mean ARMSE (one running trial 0.055 ->
-                # 0.258 m) and moved the gait-driven walks' final-point errors both ways (34: 2.27 -> 1.47 %,
-                # 35: 2.59 -> 3.11 %), so it is off; eval pdr-foot chooses it with the vertical ZARU
+                # 0.258 m; 0.0743 m since the shortest stance demotes its brief running stances too), so it
+                # is off; eval pdr-foot chooses it with the vertical ZARU on the gait-driven walks (5 deg/s
+                # with it in every fold since the shortest stance: return error held out 0.65 %)
                 step_stance, demoted = stance_mod.one_stance_per_step(stance, T, rate, cfg.min_swing, cfg.min_stance)
                 step_stance &= finite
             if cfg.vet:
