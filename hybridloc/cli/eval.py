@@ -328,7 +328,7 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
     import numpy as np
 
     from ..ins import stance as stance_mod
-    from ..ins.evaluate import GAIT_ALIGN_M, GAIT_CLOSE_FRACTION, evaluate_gait_walk, gait_walks, leave_one_group_out, summarize_gait
+    from ..ins.evaluate import GAIT_ALIGN_M, GAIT_CLOSE_FRACTION, evaluate_gait_walk, gait_walks, summarize_gait
     from ..ins.foot import FootInsConfig
 
     walks = gait_walks(folder)
@@ -379,13 +379,7 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
     )
     # the shortest swing, chosen leave one walk out on the stride counts (the gait set's own truth)
     swings = stance_mod.MIN_SWING_CANDIDATES_S
-    cnt = np.zeros((len(walks), len(swings)))
-    for j, ms in enumerate(swings):
-        for i, w in enumerate(walks):
-            r = rs[i] if ms == base.min_swing else evaluate_gait_walk(w, replace(base, min_swing=ms))
-            cnt[i, j] = abs(r.n_detected - r.n_walked)
-    chosen, held = leave_one_group_out(cnt, [w.name for w in walks])
-    bj = int(np.argmin(cnt.mean(axis=0)))
+    cnt, chosen, held, bj = _stride_count_choice(walks, rs, base, "min_swing", swings)
     print(
         f"shortest swing ({','.join(f'{x:g}' for x in swings)} s) chosen leave one walk out on |stride count error|: held out exact on "
         f"{int((held == 0).sum())} of {len(walks)} (mean |error| {held.mean():.2f}), fitted on all ({swings[bj]:g} s) {int((cnt[:, bj] == 0).sum())} "
@@ -394,13 +388,7 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
     head["gait_stride_count_exact_held_out"] = int((held == 0).sum())
     # the shortest stance of a step, chosen alike (a shorter run is a mid-swing dip: stance.MIN_STANCE_S)
     stances = stance_mod.MIN_STANCE_CANDIDATES_S
-    cnt = np.zeros((len(walks), len(stances)))
-    for j, ms in enumerate(stances):
-        for i, w in enumerate(walks):
-            r = rs[i] if ms == base.min_stance else evaluate_gait_walk(w, replace(base, min_stance=ms))
-            cnt[i, j] = abs(r.n_detected - r.n_walked)
-    chosen, held = leave_one_group_out(cnt, [w.name for w in walks])
-    bj = int(np.argmin(cnt.mean(axis=0)))
+    cnt, chosen, held, bj = _stride_count_choice(walks, rs, base, "min_stance", stances)
     same = int((np.asarray(stances)[chosen] == base.min_stance).sum())
     print(
         f"shortest stance ({','.join(f'{x:g}' for x in stances)} s) chosen leave one walk out on |stride count error|: held out exact on "
@@ -426,6 +414,26 @@ def _foot_gait(folder: str, decades: list[float], grid, head: dict) -> tuple[lis
         head["armse_gait_fitted_mean_m"] = grid[:, gj].mean()
         head["gait_final_error_pyshoe_fitted_median_pct"] = np.median(fin[:, pj])
     return walks, rs
+
+
+def _stride_count_choice(walks: list, rs: list, base, field: str, candidates) -> tuple:
+    """|stride count error| of each gait walk (rows) with the robust detector's ``field`` at each of
+    ``candidates`` (columns; ``rs`` where a candidate is ``base``'s own value), and the candidate chosen
+    leave one walk out: ``(counts, chosen index per walk, held-out count error per walk, index fitted
+    on all)``."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from ..ins.evaluate import evaluate_gait_walk, leave_one_group_out
+
+    cnt = np.zeros((len(walks), len(candidates)))
+    for j, v in enumerate(candidates):
+        for i, w in enumerate(walks):
+            r = rs[i] if v == getattr(base, field) else evaluate_gait_walk(w, replace(base, **{field: v}))
+            cnt[i, j] = abs(r.n_detected - r.n_walked)
+    chosen, held = leave_one_group_out(cnt, [w.name for w in walks])
+    return cnt, chosen, held, int(np.argmin(cnt.mean(axis=0)))
 
 
 def _foot_hde(walks: list, rs: list, files: list, sim_loops: int, head: dict) -> None:
