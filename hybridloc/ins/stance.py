@@ -184,13 +184,15 @@ MIN_SWING_S = 0.25
 MIN_SWING_CANDIDATES_S = (0.15, 0.2, 0.25, 0.3, 0.35)
 
 #: Shortest stance of a step, s: a run of the stance mask shorter than this is not where a step ends.
-#: Mid-swing, where the foot's pitch rate reverses, the statistic of the 3DM-GX5-25 dips for 1-3
-#: samples (4-12 ms) to its stance level while the foot still moves at metres per second (|a| - g is
-#: 1-4 m/s^2 there, against a few tenths at stance); a stance lasts 45 ms or more on every gait-driven
-#: walk. Cut at such a dip, a stride splits in two (gait-driven walk 45: 0.14 + 0.51 m where 1.27 m
-#: was walked). Chosen by cross-validation in ``hybridloc eval pdr-foot`` on the stride counts
-#: (:data:`MIN_STANCE_CANDIDATES_S`): 20 ms in every fold leaving one walk out, counts exact on 11 of
-#: 13 walks against 7 with no bound.
+#: Mid-swing, where the foot's pitch rate reverses, the statistic of the 3DM-GX5-25 can dip for a
+#: few samples to its stance level while the foot still moves at metres per second (walk 45: 2-3
+#: samples, 8-12 ms, |a| - g 1-4 m/s^2 there against a few tenths at stance). Cut at such a dip, a
+#: stride splits in two (walk 45: 0.14 + 0.51 m where 1.27 m was walked). The shortest stances the
+#: robust detector keeps last 25 ms (walks 31, 33, 38, 39), and 30 ms already splits strides of walk
+#: 31, so the bound sits one sample under them; longer dips (walk 34's 5 samples) stay for the
+#: cluster rule and the gate on demoted runs. Chosen by cross-validation in ``hybridloc eval
+#: pdr-foot`` on the stride counts (:data:`MIN_STANCE_CANDIDATES_S`): 20 ms in every fold leaving
+#: one walk out, counts exact on 11 of 13 walks against 7 with no bound.
 MIN_STANCE_S = 0.02
 MIN_STANCE_CANDIDATES_S = (0.0, 0.01, 0.015, 0.02, 0.025, 0.03, 0.04)
 
@@ -217,7 +219,7 @@ def one_stance_per_step(
     s, e = stance_runs(mask)
     strong = np.zeros(len(mask), bool)
     demoted = np.zeros(len(mask), bool)
-    brief = (e - s) < min_stance * rate_hz
+    brief = (e - s) < int(round(min_stance * rate_hz))  # whole samples, as the swing's gap below
     for a, b in zip(s[brief], e[brief]):
         demoted[a:b] = True
     s, e = s[~brief], e[~brief]
