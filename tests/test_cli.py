@@ -82,6 +82,26 @@ def test_sensorconnect_walk_through_data_inspect_and_pdr_foot(shared_data, tmp_p
     assert "strides" in r.stdout and list((tmp_path / "out").iterdir())
     # the clipped samples' count and share (the 3DM-GX5-25 clips at a ceiling its readings wander about)
     assert re.search(r"saturated samples \d+ \(\d+\.\d %\)", r.stdout)
+    assert "--preset gait-driven" in r.stdout  # the default settings on this sensor: the hint names the held-out ones
+
+
+def test_pdr_foot_preset_applies_the_held_out_settings_and_options_override_it(shared_data, tmp_path):
+    """SensorConnectData_34, 24 strides walked: with the default (adaptive) detector the sensor's
+    mid-swing dips are counted as steps (a third more); --preset gait-driven counts them as walked,
+    and an explicit --detector overrides the preset's."""
+    p = shared_data / "gait-driven-own" / "SensorConnectData_34.csv.gz"
+    if not p.is_file():
+        pytest.skip(f"{p} is absent")
+
+    def strides(*opts):
+        r = _run("pdr", "foot", str(p), "--out", str(tmp_path / "o"), *opts)
+        assert r.returncode == 0, r.stderr
+        return int(re.search(r"(\d+) strides", r.stdout).group(1)), r.stdout
+
+    n, out = strides("--preset", "gait-driven")
+    assert n == 24 and "--preset gait-driven applies" not in out
+    assert strides()[0] > 24
+    assert strides("--preset", "gait-driven", "--detector", "adaptive")[0] > 24
 
 
 @pytest.mark.shared_data

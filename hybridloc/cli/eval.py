@@ -526,7 +526,7 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
     import numpy as np
 
     from ..ins.evaluate import FOOT_ZARU_UP_SIGMAS, evaluate_gait_walk, pyshoe_armse_grid, simulated_loop_errors
-    from ..ins.foot import FootInsConfig
+    from ..ins.foot import FOOT_PRESETS, FootInsConfig
     from ..units import DEG
 
     # (sigma, vet the demoted runs' ZUPTs): the second is the robust detector's, so PyShoe (adaptive) sees the first only
@@ -548,6 +548,13 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
         "stance); candidates: " + "; ".join(f"{k}: {label(*c)}" for k, c in enumerate(cands))
     )
     bj = _gait_choice(walks, rs, fin, intro, "off", "gait_zaru_up", head)
+    preset = FOOT_PRESETS["gait-driven"]
+    held = (preset["zaru_up_sigma"], preset["vet_demoted"])
+    same = held[1] == cands[bj][1] and (held[0] is None) == (cands[bj][0] is None) and (held[0] is None or abs(held[0] - cands[bj][0]) < 1e-12)
+    print(
+        f"  pdr foot --preset gait-driven ({label(*held)}): "
+        + ("the candidate fitted on all" if same else f"NOT the candidate fitted on all ({label(*cands[bj])}): the preset is stale")
+    )
     closes = np.array([r.closes for r in rs])
     sigmas = [c for c, _ in cands]
     cfg = FootInsConfig(zaru_up_sigma=sigmas[bj])

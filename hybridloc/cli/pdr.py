@@ -86,7 +86,11 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             hde = replace(HDE_DEFAULT, grid=None if args.hde == "learn" else parse_start(f"0,0,{args.hde}")[2])
         except ValueError as exc:
             raise BadInput(f"--hde {args.hde!r}: a grid direction in rad or e.g. 30deg ({exc})") from exc
-    zaru_up = None
+    from ..ins.foot import FOOT_PRESETS
+    from ..io import detect_format
+
+    preset = FOOT_PRESETS.get(args.preset, {}) if args.preset else {}
+    zaru_up = preset.get("zaru_up_sigma")
     if args.zaru_up is not None:
         if not (math.isfinite(args.zaru_up) and args.zaru_up > 0):
             raise BadInput(f"--zaru-up {args.zaru_up}: a standard deviation in deg/s, above 0")
@@ -106,12 +110,12 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         res = run_foot_ins(
             imu,
             FootInsConfig(
-                detector=args.detector,
+                detector=args.detector or preset.get("detector", "adaptive"),
                 detector_threshold=args.threshold,
                 smooth=not args.forward,
                 hde=hde,
                 zaru_up_sigma=zaru_up,
-                vet_demoted=args.vet_demoted,
+                vet_demoted=args.vet_demoted or preset.get("vet_demoted", False),
             ),
         )
         d = out / stem_of(p)
@@ -129,6 +133,11 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             f"gaps {s['gaps']}, NaN samples {s['nan_samples']}, saturated samples {s['saturated_samples']} ({100 * s['saturated_samples'] / max(len(res.t), 1):.1f} %), re-initialisations {s['reinit']}; "
             f"input: {report.summary()} -> {d}"
             + (f"; drift elimination: {s['hde_accepted']} of {s['hde_strides']} strides measured as a dominant direction" if hde is not None else "")
+            + (
+                "; a SensorConnect recording with the default settings: --preset gait-driven applies those chosen held out for the 3DM-GX5-25"
+                if not args.preset and args.detector is None and (args.format or detect_format(p)) == "sensorconnect"
+                else ""
+            )
         )
     return status
 
@@ -175,8 +184,15 @@ def register(sub) -> None:
     ft.add_argument(
         "--detector",
         choices=("adaptive", "robust", "shoe", "ared", "amvd", "mbgtd"),
-        default="adaptive",
-        help="stance detector (default adaptive SHOE; robust: its ZUPTs, strides cut at one stance per step, for a sensor that dips mid-swing)",
+        help="stance detector (default adaptive SHOE, or the preset's; robust: its ZUPTs, strides cut at one stance per step, for a sensor "
+        "that dips mid-swing)",
+    )
+    ft.add_argument(
+        "--preset",
+        choices=("gait-driven",),
+        help="settings chosen held out for a sensor family (hybridloc.ins.foot.FOOT_PRESETS); explicit options override them. gait-driven: "
+        "a MicroStrain 3DM-GX5-25 on the foot (--detector robust --zaru-up 5 --vet-demoted, what eval pdr-foot chooses on the gait-driven "
+        "walks); default: none (PyShoe's sensor's settings)",
     )
     ft.add_argument("--threshold", type=float, help="the detector's threshold in its units (see hybridloc.ins.stance)")
     ft.add_argument(
