@@ -98,6 +98,11 @@ def test_pdr_foot_preset_applies_the_held_out_settings_and_options_override_it(s
         assert r.returncode == 0, r.stderr
         return int(re.search(r"(\d+) strides", r.stdout).group(1)), r.stdout
 
+    from hybridloc.ins.foot import FOOT_PRESETS
+
+    usage = _run("pdr", "foot", "--help").stdout
+    assert set(re.search(r"--preset \{([^}]*)\}", usage).group(1).split(",")) == set(FOOT_PRESETS)  # the option lists every preset
+
     n, out = strides("--preset", "gait-driven")
     assert n == 24 and "--preset gait-driven applies" not in out
     assert strides()[0] > 24

@@ -14,7 +14,7 @@ LENGTH_MODELS = ("constant", "weinberg", "frequency", "kim", "height")
 
 
 def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "m/s^2"):
-    """(imu, read report, device model, waypoints or None) of a recording."""
+    """(imu, read report, device model, waypoints or None, format read) of a recording."""
     from ..errors import check_input_file
     from ..io import detect_format
 
@@ -26,7 +26,7 @@ def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "
         tr = read_ilc_trace(path)
         if tr.imu is None:
             raise MissingData(f"{path}: no usable IMU data ({tr.report.summary()})")
-        return tr.imu, tr.report, tr.device_model, tr.waypoints
+        return tr.imu, tr.report, tr.device_model, tr.waypoints, fmt
     from ..io.imu_files import read_imu_csv, read_openshoe_mat, read_pyshoe_mat, read_sensorconnect_csv
 
     if fmt == "footprints":
@@ -41,7 +41,7 @@ def load_imu(path: str, fmt: str | None, rate: float | None, accel_unit: str = "
         rec = read_openshoe_mat(path, rate or 100.0)
     else:
         raise MissingData(f"{path}: format {fmt} holds no IMU data")
-    return rec.imu, rec.report, "", None
+    return rec.imu, rec.report, "", None, fmt
 
 
 def open_calibration(path: str | None, update: bool, model_name: str):

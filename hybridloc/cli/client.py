@@ -52,7 +52,7 @@ def _cmd_client(args: argparse.Namespace) -> int:
     if args.replay:
         check_input_file(args.replay, "recording")
     if args.replay and args.kind == "foot":
-        imu, _, _, _ = load_imu(args.replay, args.format, args.rate)
+        imu, *_ = load_imu(args.replay, args.format, args.rate)
     elif args.replay:
         from ..io.msft import read_ilc_trace
 

@@ -549,11 +549,10 @@ def _foot_zaru_up(walks: list, rs: list, files: list, sim_loops: int, head: dict
     )
     bj = _gait_choice(walks, rs, fin, intro, "off", "gait_zaru_up", head)
     preset = FOOT_PRESETS["gait-driven"]
-    held = (preset["zaru_up_sigma"], preset["vet_demoted"])
-    same = held[1] == cands[bj][1] and (held[0] is None) == (cands[bj][0] is None) and (held[0] is None or abs(held[0] - cands[bj][0]) < 1e-12)
+    want = (preset["zaru_up_sigma"], preset["vet_demoted"])  # written as FOOT_ZARU_UP_SIGMAS writes its sigmas: equal floats
     print(
-        f"  pdr foot --preset gait-driven ({label(*held)}): "
-        + ("the candidate fitted on all" if same else f"NOT the candidate fitted on all ({label(*cands[bj])}): the preset is stale")
+        f"  pdr foot --preset gait-driven ({label(*want)}): "
+        + ("the candidate fitted on all" if want == cands[bj] else f"NOT the candidate fitted on all ({label(*cands[bj])}): the preset is stale")
     )
     closes = np.array([r.closes for r in rs])
     sigmas = [c for c, _ in cands]

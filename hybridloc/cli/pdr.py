@@ -23,7 +23,7 @@ def _cmd_pdr_phone(args: argparse.Namespace) -> int:
     status = 0
     for p in args.traces:
         try:
-            imu, report, device, marks = load_imu(p, args.format, None, args.accel_unit)
+            imu, report, device, marks, _ = load_imu(p, args.format, None, args.accel_unit)
         except Exception as exc:  # one line per unreadable input, then the next input
             status = max(status, report_input_error(p, exc))
             continue
@@ -87,9 +87,8 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise BadInput(f"--hde {args.hde!r}: a grid direction in rad or e.g. 30deg ({exc})") from exc
     from ..ins.foot import FOOT_PRESETS
-    from ..io import detect_format
 
-    preset = FOOT_PRESETS.get(args.preset, {}) if args.preset else {}
+    preset = FOOT_PRESETS[args.preset] if args.preset else {}
     zaru_up = preset.get("zaru_up_sigma")
     if args.zaru_up is not None:
         if not (math.isfinite(args.zaru_up) and args.zaru_up > 0):
@@ -99,7 +98,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
     status = 0
     for p in args.files:
         try:
-            imu, report, _, _ = load_imu(p, args.format, args.rate, args.accel_unit)
+            imu, report, _, _, fmt = load_imu(p, args.format, args.rate, args.accel_unit)
             if args.rate and args.format != "openshoe" and abs(imu.rate_hz - args.rate) > 0.05 * args.rate:
                 raise BadInput(f"--rate {args.rate} Hz disagrees with the file's timestamps ({imu.rate_hz:.1f} Hz)")
             if not 50.0 <= imu.rate_hz <= 2000.0:
@@ -135,7 +134,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             + (f"; drift elimination: {s['hde_accepted']} of {s['hde_strides']} strides measured as a dominant direction" if hde is not None else "")
             + (
                 "; a SensorConnect recording with the default settings: --preset gait-driven applies those chosen held out for the 3DM-GX5-25"
-                if not args.preset and args.detector is None and (args.format or detect_format(p)) == "sensorconnect"
+                if not args.preset and args.detector is None and fmt == "sensorconnect"
                 else ""
             )
         )

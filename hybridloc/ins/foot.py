@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..types import ImuBlock, StepEvent
-from ..units import G0, wrap_angle
+from ..units import DEG, G0, wrap_angle
 from . import stance as stance_mod
 from .eskf import ErrorStateEkf, ImuNoise
 from .hde import DriftEliminator, HdeConfig
@@ -63,7 +63,7 @@ PLATEAU_GYRO = 5.0
 #: out (in every fold: return error 0.65 % held out against 2.45 % with the defaults). The defaults are
 #: PyShoe's sensor's (the 3DM-GX3-25): there the gate on demoted runs costs 0.0529 -> 0.0743 m ARMSE.
 FOOT_PRESETS: dict[str, dict] = {
-    "gait-driven": {"detector": "robust", "zaru_up_sigma": math.radians(5.0), "vet_demoted": True},
+    "gait-driven": {"detector": "robust", "zaru_up_sigma": 5 * DEG, "vet_demoted": True},
 }
 
 
