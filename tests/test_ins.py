@@ -530,6 +530,13 @@ def test_a_mid_swing_dip_no_longer_splits_a_stride(shared_data):
     est_len = np.linalg.norm(np.diff(res.pos_enu[pts, :2][fp.stride], axis=0), axis=1)
     assert abs(est_len[11] - true_len[11]) < 0.15
     assert np.median(np.abs(est_len - true_len)) < 0.1
+    # detect_stance("robust") is the filter's one stance per step, and takes the same shortest stance
+    from hybridloc.ins.foot import detect_stance
+
+    g = float(np.linalg.norm(rec.imu.accel_body[:50].mean(axis=0)))
+    steps = detect_stance(rec.imu, "robust", None, g)
+    assert len(stance.stance_runs(steps)[0]) == fp.n_strides + 1
+    assert len(stance.stance_runs(detect_stance(rec.imu, "robust", None, g, min_stance=0.0))[0]) > fp.n_strides + 1
 
 
 def test_simulated_closed_loop_returns_to_its_start():

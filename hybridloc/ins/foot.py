@@ -107,11 +107,21 @@ class FootInsResult:
     step_stance: np.ndarray | None = None  # (N,) bool, one stance per step ("robust" detector): what :func:`strides` cuts at
 
 
-def detect_stance(imu: ImuBlock, detector: str, threshold: float | None, g: float) -> np.ndarray:
+def detect_stance(
+    imu: ImuBlock,
+    detector: str,
+    threshold: float | None,
+    g: float,
+    min_swing: float = stance_mod.MIN_SWING_S,
+    min_stance: float = stance_mod.MIN_STANCE_S,
+) -> np.ndarray:
+    """The stance mask of ``detector`` (one of stance.DETECTORS). For "robust" it is the one stance
+    per step that strides are cut at (``min_swing`` / ``min_stance`` as in FootInsConfig); the filter
+    itself applies the adaptive mask's ZUPTs (:func:`run_foot_ins`)."""
     a, w = imu.accel_body, imu.gyro_body
     if detector in ("adaptive", "robust"):
         T, m = stance_mod.adaptive_shoe(a, w, imu.rate_hz, g=g, **({"decades": threshold} if threshold else {}))
-        return stance_mod.one_stance_per_step(m, T, imu.rate_hz)[0] if detector == "robust" else m
+        return stance_mod.one_stance_per_step(m, T, imu.rate_hz, min_swing, min_stance)[0] if detector == "robust" else m
     if detector == "shoe":
         return stance_mod.shoe(a, w, threshold or 2e7, g=g)[1]
     if detector == "ared":
