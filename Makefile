@@ -47,8 +47,11 @@ chromium:
 	  sudo apt-get update -qq && sudo DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null; \
 	else echo "make: chromium is missing and cannot be installed here: the dashboard's browser tests will skip"; fi
 
+# two test processes (pytest-xdist), whole files to each so that a module's fixtures (a crowd replay,
+# a PostgreSQL server per process) are built once: most tests wait on servers, sockets and child
+# processes, so two share CI's 2 cores well (15.1 -> 7.6 min here, the same 899 tests)
 test: lint postgres chromium
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2 --dist loadfile
 
 demo: $(STAMP)
 	$(BIN)/hybridloc demo
