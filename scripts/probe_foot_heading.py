@@ -1,16 +1,18 @@
 """Why the foot INS's heading drifts on the gait-driven walks (3DM-GX5-25): the measurements behind
 ``hybridloc.ins.hde``.
 
-    python scripts/probe_foot_heading.py [../shared/data/gait-driven-own]
+    python scripts/probe_foot_heading.py [../shared/data/gait-driven-own] [--preset gait-driven]
 
-Per walk (default filter, ``--detector robust``), one line each:
+Per walk (default filter, ``--detector robust``; with ``--preset``, that preset of ``pdr foot``), one
+line each:
 
 * stance: how still the foot is where the detector calls stance: |omega| median over stance samples
   and the median of each stance run's least |omega| (a still foot reads ~1 deg/s: PyShoe's GX3, below);
 * gyro at the start: the mean rate along gravity over the still prefix (a bias, plus the sway of a
   standing walker), against the vertical bias the filter ends with;
 * heading: where the strides were counted exactly, the INS's stride heading minus the truth's, at the
-  end and as a slope over time (deg/s);
+  end and as a slope over time (deg/s): least squares, and Theil-Sen's median of pairwise slopes (the
+  few strides through a turn, tens of degrees off, pull the least-squares slope; not the median);
 * magnetometer (when logged): |B| and dip at each footprint (INS attitude), and how far the field's
   azimuth, turned into the truth's frame by the INS's own heading error there, wanders (a usable
   compass would hold it still), over all footprints and over those passing a 5 % |B| / 5 deg dip gate.
@@ -46,13 +48,16 @@ class _Recorder(ErrorStateEkf):
         _Recorder.last = self
 
 
-def main(folder: str) -> None:
+def main(folder: str, preset: str | None = None) -> None:
+    from scipy.stats import theilslopes
+
     foot.ErrorStateEkf = _Recorder  # type: ignore[misc]  # to read the filter's final bias
+    cfg = foot.FootInsConfig(**foot.FOOT_PRESETS[preset]) if preset else foot.FootInsConfig(detector="robust")
     for p in gait_walks(folder):
         imu = read_sensorconnect_csv(p).imu
         fp = footprints_beside(p)
         assert fp is not None
-        res = foot.run_foot_ins(imu, foot.FootInsConfig(detector="robust"))
+        res = foot.run_foot_ins(imu, cfg)
         kf = _Recorder.last
         assert kf is not None and res.step_stance is not None
         w = np.linalg.norm(imu.gyro_body, axis=1) / D
@@ -74,7 +79,10 @@ def main(folder: str) -> None:
             dg = np.diff(fp.pos_xy, axis=0)
             err = np.unwrap(wrap(np.arctan2(de[:, 1], de[:, 0]) - np.arctan2(dg[:, 1], dg[:, 0])))
             err -= err[:3].mean()
-            line += f"; heading error at the end {np.mean(err[-3:]) / D:+.1f} deg, slope {np.polyfit(t, err, 1)[0] / D:+.3f} deg/s"
+            line += (
+                f"; heading error at the end {np.mean(err[-3:]) / D:+.1f} deg, slope {np.polyfit(t, err, 1)[0] / D:+.3f} deg/s "
+                f"(Theil-Sen {theilslopes(err, t)[0] / D:+.3f})"
+            )
             if imu.mag_body is not None:
                 idx = pts[fp.stride[1:]]
                 mn = np.array([quat_to_dcm(res.quat_wxyz[i]) @ imu.mag_body[i] for i in idx]) * 1e6
@@ -100,4 +108,12 @@ def main(folder: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/gait-driven-own")
+    args = sys.argv[1:]
+    preset = None
+    if "--preset" in args:
+        i = args.index("--preset")
+        preset = args[i + 1]
+        if preset not in foot.FOOT_PRESETS:
+            sys.exit(f"--preset: one of {', '.join(foot.FOOT_PRESETS)}")
+        del args[i : i + 2]
+    main(args[0] if args else "../shared/data/gait-driven-own", preset)
