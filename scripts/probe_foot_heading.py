@@ -20,8 +20,8 @@ line each:
 
 from __future__ import annotations
 
+import argparse
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -108,12 +108,8 @@ def main(folder: str, preset: str | None = None) -> None:
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    preset = None
-    if "--preset" in args:
-        i = args.index("--preset")
-        preset = args[i + 1]
-        if preset not in foot.FOOT_PRESETS:
-            sys.exit(f"--preset: one of {', '.join(foot.FOOT_PRESETS)}")
-        del args[i : i + 2]
-    main(args[0] if args else "../shared/data/gait-driven-own", preset)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("folder", nargs="?", default="../shared/data/gait-driven-own")
+    ap.add_argument("--preset", choices=list(foot.FOOT_PRESETS), help="a pdr foot preset (default: --detector robust)")
+    a = ap.parse_args()
+    main(a.folder, a.preset)

@@ -88,12 +88,17 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
             raise BadInput(f"--hde {args.hde!r}: a grid direction in rad or e.g. 30deg ({exc})") from exc
     from ..ins.foot import FOOT_PRESETS
 
-    preset = FOOT_PRESETS[args.preset] if args.preset else {}
-    zaru_up = preset.get("zaru_up_sigma")
+    # the preset's settings (none: FootInsConfig's defaults), then the options given explicitly over them
+    opts = dict(FOOT_PRESETS[args.preset]) if args.preset else {}
+    if args.detector is not None:
+        opts["detector"] = args.detector
+    if args.vet_demoted:
+        opts["vet_demoted"] = True
     if args.zaru_up is not None:
         if not (math.isfinite(args.zaru_up) and args.zaru_up > 0):
             raise BadInput(f"--zaru-up {args.zaru_up}: a standard deviation in deg/s, above 0")
-        zaru_up = math.radians(args.zaru_up)
+        opts["zaru_up_sigma"] = math.radians(args.zaru_up)
+    cfg = FootInsConfig(detector_threshold=args.threshold, smooth=not args.forward, hde=hde, **opts)
     out = Path(args.out)
     status = 0
     for p in args.files:
@@ -106,17 +111,7 @@ def _cmd_pdr_foot(args: argparse.Namespace) -> int:
         except Exception as exc:  # one line per unreadable input, then the next input
             status = max(status, report_input_error(p, exc))
             continue
-        res = run_foot_ins(
-            imu,
-            FootInsConfig(
-                detector=args.detector or preset.get("detector", "adaptive"),
-                detector_threshold=args.threshold,
-                smooth=not args.forward,
-                hde=hde,
-                zaru_up_sigma=zaru_up,
-                vet_demoted=args.vet_demoted or preset.get("vet_demoted", False),
-            ),
-        )
+        res = run_foot_ins(imu, cfg)
         d = out / stem_of(p)
         d.mkdir(parents=True, exist_ok=True)
         with open(d / "trajectory.csv", "w", newline="", encoding="utf-8") as f:
