@@ -7,7 +7,7 @@ import shapely
 
 from hybridloc.io import detect_format
 from hybridloc.io.common import DataFormatError
-from hybridloc.io.msft import find_ilc_traces, floor_level, read_ilc_floor, read_ilc_site, read_ilc_trace, read_ilc_waypoints
+from hybridloc.io.msft import find_ilc_traces, floor_level, floor_name, read_ilc_floor, read_ilc_site, read_ilc_trace, read_ilc_waypoints
 
 HEADER = "#\tstartTime:1574559495255\n#\tSiteID:s1\tSiteName:test\tFloorId:f\tFloorName:F2\n#\tBrand:ACME\tModel:X1\n"
 
@@ -111,8 +111,29 @@ def test_detect_format(tmp_path):
 
 def test_floor_level_names():
     assert [floor_level(n) for n in ("F1", "F3", "B1", "B2", "L2", "4")] == [0, 2, -1, -2, 1, 4]
+    # the competition's 2021 release names its floors 1F, 2F, B1F
+    assert [floor_level(n) for n in ("1F", "12F", "B1F", "b2f")] == [0, 11, -1, -2]
     with pytest.raises(ValueError):
         floor_level("roof")
+
+
+def test_floor_names_keep_the_sites_style():
+    """A floor change names the new floor as the site does (a name the site's map and fixes use)."""
+    from hybridloc.fusion.kalman import _shift_floor
+
+    cases = {
+        ("F1", -1): "B1",
+        ("B1", 1): "F1",
+        ("F3", 1): "F4",
+        ("L2", -1): "L1",
+        ("1F", -1): "B1F",
+        ("B1F", 1): "1F",
+        ("2F", 1): "3F",
+        ("4", -1): "3",
+    }
+    assert {k: _shift_floor(*k) for k in cases} == cases
+    assert _shift_floor("roof", 1) == "roof"  # a name without a level stays
+    assert all(floor_level(floor_name(lv, like)) == lv for lv in range(-3, 9) for like in ("F1", "B2", "L1", "1F", "B1F", "0"))
 
 
 def _trace_facts(path):

@@ -445,12 +445,10 @@ def _track_at(track: list[tuple[float, float, float]], t: float) -> np.ndarray:
 
 
 def _shift_floor(name: str, delta: int) -> str:
-    from ..io.msft import floor_level
+    """The floor ``delta`` levels from ``name``, named in its style (F2 -> F3, 2F -> 3F, F1 -> B1)."""
+    from ..io.msft import floor_level, floor_name
 
     try:
-        lvl = floor_level(name) + delta
+        return floor_name(floor_level(name) + delta, name)
     except ValueError:
         return name
-    if name.upper().startswith(("F", "L", "B")):
-        return f"F{lvl + 1}" if lvl >= 0 else f"B{-lvl}"
-    return str(lvl)

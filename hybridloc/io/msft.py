@@ -387,23 +387,41 @@ def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport,
 # ----------------------------------------------------------------------------------------------
 # Floor plans
 # ----------------------------------------------------------------------------------------------
-_FLOOR_RE = re.compile(r"^(?:(?P<f>F|L)(?P<fn>\d+)|(?P<b>B)(?P<bn>\d+))$", re.IGNORECASE)
+#: Floor names of the Indoor Location Competition's sites: F1 / L1 (ground) and B1 (first basement) in
+#: the 2020 release, 1F and B1F in the 2021 one (the Kaggle "indoor location & navigation" sites).
+_FLOOR_RE = re.compile(r"^(?:(?P<f>F|L)(?P<fn>\d+)|(?P<fn2>\d+)F|(?P<b>B)(?P<bn>\d+)F?)$", re.IGNORECASE)
 
 #: Storey height assumed where the data gives none, m.
 DEFAULT_STOREY_HEIGHT = 5.0
 
 
 def floor_level(name: str) -> int:
-    """Ordinal of a floor name: F1/L1 -> 0, F2 -> 1, B1 -> -1; a plain integer is taken as is."""
+    """Ordinal of a floor name: F1 / L1 / 1F -> 0, F2 / 2F -> 1, B1 / B1F -> -1; a plain integer is
+    taken as is."""
     m = _FLOOR_RE.match(name.strip())
-    if m and m.group("f"):
-        return int(m.group("fn")) - 1
+    if m and (m.group("fn") or m.group("fn2")):
+        return int(m.group("fn") or m.group("fn2")) - 1
     if m and m.group("b"):
         return -int(m.group("bn"))
     try:
         return int(name)
     except ValueError:
         raise ValueError(f"cannot tell the level of floor {name!r}") from None
+
+
+def floor_name(level: int, like: str) -> str:
+    """The name of floor ``level`` in the naming style of ``like`` (a floor name of the same site):
+    ``floor_name(1, "F1") == "F2"``, ``floor_name(-1, "2F") == "B1F"``, ``floor_name(2, "0") == "2"``."""
+    m = _FLOOR_RE.match(like.strip())
+    if m is None:
+        return str(level)
+    like = like.strip()
+    suffix_style = bool(m.group("fn2")) or (bool(m.group("b")) and like.upper().endswith("F"))  # 1F, B1F
+    if level >= 0:
+        out = f"{level + 1}F" if suffix_style else f"{m.group('f') or 'F'}{level + 1}"
+    else:
+        out = f"B{-level}F" if suffix_style else f"B{-level}"
+    return out if like.upper() == like else out.lower()
 
 
 @dataclass(frozen=True)
