@@ -297,3 +297,23 @@ def test_site1_waypoints_lie_in_the_walkable_area(ilc_site1):
         inside = shapely.contains_xy(floor.walkable, pts[:, 0], pts[:, 1])
         assert inside.mean() >= 0.95, f"{floor.name}: {inside.mean():.2%} of waypoints in the walkable area"
         assert floor.walkable.area < 0.5 * floor.outline.area
+
+
+def test_find_traces_follows_linked_floor_folders(tmp_path):
+    """A site assembled from floor folders kept elsewhere (symbolic links) lists every floor's traces,
+    as read_ilc_site lists every floor; a link back up the tree is walked once, not forever."""
+    elsewhere = tmp_path / "disk2" / "F2" / "path_data_files"
+    elsewhere.mkdir(parents=True)
+    _write(elsewhere, HEADER + _sensor_lines(1574559495300, 3), name="b.txt.gz")
+    site = tmp_path / "site"
+    (site / "F1" / "path_data_files").mkdir(parents=True)
+    _write(site / "F1" / "path_data_files", HEADER + _sensor_lines(1574559495300, 3), name="a.txt")
+    (site / "F1" / "path_data_files" / "notes.md").write_text("not a trace")
+    try:
+        (site / "F2").symlink_to(tmp_path / "disk2" / "F2", target_is_directory=True)
+        (site / "F1" / "loop").symlink_to(site, target_is_directory=True)
+    except OSError as e:  # a file system without symbolic links
+        pytest.skip(f"no symbolic links here: {e}")
+    found = find_ilc_traces(site)
+    assert [p.relative_to(site).as_posix() for p in found] == ["F1/path_data_files/a.txt", "F2/path_data_files/b.txt.gz"]
+    assert find_ilc_traces(site / "F2") == [site / "F2" / "path_data_files" / "b.txt.gz"]

@@ -547,10 +547,21 @@ def read_ilc_site(site_dir: str | os.PathLike) -> FloorPlan:
 
 
 def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
-    """All trace files under a site or floor folder (``**/path_data_files/*.txt[.gz]``), sorted."""
+    """All trace files under a site or floor folder (``**/path_data_files/*.txt[.gz]``), sorted.
+
+    Symbolic links to folders are followed (a site assembled from floors kept elsewhere), each real
+    folder once (a link cycle ends there); ``Path.rglob`` before Python 3.13 skips them silently, and
+    read_ilc_site, which lists the floors, follows them."""
     root = Path(root)
     if root.is_file():
         return [root]
-    return sorted(
-        p for p in root.rglob("*") if p.is_file() and p.parent.name == "path_data_files" and (p.name.endswith(".txt") or p.name.endswith(".txt.gz"))
-    )
+    found, seen = [], set()
+    for d, dirs, files in os.walk(root, followlinks=True):
+        real = os.path.realpath(d)
+        if real in seen:
+            dirs[:] = []
+            continue
+        seen.add(real)
+        if Path(d).name == "path_data_files":
+            found += [Path(d) / f for f in files if (f.endswith(".txt") or f.endswith(".txt.gz")) and (Path(d) / f).is_file()]
+    return sorted(found)
