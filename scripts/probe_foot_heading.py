@@ -12,7 +12,9 @@ line each:
   standing walker), against the vertical bias the filter ends with;
 * heading: where the strides were counted exactly, the INS's stride heading minus the truth's, at the
   end and as a slope over time (deg/s): least squares, and Theil-Sen's median of pairwise slopes (the
-  few strides through a turn, tens of degrees off, pull the least-squares slope; not the median);
+  few strides through a turn, tens of degrees off, pull the least-squares slope; not the median); and
+  the same error fitted with a gyro scale-factor term as well (a share of the angle turned), and the
+  strides' summed length against the footprints';
 * magnetometer (when logged): |B| and dip at each footprint (INS attitude), and how far the field's
   azimuth, turned into the truth's frame by the INS's own heading error there, wanders (a usable
   compass would hold it still), over all footprints and over those passing a 5 % |B| / 5 deg dip gate.
@@ -83,6 +85,17 @@ def main(folder: str, preset: str | None = None) -> None:
                 f"; heading error at the end {np.mean(err[-3:]) / D:+.1f} deg, slope {np.polyfit(t, err, 1)[0] / D:+.3f} deg/s "
                 f"(Theil-Sen {theilslopes(err, t)[0] / D:+.3f})"
             )
+            # a gyro scale-factor error turns the heading by a share of the angle turned, not by time:
+            # err = a + b t + c turned (turned: the truth's unwrapped bearing change), Huber-weighted
+            turned = np.unwrap(np.arctan2(dg[:, 1], dg[:, 0]))
+            A = np.c_[np.ones_like(t), t - t[0], turned - turned[0]]
+            w = np.ones_like(t)
+            for _ in range(20):
+                c = np.linalg.lstsq(A * w[:, None], err * w, rcond=None)[0]
+                r = err - A @ c
+                w = 1.0 / np.maximum(1.0, np.abs(r) / (1.5 * 1.4826 * np.median(np.abs(r)) + 1e-12))
+            ratio = np.linalg.norm(de, axis=1).sum() / np.linalg.norm(dg, axis=1).sum()
+            line += f"; with a scale term: {c[1] / D:+.3f} deg/s and {100 * c[2]:+.2f} % of the {(turned[-1] - turned[0]) / D:+.0f} deg turned; stride lengths summed x{ratio:.4f} the truth's"
             if imu.mag_body is not None:
                 idx = pts[fp.stride[1:]]
                 mn = np.array([quat_to_dcm(res.quat_wxyz[i]) @ imu.mag_body[i] for i in idx]) * 1e6
