@@ -8,7 +8,9 @@ an ``hybridloc eval crowd --out OUT_DIR`` run:
    the client's PDR and Kalman filter; ``base`` is the eval's own "replay with the maps served") and
    with a floor-aware client: the filter's floor is the lead of a causal vote over its fixes' floors
    (each fix adding its kNN floor share), and a fix naming another floor is either not fused
-   (``reject``) or fused with its covariance multiplied by 4 (``inflate4``).
+   (``reject``) or fused with its covariance multiplied by 4 (``inflate4``); and a client whose fixes
+   all come from its true floor's references of the same map (``true-floor``: a perfect floor
+   decision, each scan located on that floor only).
 
 Usage: python scripts/probe_live_floor.py OUT_DIR SITE_DIR [--variants base,reject,inflate4]
 A line per third and per variant; the last line is one JSON object."""
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-VARIANTS = ("base", "reject", "inflate4")
+VARIANTS = ("base", "reject", "inflate4", "true-floor")
 THIRDS = ("first", "middle", "last")
 
 
@@ -63,8 +65,40 @@ def _replay(job):
     wp = client["waypoints"]
     t = np.array([w["t"] for w in wp], float)
     xy = np.array([[w["x"], w["y"]] for w in wp], float)
-    err = replay_offline(path, t, xy, axes, [_baseline_locator(db_url, site, client["map_version"], "served")])[0]
+    if variant == "true-floor":
+        loc = _floor_locator(db_url, site, client["map_version"], client["floor"])
+        if loc is None:  # the map holds no reference on that floor: the served map, as the client had
+            loc = _baseline_locator(db_url, site, client["map_version"], "served")
+    else:
+        loc = _baseline_locator(db_url, site, client["map_version"], "served")
+    err = replay_offline(path, t, xy, axes, [loc])[0]
     return variant, client["third"], err[np.isfinite(err)].tolist()
+
+
+_FLOOR_LOCATORS: dict = {}
+
+
+def _floor_locator(db_url: str, site: str, version: int, floor: str):
+    """The server's kNN locator over the references of one floor of map ``version`` (None: none there)."""
+    key = (version, floor)
+    if key not in _FLOOR_LOCATORS:
+        import io
+
+        from hybridloc.radio.locate import KnnLocator
+        from hybridloc.radio.radiomap import RadioMap
+        from hybridloc.server.locate_pool import KnnOne
+        from hybridloc.server.store import Store
+
+        store = Store(db_url, migrate=False)
+        try:
+            data = store.map_version(site, version)
+        finally:
+            store.close()
+        refs = [r for r in RadioMap.load(io.BytesIO(data)).references if r.floor == floor] if data else []
+        if len(_FLOOR_LOCATORS) >= 6:
+            _FLOOR_LOCATORS.pop(next(iter(_FLOOR_LOCATORS)))
+        _FLOOR_LOCATORS[key] = KnnOne(KnnLocator(refs, max_age_s=8.0)) if refs else None
+    return _FLOOR_LOCATORS[key]
 
 
 def main() -> None:
