@@ -317,3 +317,27 @@ def test_find_traces_follows_linked_floor_folders(tmp_path):
     found = find_ilc_traces(site)
     assert [p.relative_to(site).as_posix() for p in found] == ["F1/path_data_files/a.txt", "F2/path_data_files/b.txt.gz"]
     assert find_ilc_traces(site / "F2") == [site / "F2" / "path_data_files" / "b.txt.gz"]
+
+
+def test_one_floor_name_per_site(tmp_path):
+    """A floor folder's name is the floor's name for its plan and for the traces inside it, whatever
+    the plan's floor feature or a trace's header spell (the crowd evaluations group walks by folder);
+    a folder that names no level leaves the plan's and the header's own names."""
+    site = tmp_path / "site"
+    _write_plan(site / "B1", 40.0, 20.0, [])  # the plan's floor feature says "F1"
+    fl, _ = read_ilc_floor(site / "B1")
+    assert (fl.name, fl.level) == ("B1", -1)
+    _write_plan(tmp_path / "ground", 40.0, 20.0, [])
+    fl, _ = read_ilc_floor(tmp_path / "ground")
+    assert (fl.name, fl.level) == ("F1", 0)
+    inside = site / "B1" / "path_data_files"
+    inside.mkdir()
+    text = HEADER + _sensor_lines(1574559495300, 3) + "1574559495320\tTYPE_WAYPOINT\t1.0\t2.0\n"  # HEADER names F2
+    tr = read_ilc_trace(_write(inside, text))
+    assert tr.floor == "B1" and tr.waypoints.floor == "B1" and tr.meta["FloorNameInFile"] == "F2"
+    assert tr.report.notes["floor-name-from-folder"] == 1 and tr.report.ok
+    assert read_ilc_waypoints(inside / "trace.txt.gz").floor == "B1"
+    loose = tmp_path / "loose"
+    loose.mkdir()
+    assert read_ilc_trace(_write(loose, text)).floor == "F2"
+    assert [f.name for f in read_ilc_site(site).floors] == ["B1"]

@@ -259,11 +259,13 @@ def read_ilc_trace(path: str | os.PathLike, on_error: OnError = "skip") -> IlcTr
         for t, d in wifi.items()
     ] + _ble_scans(ble, model)
     scans.sort(key=lambda s: (s.t, s.technology.value))
+    _folder_floor(path, meta, report)
     return IlcTrace(path, meta, imu, rv, tuple(scans), _waypoints(wps, meta), report)
 
 
 def read_ilc_waypoints(path: str | os.PathLike, on_error: OnError = "skip") -> Waypoints:
-    """Only a trace's ground-truth marks and its floor (from the header), the sensor lines skipped
+    """Only a trace's ground-truth marks and its floor (the floor folder's name in a site's layout,
+    else the header's: :func:`_folder_floor`), the sensor lines skipped
     unparsed: about 3x faster than :func:`read_ilc_trace` (what comparing the routes of hundreds
     of walks needs). Same checks on what it reads."""
     report = ReadReport(str(path), on_error)
@@ -276,7 +278,38 @@ def read_ilc_waypoints(path: str | os.PathLike, on_error: OnError = "skip") -> W
             t = _record_time(lineno, f, report)
             if t is not None:
                 _add_waypoint(wps, lineno, t, f, report)
+    _folder_floor(str(path), meta, None)
     return _waypoints(wps, meta)
+
+
+def _site_floor_name(path: str) -> str | None:
+    """The floor folder's name of a trace kept in a site's layout (``<floor>/path_data_files/<file>``)
+    when it names a level (:func:`floor_level`); None elsewhere."""
+    p = Path(path)
+    if p.parent.name != "path_data_files":
+        return None
+    name = p.parent.parent.name
+    try:
+        floor_level(name)
+    except ValueError:
+        return None
+    return name
+
+
+def _folder_floor(path: str, meta: dict, report: ReadReport | None) -> None:
+    """One floor name per site: a trace in a floor folder takes the folder's name, the name its plan
+    goes by (:func:`read_ilc_floor`) and the crowd evaluations group it under, over a header that
+    spells the floor otherwise (kept as ``FloorNameInFile``; noted once in the report)."""
+    folder = _site_floor_name(path)
+    if folder is None or meta.get("FloorName") == folder:
+        return
+    if meta.get("FloorName"):
+        meta["FloorNameInFile"] = meta["FloorName"]
+        if report is not None:
+            report.note(
+                "floor-name-from-folder", 1, f"the header names floor {meta['FloorName']!r}, the folder {folder!r}: the folder's name is used"
+            )
+    meta["FloorName"] = folder
 
 
 def _header_fields(parts: list[str]) -> dict[str, str]:
@@ -512,8 +545,12 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         for poly in walkable.geoms:
             for ring in [poly.exterior, *poly.interiors]:
                 walls.extend(segments(ring))
+    # the folder's name when it names a level: the name the traces inside it go by (_folder_floor)
     name = str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
-    level = floor_level(name)
+    try:
+        level, name = floor_level(floor_dir.name), floor_dir.name
+    except ValueError:
+        level = floor_level(name)
     return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, walkable, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf
 
 
