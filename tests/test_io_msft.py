@@ -111,10 +111,11 @@ def test_detect_format(tmp_path):
 
 def test_floor_level_names():
     assert [floor_level(n) for n in ("F1", "F3", "B1", "B2", "L2", "4")] == [0, 2, -1, -2, 1, 4]
-    # the competition's 2021 release names its floors 1F, 2F, B1F
-    assert [floor_level(n) for n in ("1F", "12F", "B1F", "b2f")] == [0, 11, -1, -2]
-    with pytest.raises(ValueError):
-        floor_level("roof")
+    # the competition's 2021 release names its floors 1F, 2F, 1B; some malls sign B1F
+    assert [floor_level(n) for n in ("1F", "12F", "1B", "B1F", "b2f")] == [0, 11, -1, -1, -2]
+    for bad in ("roof", "\u0661F", "1 F"):  # no level; an Arabic-Indic digit; a space inside
+        with pytest.raises(ValueError):
+            floor_level(bad)
 
 
 def test_floor_names_keep_the_sites_style():
@@ -126,14 +127,20 @@ def test_floor_names_keep_the_sites_style():
         ("B1", 1): "F1",
         ("F3", 1): "F4",
         ("L2", -1): "L1",
-        ("1F", -1): "B1F",
+        ("1F", -1): "B1",
+        ("1B", 1): "1F",
+        ("2B", 1): "1B",
         ("B1F", 1): "1F",
+        ("1F", -2): "B2",
         ("2F", 1): "3F",
         ("4", -1): "3",
     }
     assert {k: _shift_floor(*k) for k in cases} == cases
     assert _shift_floor("roof", 1) == "roof"  # a name without a level stays
-    assert all(floor_level(floor_name(lv, like)) == lv for lv in range(-3, 9) for like in ("F1", "B2", "L1", "1F", "B1F", "0"))
+    # the site's own names where the filter knows them (its plan's floors), whatever the style
+    assert _shift_floor("1F", -1, {"1B", "1F", "2F"}) == "1B" and _shift_floor("F1", 1, {"F1", "2F"}) == "2F"
+    assert _shift_floor("F1", 2, {"F1", "F2"}) == "F3"  # a level the site does not list: by style
+    assert all(floor_level(floor_name(lv, like)) == lv for lv in range(-3, 9) for like in ("F1", "B2", "L1", "1F", "1B", "B1F", "0", "f1"))
 
 
 def _trace_facts(path):
@@ -316,6 +323,9 @@ def test_find_traces_follows_linked_floor_folders(tmp_path):
         pytest.skip(f"no symbolic links here: {e}")
     found = find_ilc_traces(site)
     assert [p.relative_to(site).as_posix() for p in found] == ["F1/path_data_files/a.txt", "F2/path_data_files/b.txt.gz"]
+    (site / "A-alias").symlink_to(site / "F1", target_is_directory=True)  # listed before F1, a link to it
+    found = find_ilc_traces(site)  # each trace once, by the real folder's path
+    assert [p.relative_to(site).as_posix() for p in found] == ["F1/path_data_files/a.txt", "F2/path_data_files/b.txt.gz"]
     assert find_ilc_traces(site / "F2") == [site / "F2" / "path_data_files" / "b.txt.gz"]
 
 
@@ -340,4 +350,7 @@ def test_one_floor_name_per_site(tmp_path):
     loose = tmp_path / "loose"
     loose.mkdir()
     assert read_ilc_trace(_write(loose, text)).floor == "F2"
+    year = tmp_path / "2021" / "path_data_files"  # a folder of digits names no floor
+    year.mkdir(parents=True)
+    assert read_ilc_trace(_write(year, text)).floor == "F2"
     assert [f.name for f in read_ilc_site(site).floors] == ["B1"]

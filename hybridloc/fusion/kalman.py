@@ -229,7 +229,7 @@ class LocalFusion:
         """After a step's prediction: record where it left us (for late fixes) and any floor change."""
         _keep(self._hist, (step.t, float(self.x[0]), float(self.x[1])))
         if step.floor_change and self.floor is not None:
-            self.floor = _shift_floor(self.floor, step.floor_change)
+            self.floor = _shift_floor(self.floor, step.floor_change, self.corridor_axes)
         return self.estimate("step")
 
     # ------------------------------------------------------------------ re-anchoring from the smoother
@@ -278,7 +278,7 @@ class LocalFusion:
             self._motion(step)
             _keep(self._hist, (step.t, float(self.x[0]), float(self.x[1])))
             if step.floor_change and self.floor is not None:
-                self.floor = _shift_floor(self.floor, step.floor_change)
+                self.floor = _shift_floor(self.floor, step.floor_change, self.corridor_axes)
         self.t = max(t_now, t)
         self.initialised = True
         self._rejected_run = 0
@@ -444,11 +444,12 @@ def _track_at(track: list[tuple[float, float, float]], t: float) -> np.ndarray:
     return np.array([x0 + a * (x1 - x0), y0 + a * (y1 - y0)])
 
 
-def _shift_floor(name: str, delta: int) -> str:
-    """The floor ``delta`` levels from ``name``, named in its style (F2 -> F3, 2F -> 3F, F1 -> B1)."""
+def _shift_floor(name: str, delta: int, known=()) -> str:
+    """The floor ``delta`` levels from ``name``: the site's ``known`` floor at that level (the plan's
+    names), else named in ``name``'s style (F2 -> F3, 2F -> 3F, F1 -> B1, 1F -> 1B)."""
     from ..io.msft import floor_level, floor_name
 
     try:
-        return floor_name(floor_level(name) + delta, name)
+        return floor_name(floor_level(name) + delta, name, known)
     except ValueError:
         return name

@@ -434,7 +434,7 @@ class ParticleFusion:
         self._memory.add(step)
         self.t = step.t
         if step.floor_change and self.floor is not None:
-            self.floor = _shift_floor(self.floor, step.floor_change)
+            self.floor = _shift_floor(self.floor, step.floor_change, {*self.prior.floors, *self.corridor_axes})
         if not self.initialised:
             return self.estimate("step")
         self._move(step)
@@ -528,7 +528,7 @@ class ParticleFusion:
         self._record(t)
         for step in since:  # the same steps, sampled again from the smoothed state
             if step.floor_change and self.floor is not None:
-                self.floor = _shift_floor(self.floor, step.floor_change)
+                self.floor = _shift_floor(self.floor, step.floor_change, {*self.prior.floors, *self.corridor_axes})
             self._move(step)
             self._record(step.t)
         self.t = max(t_now, t)

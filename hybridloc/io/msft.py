@@ -284,16 +284,12 @@ def read_ilc_waypoints(path: str | os.PathLike, on_error: OnError = "skip") -> W
 
 def _site_floor_name(path: str) -> str | None:
     """The floor folder's name of a trace kept in a site's layout (``<floor>/path_data_files/<file>``)
-    when it names a level (:func:`floor_level`); None elsewhere."""
+    when it is a floor name (F1, B1, 1F ... :data:`_FLOOR_RE`; not a plain number); None elsewhere."""
     p = Path(path)
     if p.parent.name != "path_data_files":
         return None
     name = p.parent.parent.name
-    try:
-        floor_level(name)
-    except ValueError:
-        return None
-    return name
+    return name if _FLOOR_RE.match(name) else None  # a folder of digits (a year, an id) names no floor
 
 
 def _folder_floor(path: str, meta: dict, report: ReadReport | None) -> None:
@@ -421,39 +417,48 @@ def _assemble_imu(streams: dict[str, np.ndarray], path: str, report: ReadReport,
 # Floor plans
 # ----------------------------------------------------------------------------------------------
 #: Floor names of the Indoor Location Competition's sites: F1 / L1 (ground) and B1 (first basement) in
-#: the 2020 release, 1F and B1F in the 2021 one (the Kaggle "indoor location & navigation" sites).
-_FLOOR_RE = re.compile(r"^(?:(?P<f>F|L)(?P<fn>\d+)|(?P<fn2>\d+)F|(?P<b>B)(?P<bn>\d+)F?)$", re.IGNORECASE)
+#: the 2020 release; 1F and 1B in the 2021 one (the Kaggle "indoor location & navigation" sites); B1F
+#: as some malls sign it. ASCII digits only.
+_FLOOR_RE = re.compile(r"^(?:(?P<f>F|L)(?P<fn>\d+)|(?P<fn2>\d+)F|(?P<b>B)(?P<bn>\d+)F?|(?P<bn2>\d+)B)$", re.IGNORECASE | re.ASCII)
 
 #: Storey height assumed where the data gives none, m.
 DEFAULT_STOREY_HEIGHT = 5.0
 
 
 def floor_level(name: str) -> int:
-    """Ordinal of a floor name: F1 / L1 / 1F -> 0, F2 / 2F -> 1, B1 / B1F -> -1; a plain integer is
-    taken as is."""
+    """Ordinal of a floor name: F1 / L1 / 1F -> 0, F2 / 2F -> 1, B1 / 1B / B1F -> -1; a plain integer
+    is taken as is."""
     m = _FLOOR_RE.match(name.strip())
     if m and (m.group("fn") or m.group("fn2")):
         return int(m.group("fn") or m.group("fn2")) - 1
-    if m and m.group("b"):
-        return -int(m.group("bn"))
+    if m and (m.group("bn") or m.group("bn2")):
+        return -int(m.group("bn") or m.group("bn2"))
     try:
         return int(name)
     except ValueError:
         raise ValueError(f"cannot tell the level of floor {name!r}") from None
 
 
-def floor_name(level: int, like: str) -> str:
-    """The name of floor ``level`` in the naming style of ``like`` (a floor name of the same site):
-    ``floor_name(1, "F1") == "F2"``, ``floor_name(-1, "2F") == "B1F"``, ``floor_name(2, "0") == "2"``."""
+def floor_name(level: int, like: str, known=()) -> str:
+    """The name of floor ``level``: the one of the site's ``known`` floor names at that level when there
+    is one, else a name in the style of ``like`` (a floor name of the same site):
+    ``floor_name(1, "F1") == "F2"``, ``floor_name(-1, "2F") == "B1"``, ``floor_name(0, "1B") == "1F"``,
+    ``floor_name(2, "0") == "2"``."""
+    for k in sorted(known):
+        try:
+            if floor_level(k) == level:
+                return k
+        except ValueError:
+            continue
     m = _FLOOR_RE.match(like.strip())
     if m is None:
         return str(level)
     like = like.strip()
-    suffix_style = bool(m.group("fn2")) or (bool(m.group("b")) and like.upper().endswith("F"))  # 1F, B1F
-    if level >= 0:
-        out = f"{level + 1}F" if suffix_style else f"{m.group('f') or 'F'}{level + 1}"
-    else:
-        out = f"B{-level}F" if suffix_style else f"B{-level}"
+    b1f = bool(m.group("b")) and like.upper().endswith("F")
+    if level >= 0:  # 1F where the site writes 1F, 1B or B1F; else F1 (L1 on an L site)
+        out = f"{level + 1}F" if (m.group("fn2") or m.group("bn2") or b1f) else f"{m.group('f') or 'F'}{level + 1}"
+    else:  # 1B where the site writes 1B, B1F where it writes B1F, else B1
+        out = f"{-level}B" if m.group("bn2") else f"B{-level}F" if b1f else f"B{-level}"
     return out if like.upper() == like else out.lower()
 
 
@@ -545,12 +550,10 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         for poly in walkable.geoms:
             for ring in [poly.exterior, *poly.interiors]:
                 walls.extend(segments(ring))
-    # the folder's name when it names a level: the name the traces inside it go by (_folder_floor)
-    name = str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
-    try:
-        level, name = floor_level(floor_dir.name), floor_dir.name
-    except ValueError:
-        level = floor_level(name)
+    # the folder's name when it is a floor name (F1, B1, 1F; not a plain number): the name the traces
+    # inside it go by (_folder_floor)
+    name = floor_dir.name if _FLOOR_RE.match(floor_dir.name) else str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
+    level = floor_level(name)
     return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, walkable, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf
 
 
@@ -587,7 +590,7 @@ def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
     """All trace files under a site or floor folder (``**/path_data_files/*.txt[.gz]``), sorted.
 
     Symbolic links to folders are followed (a site assembled from floors kept elsewhere), each real
-    folder once (a link cycle ends there); ``Path.rglob`` before Python 3.13 skips them silently, and
+    folder once, by its own path where a link beside it leads there too (a link cycle ends there); ``Path.rglob`` before Python 3.13 skips them silently, and
     read_ilc_site, which lists the floors, follows them."""
     root = Path(root)
     if root.is_file():
@@ -599,6 +602,7 @@ def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
             dirs[:] = []
             continue
         seen.add(real)
+        dirs.sort(key=lambda n: (os.path.islink(os.path.join(d, n)), n))  # a folder before a link to it
         if Path(d).name == "path_data_files":
             found += [Path(d) / f for f in files if (f.endswith(".txt") or f.endswith(".txt.gz")) and (Path(d) / f).is_file()]
     return sorted(found)
