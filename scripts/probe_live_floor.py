@@ -12,7 +12,7 @@ an ``hybridloc eval crowd --out OUT_DIR`` run:
    all come from its true floor's references of the same map (``true-floor``: a perfect floor
    decision, each scan located on that floor only).
 
-Usage: python scripts/probe_live_floor.py OUT_DIR SITE_DIR [--variants base,reject,inflate4]
+Usage: python scripts/probe_live_floor.py OUT_DIR SITE_DIR [--variants base,reject,inflate4,true-floor]
 A line per third and per variant; the last line is one JSON object."""
 
 from __future__ import annotations
@@ -84,9 +84,8 @@ def _floor_locator(db_url: str, site: str, version: int, floor: str):
     if key not in _FLOOR_LOCATORS:
         import io
 
-        from hybridloc.radio.locate import KnnLocator
         from hybridloc.radio.radiomap import RadioMap
-        from hybridloc.server.locate_pool import KnnOne
+        from hybridloc.server.locate_pool import make_locator
         from hybridloc.server.store import Store
 
         store = Store(db_url, migrate=False)
@@ -94,10 +93,12 @@ def _floor_locator(db_url: str, site: str, version: int, floor: str):
             data = store.map_version(site, version)
         finally:
             store.close()
-        refs = [r for r in RadioMap.load(io.BytesIO(data)).references if r.floor == floor] if data else []
+        rmap = RadioMap.load(io.BytesIO(data)) if data else None
+        refs = [r for r in rmap.references if r.floor == floor] if rmap else []
         if len(_FLOOR_LOCATORS) >= 6:
             _FLOOR_LOCATORS.pop(next(iter(_FLOOR_LOCATORS)))
-        _FLOOR_LOCATORS[key] = KnnOne(KnnLocator(refs, max_age_s=8.0)) if refs else None
+        # the server's locator (make_locator: kNN) on that floor's references alone
+        _FLOOR_LOCATORS[key] = make_locator(dataclasses.replace(rmap, references=refs), "knn") if refs else None
     return _FLOOR_LOCATORS[key]
 
 

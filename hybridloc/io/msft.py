@@ -289,7 +289,14 @@ def _site_floor_name(path: str) -> str | None:
     if p.parent.name != "path_data_files":
         return None
     name = p.parent.parent.name
-    return name if _FLOOR_RE.match(name) else None  # a folder of digits (a year, an id) names no floor
+    return name if _names_a_floor(name) else None
+
+
+def _names_a_floor(folder: str) -> bool:
+    """Whether a floor folder's name is a floor name (F1, B1, 1F ... :data:`_FLOOR_RE`), which then
+    names its plan (:func:`read_ilc_floor`) and its traces (:func:`_folder_floor`); a folder of digits
+    (a year, an id) names no floor."""
+    return _FLOOR_RE.match(folder) is not None
 
 
 def _folder_floor(path: str, meta: dict, report: ReadReport | None) -> None:
@@ -550,9 +557,8 @@ def read_ilc_floor(floor_dir: str | os.PathLike) -> tuple[Floor, LonLatToFloor]:
         for poly in walkable.geoms:
             for ring in [poly.exterior, *poly.interiors]:
                 walls.extend(segments(ring))
-    # the folder's name when it is a floor name (F1, B1, 1F; not a plain number): the name the traces
-    # inside it go by (_folder_floor)
-    name = floor_dir.name if _FLOOR_RE.match(floor_dir.name) else str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
+    # the folder's name when it is a floor name: the name the traces inside it go by (_folder_floor)
+    name = floor_dir.name if _names_a_floor(floor_dir.name) else str((outline_feats[0].get("properties") or {}).get("name") or floor_dir.name)
     level = floor_level(name)
     return Floor(name, level, level * DEFAULT_STOREY_HEIGHT, outline, walkable, np.asarray(walls).reshape(-1, 2, 2), tuple(rooms)), tf
 
@@ -590,8 +596,9 @@ def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
     """All trace files under a site or floor folder (``**/path_data_files/*.txt[.gz]``), sorted.
 
     Symbolic links to folders are followed (a site assembled from floors kept elsewhere), each real
-    folder once, by its own path where a link beside it leads there too (a link cycle ends there); ``Path.rglob`` before Python 3.13 skips them silently, and
-    read_ilc_site, which lists the floors, follows them."""
+    folder once, by its own path where a link beside it leads there too (a link cycle ends there):
+    ``Path.rglob`` before Python 3.13 skips them silently, and read_ilc_site, which lists the floors,
+    follows them."""
     root = Path(root)
     if root.is_file():
         return [root]
@@ -603,6 +610,7 @@ def find_ilc_traces(root: str | os.PathLike) -> list[Path]:
             continue
         seen.add(real)
         dirs.sort(key=lambda n: (os.path.islink(os.path.join(d, n)), n))  # a folder before a link to it
-        if Path(d).name == "path_data_files":
-            found += [Path(d) / f for f in files if (f.endswith(".txt") or f.endswith(".txt.gz")) and (Path(d) / f).is_file()]
+        here = Path(d)
+        if here.name == "path_data_files":
+            found += [here / f for f in files if f.endswith((".txt", ".txt.gz")) and (here / f).is_file()]
     return sorted(found)
