@@ -306,9 +306,10 @@ class _Slam:
         return ok and status == "complete", status if ok else f"{status} (timed out after {timeout:g} s)"
 
 
-def _start_server(endpoint: str, db: str, site: str, slam: bool = True):
+def _start_server(endpoint: str, db: str, site: str, slam: bool = True, grow_map: bool = False):
     """The server, with its crowd SLAM worker on the site (unless ``slam`` is False: the survey map
-    alone, the control without any learning); (server, :class:`_Slam`)."""
+    alone, the control without any learning; ``grow_map``: the worker's ``SlamOptions.grow_map``);
+    (server, :class:`_Slam`)."""
     import importlib.util
 
     from .server.service import Server
@@ -320,7 +321,7 @@ def _start_server(endpoint: str, db: str, site: str, slam: bool = True):
 
     # the worker's defaults, but its idle pause short: the crowd's time is compressed, and a worker
     # sleeping a second between walks would pace the replay, not the solves
-    server = Server(endpoint, db, slam_sites=[site], slam_options=SlamOptions(poll_s=0.05)).start()
+    server = Server(endpoint, db, slam_sites=[site], slam_options=SlamOptions(poll_s=0.05, grow_map=grow_map)).start()
     return server, _Slam(server, site, on=True)
 
 
@@ -407,6 +408,7 @@ class CrowdRun:
     out: Path | None = None  # the run's folder (server.db, spool/, clients.jsonl)
     axes: dict = field(default_factory=dict)  # the floors' corridor axes the clients' filters use
     baseline: bool = False  # the survey-only baseline was replayed (ClientScore.survey_only / replayed)
+    grow_map: bool = False  # the served map grew at every added walk (SlamOptions.grow_map)
 
     @property
     def final_batches(self) -> int:
@@ -426,9 +428,13 @@ def run_crowd(
     progress: bool = True,
     slam: bool = True,
     baseline: bool = True,
+    grow_map: bool = False,
 ) -> CrowdRun:
     """Replay the site as a crowd (module docstring) and score every client; returns the run.
-    ``baseline``: also replay every client offline against the survey map only (:func:`survey_baseline`)."""
+    ``baseline``: also replay every client offline against the survey map only (:func:`survey_baseline`).
+    ``grow_map``: the server serves each added walk's labels on top of its map version
+    (``SlamOptions.grow_map``); the baseline's replay with the maps served then replays the stored
+    versions alone, without those labels, so it no longer retraces the live run."""
     from . import geo
     from .io.msft import read_ilc_site
     from .progress import Progress
@@ -437,6 +443,8 @@ def run_crowd(
 
     if concurrency < 1:
         raise BadInput(f"--concurrency must be at least 1, got {concurrency}")
+    if grow_map and not slam:
+        raise BadInput("--grow-map needs the crowd SLAM (it serves the labels of the walks the SLAM adds): drop --no-slam")
     if not (math.isfinite(speed) and speed >= 0):
         raise BadInput(f"--speed must be 0 (unpaced) or positive, got {speed}")
     t0 = time.monotonic()
@@ -453,7 +461,7 @@ def run_crowd(
     (out / "clients.jsonl").unlink(missing_ok=True)  # an earlier run's: written again only when this one completes
     say = (lambda *a: print(*a, flush=True)) if progress else (lambda *a: None)
     ep = f"tcp/127.0.0.1:{free_port()}"
-    server, slam = _start_server(ep, str(db), plan.site, slam)
+    server, slam = _start_server(ep, str(db), plan.site, slam, grow_map)
     say(
         f"[eval crowd] server on {ep}, database {db} (crowd SLAM {'on' if slam.on else 'off: corrected figures undefined'}); "
         f"{len(plan.surveys)} surveys, {len(plan.clients)} clients on {', '.join(plan.floors)}"
@@ -461,7 +469,9 @@ def run_crowd(
     skipped: list[tuple[CrowdWalk, str]] = []
     scores: list[ClientScore] = []
     secs: dict = {}
-    run = CrowdRun(plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency, out=out, axes=axes)
+    run = CrowdRun(
+        plan, scores, skipped, 0, None, None, slam.on, None, secs, concurrency=concurrency, out=out, axes=axes, grow_map=grow_map and slam.on
+    )
     try:
         server.store.save_floor_plan(plan.site, fp)  # the operator's `floorplan import`
         # ------------------------------------------------------------------ phase 1: the surveys
@@ -808,6 +818,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
     n_by = lambda ws: ", ".join(f"{f} {sum(w.floor == f for w in ws)}" for f in plan.floors)  # noqa: E731
     p(
         f"crowd evaluation of site {plan.site} ({', '.join(plan.floors)}): a real server (Zenoh on loopback, SQLite), crowd SLAM {'on' if run.slam_on else 'off'}"
+        + (", the served map grown at every added walk (--grow-map)" if run.grow_map else "")
     )
     p(
         f"  survey walks (with their marks, before the crowd): {len(plan.surveys)} ({n_by(plan.surveys)}); {run.survey_labels} labelled scans -> radio map version {run.map_version_survey}"
@@ -973,6 +984,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "seed": None,
         "concurrency": run.concurrency,
         "slam_processes": _slam_processes() if run.slam_on else None,
+        "grow_map": run.grow_map,
         "session_close_errors": run.close_errors,
         "seconds_surveys": s.get("surveys"),
         "seconds_clients": s.get("clients"),
@@ -994,9 +1006,10 @@ def run_crowd_eval(
     speed: float = 0.0,
     wait_timeout: float = 600.0,
     slam: bool = True,
+    grow_map: bool = False,
 ) -> dict:
     """``hybridloc eval crowd``: run (:func:`run_crowd`), print the report, return the JSON line's figures."""
-    run = run_crowd(site_dir, survey_fraction, seed, floors, out, concurrency, speed, wait_timeout, slam=slam)
+    run = run_crowd(site_dir, survey_fraction, seed, floors, out, concurrency, speed, wait_timeout, slam=slam, grow_map=grow_map)
     head = crowd_report(run)
     print(f"  per client and waypoint (live and corrected errors, live positions): {Path(out) / 'clients.jsonl'}")
     head.update(survey_fraction=survey_fraction, seed=seed)

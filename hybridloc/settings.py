@@ -33,6 +33,7 @@ line's own, so no file and no variable change nothing). Example file::
     batch_share = 0.0                  # ... and this share of the walks the last batch solved
     interval_s = 3600                  # ... or this long after the last one (s)
     processes = 0                      # a batch's groups of floors side by side (0: the usable cores)
+    grow_map = false                   # serve each added walk's labels on top of the map version
 
 Environment variables are the keys in capitals, a section's keys prefixed by its name:
 ``HYBRIDLOC_SITE``, ``HYBRIDLOC_ENDPOINT``, ``HYBRIDLOC_SECURITY_PASSWORD``, ``HYBRIDLOC_FILTER_KIND``...
@@ -84,7 +85,7 @@ class FilterSettings:
 
 @dataclass(frozen=True)
 class SlamSettings:
-    """The server's crowd-SLAM worker (``serve --no-slam/--slam-idle/--slam-batch-every/--slam-batch-share/--slam-interval/--slam-processes``)."""
+    """The server's crowd-SLAM worker (``serve --no-slam/--slam-idle/--slam-batch-every/--slam-batch-share/--slam-interval/--slam-processes/--slam-grow-map``)."""
 
     enabled: bool = True  # a worker for every --site
     idle_s: float = 180.0  # an open walk whose device sent nothing for this long, s, is finished
@@ -92,6 +93,7 @@ class SlamSettings:
     batch_share: float = 0.0  # ... and at least this share of the walks the last batch solved (0: the count alone)
     interval_s: float = 3600.0  # ... or this long after the last one when walks were added, s (0: not by time)
     processes: int = 0  # a batch re-solve's connected groups of floors solved side by side in this many processes (0: the usable cores)
+    grow_map: bool = False  # each added walk's labels served on top of the map version until a batch's version holds them
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,8 @@ same locator (:func:`make_locator`) on the same map, the same conversion (:func:
 Maps reach the workers as files: each map version the server loads is written once into a temporary
 folder, and a request names (site, version, path); a worker loads a version the first time it is asked
 for it. A version's file is removed only when no request can still name it (at the next call: the
-locate thread is the only caller, and it waits for each call's answers). A worker that dies (killed,
+locate thread is the only caller, and it waits for each call's answers). Labels grown on top of a
+version (:meth:`LocatePool.add_labels`) reach them the same way, as a file of every such label. A worker that dies (killed,
 out of memory), fails (a map it cannot read) or takes longer than ``timeout_s``: :class:`PoolBroken`
 tells the server, which answers that group in-process; a dead or stuck pool is replaced for the next
 group. After :meth:`LocatePool.close` every group is answered in-process.
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import pickle
 import shutil
 import tempfile
 import threading
@@ -77,7 +79,8 @@ class PoolBroken(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------ the workers
-_LOCATORS: dict[str, tuple[int, object]] = {}  # site -> (map version, locator), in a worker
+_LOCATORS: dict[str, tuple[tuple[int, str], object]] = {}  # site -> ((map version, labels file), locator), in a worker
+_BASES: dict[str, tuple[int, object]] = {}  # site -> (map version, the version's own locator), in a worker
 _METHOD = "knn"
 
 
@@ -87,10 +90,18 @@ def _init(parent_pid: int, method: str) -> None:
     yield_to_server(parent_pid, 5, "hybridloc-locate-watch")
 
 
-def _answer_in_worker(site: str, version: int, path: str, scans: list[RfScan]) -> list[tuple[bytes, AbsoluteFix | None]]:
+def _answer_in_worker(site: str, version: int, path: str, scans: list[RfScan], labels: str = "") -> list[tuple[bytes, AbsoluteFix | None]]:
     held = _LOCATORS.get(site)
-    if held is None or held[0] != version:
-        held = (version, make_locator(RadioMap.load(path), _METHOD))
+    if held is None or held[0] != (version, labels):
+        base = _BASES.get(site)
+        if base is None or base[0] != version:
+            base = (version, make_locator(RadioMap.load(path), _METHOD))
+            _BASES[site] = base
+        loc = base[1]
+        if labels and isinstance(loc, KnnOne):  # the labels grown on top of the version (Server.add_labels)
+            with open(labels, "rb") as f:
+                loc = KnnOne(loc.knn.extended(pickle.load(f)))
+        held = ((version, labels), loc)
         _LOCATORS[site] = held
     return [(C.FIX.encode(a), a.fix) for a in answers(held[1], scans)]
 
@@ -104,7 +115,8 @@ class LocatePool:
             raise ValueError(f"a locate pool needs at least one worker, got {workers}")
         self.workers, self.method, self.timeout_s = workers, method, timeout_s
         self._dir = Path(tempfile.mkdtemp(prefix="hybridloc-locate-"))
-        self._maps: dict[str, tuple[int, str]] = {}  # site -> (version, file)
+        self._maps: dict[str, tuple[int, str, str]] = {}  # site -> (version, file, labels file or "")
+        self._labels_made = 0
         self._stale: list[str] = []  # files of replaced versions, removed at the next call
         self._lock = threading.Lock()
         self._ex: ProcessPoolExecutor | None = None
@@ -131,9 +143,34 @@ class LocatePool:
             os.replace(tmp, path)
         with self._lock:
             old = self._maps.get(site)
-            self._maps[site] = (version, str(path))
-            if old is not None and old[1] != str(path):
-                self._stale.append(old[1])  # a request made before this one may still name it
+            self._maps[site] = (version, str(path), "")
+            if old is not None:
+                if old[1] != str(path):
+                    self._stale.append(old[1])  # a request made before this one may still name it
+                if old[2]:
+                    self._stale.append(old[2])
+
+    def add_labels(self, site: str, version: int, labels: list) -> None:
+        """Answer ``site``'s scans from map ``version`` plus ``labels`` (every label grown on top of it so
+        far: :meth:`.service.Server.add_labels`), written to a file the workers read; ignored when the
+        site's current map is another version."""
+        with self._lock:
+            held = self._maps.get(site)
+            if held is None or held[0] != version:
+                return
+            self._labels_made += 1
+            path = self._dir / f"{site}-{version}-labels-{self._labels_made}.pkl"
+        tmp = path.with_suffix(".part")
+        tmp.write_bytes(pickle.dumps(list(labels), protocol=pickle.HIGHEST_PROTOCOL))
+        os.replace(tmp, path)
+        with self._lock:
+            held = self._maps.get(site)
+            if held is None or held[0] != version:  # a new version came meanwhile
+                self._stale.append(str(path))
+                return
+            self._maps[site] = (version, held[1], str(path))
+            if held[2]:
+                self._stale.append(held[2])
 
     def answer(self, site: str, scans: list[RfScan]) -> list[tuple[bytes, AbsoluteFix | None]] | None:
         """(FIX message, fix or None) of each scan, in order; None when the site has no map here.
@@ -151,12 +188,12 @@ class LocatePool:
             return None
         if not scans:
             return []
-        version, path = held
+        version, path, labels = held
         n = min(self.workers, len(scans))
         size = -(-len(scans) // n)
         try:
             ex = self._executor()
-            futs = [ex.submit(_answer_in_worker, site, version, path, scans[i : i + size]) for i in range(0, len(scans), size)]
+            futs = [ex.submit(_answer_in_worker, site, version, path, scans[i : i + size], labels) for i in range(0, len(scans), size)]
             deadline = time.monotonic() + self.timeout_s
             return [x for f in futs for x in f.result(timeout=max(0.0, deadline - time.monotonic()))]
         except (BrokenProcessPool, TimeoutError) as exc:

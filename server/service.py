@@ -39,6 +39,7 @@ import zenoh
 
 from hybridloc.radio.locate import ProbabilisticLocator
 from hybridloc.radio.radiomap import RadioMap
+from hybridloc.radio.survey import LabelledScan
 from hybridloc.types import Fix, RfScan
 from hybridloc.wire import codecs as C
 from hybridloc.wire import protocol as P
@@ -48,7 +49,7 @@ from hybridloc.wire.zconfig import Security, server_config, zenoh_reason
 from . import db as m
 from .ingest import IngestResult, Stopping, ingest_group, with_database
 from .ingest_pool import IngestPool, resolve_ingest_workers
-from .locate_pool import LocatePool, PoolBroken, answers, make_locator
+from .locate_pool import KnnOne, LocatePool, PoolBroken, answers, make_locator
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
@@ -92,6 +93,10 @@ class Server:
         self.counts: Counter = Counter()  # message counts by kind and rejection reason
         self.online: set[str] = set()
         self.locators: dict[str, tuple[int, ProbabilisticLocator, bytes]] = {}
+        #: per site: the served version's own locator (kNN) and the labels of the walks the SLAM worker
+        #: added since that version (``SlamOptions.grow_map``: :meth:`add_labels`), which the served
+        #: locator holds on top of it
+        self._grown: dict[str, tuple[object, list[LabelledScan]]] = {}
         self._entities: list = []
         self._worker: threading.Thread | None = None
         self._locate_worker: threading.Thread | None = None
@@ -159,7 +164,13 @@ class Server:
         for site in self.slam_sites:
             P.check_id(site, "site")
             self.slam_workers[site] = SlamWorker(
-                self.db_url, site, self._publish, self.slam_options, on_map=self.load_map, online=self._online_now
+                self.db_url,
+                site,
+                self._publish,
+                self.slam_options,
+                on_map=self.load_map,
+                online=self._online_now,
+                on_labels=self.add_labels,
             ).start()
         return self
 
@@ -224,12 +235,50 @@ class Server:
         if got is None:
             return None
         version, blob = got
-        loc = make_locator(RadioMap.load(io.BytesIO(blob)), self.method)
+        rmap = RadioMap.load(io.BytesIO(blob))
+        loc = make_locator(rmap, self.method)
         if self._pool is not None:
             self._pool.add_map(site, version, blob)
         with self._lock:
+            kept: list[LabelledScan] = []
+            if isinstance(loc, KnnOne):
+                # a walk added after the version's labels were taken keeps its own until a version holds it
+                held = {r.source for r in rmap.references}
+                kept = [ls for ls in self._grown.get(site, (None, []))[1] if ls.source not in held]
+                self._grown[site] = (loc, [])
+            else:
+                self._grown.pop(site, None)
             self.locators[site] = (version, loc, blob)
+        if kept:
+            self.add_labels(site, kept)
         return version
+
+    def add_labels(self, site: str, labels: list[LabelledScan]) -> int:
+        """Serve ``site``'s scans from its map version plus ``labels`` (a walk the SLAM worker just added:
+        its scans at their corrected positions, ``SlamOptions.grow_map``), which replace any earlier
+        labels of the same walks (``source``). Held in memory only, on top of the version: a new
+        version takes over the labels of the walks it holds and keeps the others'; the map key still
+        serves the stored version. kNN only (the default ``--method``): the cell likelihood is built
+        from the whole map. Returns the labels served on top of the version (0: none taken)."""
+        with self._lock:
+            got = self._grown.get(site)
+            cur = self.locators.get(site)
+            if got is None or cur is None or not labels:
+                return 0 if got is None else len(got[1])
+            base, grown = got
+            tech = base.knn.refs[0].scan.technology
+            new = [ls for ls in labels if ls.scan.technology == tech]
+            if not new:
+                return len(grown)
+            mine = {ls.source for ls in new}
+            grown = [ls for ls in grown if ls.source not in mine] + new
+            loc = KnnOne(base.knn.extended(grown))
+            self._grown[site] = (base, grown)
+            self.locators[site] = (cur[0], loc, cur[2])
+            if self._pool is not None:
+                self._pool.add_labels(site, cur[0], grown)
+            self.counts["map-walks-grown"] += len(mine)
+            return len(grown)
 
     def answer(self, site: str, scan: RfScan) -> Fix:
         """The answer to one scan, pushed after a batch and replied to a locate query alike: a fix with

@@ -94,6 +94,11 @@ class SlamOptions:
     retry_s: float = 60.0
     #: the batch run's lease (:data:`.slam_batch.LEASE_S`)
     lease_s: float = LEASE_S
+    #: the served map grows at every added walk: the walk's scans at their corrected positions are
+    #: served on top of the stored map version until a version holds them (``Server.add_labels``; the
+    #: next batch's map places them again). Off by default: it lowers the live error the goals' ratios
+    #: compare against (docs/slam.md, "The served map grown at every added walk")
+    grow_map: bool = False
     #: solve in the worker thread itself instead of a child process (tests and debugging only: a solve
     #: then holds the server's GIL)
     in_process: bool = False
@@ -197,7 +202,8 @@ class SlamWorker:
 
     ``publish(key, payload, encoding)`` sends a message (the server's session); ``on_map(site)`` makes
     the server use the site's newest stored map and returns its version; ``online()`` lists the devices
-    online (live corrections and the tracks sent after a batch run)."""
+    online (live corrections and the tracks sent after a batch run); ``on_labels(site, labels)`` serves
+    an added walk's labels on top of the map version (``SlamOptions.grow_map``)."""
 
     def __init__(
         self,
@@ -207,10 +213,12 @@ class SlamWorker:
         options: SlamOptions | None = None,
         on_map: Callable[[str], int | None] | None = None,
         online: Callable[[], set[str]] | None = None,
+        on_labels: Callable[[str, list], int] | None = None,
     ):
         self.db_url, self.site, self.publish = db_url, site, publish
         self.options = options or SlamOptions()
         self.on_map = on_map
+        self.on_labels = on_labels
         self.online = online or (lambda: set())
         self.store = Store(db_url, migrate=False)
         self.counts: Counter = Counter()
@@ -348,7 +356,8 @@ class SlamWorker:
         self.busy = f"walk {walk_id}"
         t0 = time.monotonic()
         try:
-            out = self._call("add_walk", site=self.site, walk_id=walk_id)
+            grow = self.options.grow_map and self.on_labels is not None
+            out = self._call("add_walk", site=self.site, walk_id=walk_id, labels=grow)
         except (ChildError, ChildCrashed) as exc:
             self._walk_failed(walk_id, exc)
             return
@@ -357,6 +366,14 @@ class SlamWorker:
         with self._lock:
             self.add_seconds.append(time.monotonic() - t0)
         self._attempts.pop(walk_id, None)
+        # served before the walk counts as added: whoever waits for the count finds its labels in service
+        if out.get("labels") and self.on_labels is not None:
+            try:
+                self.on_labels(self.site, out["labels"])
+                self._bump("map_walks_grown", 1)
+            except Exception:  # noqa: BLE001 - the map version stays in service
+                self._bump("map_grow_errors", 1)
+                log.exception("site %s: serving walk %d's labels failed", self.site, walk_id)
         self._bump("walks_added", 1)
         self._bump(f"walks_{out['status']}")
         if out["status"] == "quarantined":

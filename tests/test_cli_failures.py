@@ -115,6 +115,29 @@ def test_serve_refuses_bad_slam_options_before_it_starts(option, value, says, tm
     assert not (tmp_path / "h.db").exists()  # refused before the server opened anything
 
 
+def test_serve_refuses_a_grown_map_for_the_cell_likelihood(tmp_path, capsys, monkeypatch):
+    """--slam-grow-map serves walks' labels to the kNN locator; with --method prob: exit 2, one line, nothing opened."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("HYBRIDLOC_CONFIG", raising=False)
+    try:
+        rc = main(["serve", "--db", str(tmp_path / "h.db"), "--site", "s1", "--method", "prob", "--slam-grow-map"])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2 and "--slam-grow-map" in err and len([ln for ln in err.splitlines() if ln.strip()]) == 1, err
+    assert not (tmp_path / "h.db").exists()
+
+
+def test_eval_crowd_refuses_a_grown_map_without_slam(tmp_path, capsys):
+    try:
+        rc = main(["eval", "crowd", str(tmp_path), "--no-slam", "--grow-map", "--out", str(tmp_path / "out")])
+    except SystemExit as exc:
+        rc = exc.code
+    err = capsys.readouterr().err
+    assert rc == 2 and "--grow-map needs the crowd SLAM" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_serve_on_an_endpoint_in_use_says_so_in_one_line(tmp_path, capsys, monkeypatch):
     """A second server on a listening endpoint: exit 2 and one line naming the endpoint, no traceback."""
     from hybridloc.server.service import Server

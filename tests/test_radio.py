@@ -515,6 +515,43 @@ def test_knn_subset_answers_as_a_locator_built_afresh():
         full.subset(np.zeros(300, bool))
 
 
+def test_knn_extended_answers_as_a_locator_built_afresh():
+    """A locator with references appended answers as one built over all of them: the same index (a
+    transmitter only the new references heard in its sorted place), the same neighbours, floors and
+    fixes, the distances within float64 rounding of the row sums; stale readings left out alike; k
+    capped by few references grows back to the k asked; a new phone model switches the automatic
+    representation as a fresh build does, and the Euclidean metric builds afresh."""
+    rng = np.random.default_rng(12)
+    refs = synth_survey(rng, n=300)
+    for i in range(200, 300):  # the added part: a transmitter nobody else heard, stale readings, floor F2
+        r = refs[i]
+        refs[i] = LabelledScan(
+            RfScan(r.scan.t, "wifi", {**r.scan.rssi_dbm, "lonely": -50.0}, age_s={"ap2": 30.0}, device_model=r.scan.device_model),
+            r.pos_enu,
+            0.7,
+            "F2" if i % 2 else "F1",
+        )
+    queries = [RfScan(1e6 + i, "wifi", {**rssi_at(p, rng), "lonely": -55.0}) for i, p in enumerate(rng.uniform(0, 30, (40, 2)))]
+    queries += [r.scan for r in refs[200::10]]  # scans of the added references themselves
+    for kw in ({"k": 5, "max_age_s": 8.0}, {"k": 3, "representation": "raw", "metric": "euclidean"}):
+        base = KnnLocator(refs[:200], **kw)
+        ext, fresh = base.extended(refs[200:]), KnnLocator(refs, **kw)
+        assert "lonely" not in base.tx_index and ext.tx_index == fresh.tx_index and list(ext.tx_index) == sorted(ext.tx_index)
+        (da, ia, ka), (db, ib, kb) = ext._search(queries), fresh._search(queries)
+        np.testing.assert_array_equal(ia, ib)
+        np.testing.assert_array_equal(ka, kb)
+        np.testing.assert_allclose(da, db, rtol=1e-12, atol=1e-15)
+        fa, fb = ext.locate_many(queries, regions=False), fresh.locate_many(queries, regions=False)
+        assert [x.fix.floor for x in fa] == [x.fix.floor for x in fb]
+        np.testing.assert_allclose([x.fix.pos_enu for x in fa], [x.fix.pos_enu for x in fb], rtol=0, atol=1e-9)
+        assert base.extended([]) is base and len(base.refs) == 200  # the base is left as it was
+    few = KnnLocator(refs[:2], k=5)
+    assert few.k == 2 and few.extended(refs[2:10]).k == 5
+    other = [LabelledScan(RfScan(r.scan.t, "wifi", r.scan.rssi_dbm, device_model="phoneB"), r.pos_enu, 0.5, "F1") for r in refs[200:220]]
+    base = KnnLocator(refs[:200], k=5)
+    assert base.representation == "powed" and base.extended(other).representation == "powed-rel" == KnnLocator(refs[:200] + other, k=5).representation
+
+
 def test_leave_one_route_out_keeps_the_route_out_and_chooses_settings_on_other_floors():
     """Two floors of synthetic walks (path loss, 2 dB noise) with one route walked twice with the very
     same scans. Left out with its twin, the route's scans cannot find themselves in the map (every error

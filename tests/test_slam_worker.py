@@ -21,6 +21,7 @@ child process, ``hybridloc serve`` and ``hybridloc slam rebuild`` as real subpro
 from __future__ import annotations
 
 import concurrent.futures as cf
+import io
 import json
 import logging
 import os
@@ -608,3 +609,73 @@ def test_server_killed_during_a_batch_run_resumes_and_loses_nothing(tmp_path, wa
             except subprocess.TimeoutExpired:
                 srv.kill()
                 srv.wait()
+
+
+# ------------------------------------------------------------------------------------------ grown map
+def test_the_served_map_grows_at_every_added_walk(tmp_path, walks):
+    """``SlamOptions.grow_map``: a map version from a batch over 27 walks, then 8 more walks stored and
+    added one by one by the worker. Each added crowd walk with an absolute track is served on top of
+    the version - its WiFi scans at the stored track's positions, so a scan of it is located onto its
+    own label (distance 0 outweighs every other neighbour) - survey walks and relative ones are not;
+    the locate workers answer alike; a batch's version takes over the walks it holds."""
+    from hybridloc.radio.radiomap import RadioMap
+    from hybridloc.server.locate_pool import LocatePool, make_locator
+    from hybridloc.server.service import Server
+    from hybridloc.slam.online import labels_from_tracks
+
+    db = _filled(tmp_path, walks, False, n=27)
+    assert run_batch(db, SITE).map_version == 1
+    st = Store(db)
+    late = walks[27:35]  # 27 and 30 keep their survey marks
+    store_walks(st, late, prefix="late")
+    late_ids = [st.walks(SITE, device=f"late{i:02d}")[0].walk_id for i in range(len(late))]
+    st.close()
+    ep = f"unixsock-stream/{tmp_path}/g.sock"
+    opts = SlamOptions(poll_s=0.1, batch_every_walks=0, batch_interval_s=0, live_every_s=0, grow_map=True)
+    srv = Server(ep, db, slam_sites=[SITE], slam_options=opts).start()
+    pool = LocatePool(1)
+    try:
+        srv.load_map(SITE)
+        st = srv.store
+        _wait(lambda: set(late_ids) <= set(st.slam.walk_states(SITE)), 240, "the late walks' SLAM states")
+        _wait(lambda: srv.slam_workers[SITE].counts.get("walks_added", 0) == len(late), 30, "the worker's count of added walks")
+        states = st.slam.walk_states(SITE)
+        crowd = {wid for wid, w in zip(late_ids, late) if not w.marks and states[wid].status == CORRECTED and states[wid].anchored != "relative"}
+        assert crowd, "no late crowd walk was placed on the map: nothing to serve"
+        base, grown = srv._grown[SITE]
+        assert {ls.source for ls in grown} == {str(w) for w in crowd}
+        assert srv.counts["map-walks-grown"] == len(crowd) == srv.slam_workers[SITE].counts["map_walks_grown"]
+        # the labels are the stored tracks' (what a batch's map would take from them)
+        walks_of = [st.read_walk(w) for w in sorted(crowd)]
+        expect = [ls for ls in labels_from_tracks(walks_of, st.slam.tracks(SITE, walk_ids=crowd)) if ls.scan.technology.value == "wifi"]
+        key = lambda ls: (ls.source, ls.scan.t)  # noqa: E731
+        got = sorted(grown, key=key)
+        expect.sort(key=key)
+        assert [key(a) for a in got] == [key(b) for b in expect]
+        np.testing.assert_allclose([a.pos_enu for a in got], [b.pos_enu for b in expect], atol=1e-9)
+        version, loc, blob = srv.locators[SITE]
+        assert version == 1 and len(loc.knn.refs) == len(base.knn.refs) + len(grown)
+        # a scan of an added walk finds itself: located onto its own label; the version alone cannot
+        probe = got[:: max(1, len(got) // 5)]
+        fixes = srv.answer_many(SITE, [ls.scan for ls in probe])
+        for ls, fx in zip(probe, fixes):
+            assert fx.fix is not None and np.linalg.norm(fx.fix.pos_enu - ls.pos_enu) < 1e-3
+        alone = make_locator(RadioMap.load(io.BytesIO(blob)), "knn")
+        assert max(np.linalg.norm(r.fix.pos_enu - ls.pos_enu) for ls, r in zip(probe, alone.locate_many([ls.scan for ls in probe]))) > 0.1
+        # the locate workers answer the same from the version and the labels grown on it
+        pool.add_map(SITE, 1, blob)
+        pool.add_labels(SITE, 1, grown)
+        from_pool = pool.answer(SITE, [ls.scan for ls in probe])
+        assert from_pool is not None and len(from_pool) == len(fixes)
+        np.testing.assert_array_equal([a.pos_enu for _, a in from_pool], [fx.fix.pos_enu for fx in fixes])
+        # a batch's version holds the added walks: their labels leave the grown set
+        srv.request_batch(SITE)
+        _wait(lambda: srv.locators[SITE][0] == 2, 240, "map version 2")
+        v2 = RadioMap.load(io.BytesIO(srv.locators[SITE][2]))
+        held = {r.source for r in v2.references}
+        left = srv._grown[SITE][1]
+        assert {ls.source for ls in left} == {str(w) for w in crowd} - held
+        assert len(srv.locators[SITE][1].knn.refs) == len(v2.references) + len(left)
+    finally:
+        pool.close()
+        srv.stop()

@@ -1030,6 +1030,7 @@ def _cmd_eval_crowd(args: argparse.Namespace) -> int:
             speed=args.speed,
             wait_timeout=args.wait_timeout,
             slam=not args.no_slam,
+            grow_map=args.grow_map,
         )
     )
     return 0
@@ -1132,5 +1133,10 @@ def register(sub) -> None:
         "--no-slam",
         action="store_true",
         help="the control: the server without its crowd SLAM, the survey map alone (what the learning curve is without any learning)",
+    )
+    ecr.add_argument(
+        "--grow-map",
+        action="store_true",
+        help="the server's map grows at every added walk (serve --slam-grow-map): each walk's labels served on top of the map version until the next batch",
     )
     ecr.set_defaults(func=_cmd_eval_crowd)

@@ -103,6 +103,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             raise BadInput(f"--slam-batch-share must be a share between 0 and 10, got {args.slam_batch_share:g}")
         if args.slam_processes < 0:
             raise BadInput(f"--slam-processes must be >= 0 (0: the usable cores), got {args.slam_processes}")
+        if args.slam_grow_map and args.method == "prob":
+            raise BadInput("--slam-grow-map serves walks' labels to the kNN locator; the cell likelihood (--method prob) is built from a whole map")
         slam_sites = list(args.site)
         slam_options = SlamOptions(
             idle_timeout_s=args.slam_idle,
@@ -110,6 +112,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             batch_share=args.slam_batch_share,
             batch_interval_s=args.slam_interval,
             batch_processes=args.slam_processes,
+            grow_map=bool(args.slam_grow_map),
         )
     server = Server(
         args.endpoint,
@@ -135,7 +138,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         assert slam_options is not None
         print(
             f"crowd SLAM of site {site}: walks end after {slam_options.idle_timeout_s:g} s idle; batch re-solve every "
-            f"{slam_options.batch_every_walks or '-'} walks or {slam_options.batch_interval_s:g} s",
+            f"{slam_options.batch_every_walks or '-'} walks or {slam_options.batch_interval_s:g} s"
+            + ("; the served map grows at every added walk" if slam_options.grow_map else ""),
             file=sys.stderr,
         )
     serve_forever(server, dashboard)
@@ -366,6 +370,13 @@ def register(sub) -> None:
         metavar="N",
         help="a batch re-solve's connected groups of floors solved side by side in N processes (default 0: the usable cores; same results)",
     )
+    sv.add_argument(
+        "--slam-grow-map",
+        action="store_true",
+        default=None,
+        help="the served map grows at every added walk: its scans at their corrected positions answer scans on top of the map version "
+        "until a batch's version holds them (kNN only; default off: docs/slam.md)",
+    )
     _add_http_options(sv, serve=True)
     sv.set_defaults(
         func=_cmd_serve,
@@ -391,6 +402,7 @@ def register(sub) -> None:
             "slam_batch_share": "slam.batch_share",
             "slam_interval": "slam.interval_s",
             "slam_processes": "slam.processes",
+            "slam_grow_map": "slam.grow_map",
         },
     )
 

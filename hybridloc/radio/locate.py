@@ -413,6 +413,7 @@ class KnnLocator:
         self._auto = auto
         self.representation = representation
         self.metric = metric
+        self.k_asked = k  # k before the cap at the reference count (extended keeps asking for it)
         self.k = min(k, len(refs))
         self.max_age_s = max_age_s
         X = self._rep(fingerprint_matrix([r.scan for r in refs], self.tx_index, max_age_s=max_age_s))
@@ -482,6 +483,55 @@ class KnnLocator:
         out._set_labels(refs)
         return out
 
+    def extended(self, refs: list[LabelledScan]) -> KnnLocator:
+        """This locator with ``refs`` appended to its references: the answers of a locator built afresh
+        over ``self.refs + refs``, for the cost of representing ``refs`` alone (a server whose map grows
+        by one walk's labels at a time, :meth:`hybridloc.server.service.Server.add_labels`).
+
+        Transmitters only ``refs`` heard join the index in its sorted place; the old rows keep their
+        represented values (a row depends only on its own scan's readings) under the renumbered columns,
+        and their row sums (float32 values summed in float64; a fresh build sums the same numbers with
+        zeros between them). The neighbours, floors and positions are a fresh build's; the distances
+        agree to the float64 rounding of those sums. A fresh build instead where the fresh one would
+        choose another representation (a new phone model among several) or the metric is Euclidean."""
+        refs = list(refs)
+        if not refs:
+            return self
+        every = self.refs + refs
+        if self.metric != "sorensen" or (self._auto and self._auto_representation(every) != self.representation):
+            return KnnLocator(
+                every,
+                k=self.k_asked,
+                representation="auto" if self._auto else self.representation,
+                tx=list(self.tx_index) if self._tx_given else None,
+                max_age_s=self.max_age_s,
+                metric=self.metric,
+                memo=self._memo is not None,
+            )
+        out = copy.copy(self)
+        out.__dict__.pop("_heard", None)
+        if not self._tx_given:
+            names = sorted(set(self.tx_index).union(*(r.scan.rssi_dbm for r in refs)))
+            out.tx_index = {t: i for i, t in enumerate(names)}
+        old = sparse.coo_array(self._R)
+        remap = np.empty(len(self.tx_index), dtype=np.int64)
+        for t, j in self.tx_index.items():
+            remap[j] = out.tx_index[t]
+        X = self._rep(fingerprint_matrix([r.scan for r in refs], out.tx_index, max_age_s=self.max_age_s))
+        new = sparse.coo_array(X.astype(np.float32))
+        n_old = len(self.refs)
+        rows = np.concatenate([old.coords[0], new.coords[0] + n_old])
+        cols = np.concatenate([remap[old.coords[1]], new.coords[1]])
+        data = np.concatenate([old.data, new.data]).astype(np.float32, copy=False)
+        R = sparse.csc_array((data, (rows, cols)), shape=(len(every), len(out.tx_index)))
+        R.sort_indices()
+        out._R = R
+        out._R_sum = np.concatenate([self._R_sum, X.sum(axis=1, dtype=np.float64)])
+        out.k = min(self.k_asked, len(every))
+        out._memo = {} if self._memo is not None else None
+        out._set_labels(every)
+        return out
+
     @functools.cached_property
     def _heard(self) -> sparse.csr_array:
         """(references, transmitters) 1 where a reference's scan holds the transmitter at all (stale or
@@ -518,6 +568,7 @@ class KnnLocator:
         Euclidean metric's search structure fitted again (scikit-learn chooses it by k). Its answers are
         those of a locator built afresh with ``k``."""
         out = copy.copy(self)
+        out.k_asked = k
         out.k = min(k, len(self.refs))
         if self._memo is not None:
             out._memo = {}
