@@ -222,6 +222,7 @@ class ClientScore:
     incremental: np.ndarray | None = None  # the same before it: the walk added one by one (and the batch runs the crowd triggered)
     walk_ids: tuple[int, ...] = ()
     slam_status: str = ""  # the walk's SLAM state ("corrected", "relative", "quarantined", "failed", "" none)
+    map_grown: bool | None = None  # --grow-map: the server served its walk's labels as added (None: not grown)
     map_version: int | None = None  # the radio map version the server served when the client started
     fixes_received: int = 0
     fixes_accepted: int = 0
@@ -409,6 +410,7 @@ class CrowdRun:
     axes: dict = field(default_factory=dict)  # the floors' corridor axes the clients' filters use
     baseline: bool = False  # the survey-only baseline was replayed (ClientScore.survey_only / replayed)
     grow_map: bool = False  # the served map grew at every added walk (SlamOptions.grow_map)
+    walks_grown: int | None = None  # ... by this many walks' labels (the server's count; None: not grown)
 
     @property
     def final_batches(self) -> int:
@@ -574,6 +576,11 @@ def run_crowd(
             for c in scores:
                 c.corrected, c.slam_status = _corrected_errors(c, tracks, states)
         run.summary = slam.summary()
+        if run.grow_map:
+            run.walks_grown = int(server.counts.get("map-walks-grown", 0))
+            grown = server.grown_walks.get(plan.site, set())
+            for c in scores:
+                c.map_grown = any(str(w) in grown for w in c.walk_ids)
         loc = server.locators.get(plan.site)
         run.map_version_final = loc[0] if loc else None
         secs["correction"] = time.monotonic() - t3
@@ -738,6 +745,7 @@ def write_clients(run: CrowdRun, path: str | Path) -> Path:
                 "floor": c.walk.floor,
                 "walk_ids": list(c.walk_ids),
                 "slam_status": c.slam_status,
+                "map_grown": c.map_grown,
                 "map_version": c.map_version,
                 "fixes_received": c.fixes_received,
                 "fixes_accepted": c.fixes_accepted,
@@ -888,6 +896,8 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
             f"  corrected tracks the clients heard while walking: {sum(c.tracks_received for c in C)}, re-anchored their filter: "
             f"{sum(c.tracks_applied for c in C)} (the live figures above include them)"
         )
+        if run.grow_map:
+            p(f"  served map grown at every added walk (--grow-map): {run.walks_grown} walks' labels served on top of the map versions")
     else:
         p("  corrected: undefined (the server runs no crowd SLAM)")
     sm = run.summary or {}
@@ -985,6 +995,7 @@ def crowd_report(run: CrowdRun, out=None) -> dict:
         "concurrency": run.concurrency,
         "slam_processes": _slam_processes() if run.slam_on else None,
         "grow_map": run.grow_map,
+        "walks_grown": run.walks_grown,
         "session_close_errors": run.close_errors,
         "seconds_surveys": s.get("surveys"),
         "seconds_clients": s.get("clients"),

@@ -10,9 +10,14 @@ answers) against variants of the maps it could have been served, per third of th
 - ``next``: the next map version (the client's own walk's labels removed): a map one batch fresher;
 - ``ended``: the last map version's labels of the survey walks and of the walks that ended (recording
   clock) before the client started - what the server had added by then (eval crowd's pacing) - at their
-  final positions: a map refreshed at every added walk (optimistic: final labels, not as added).
+  final positions: a map refreshed at every added walk (optimistic: final labels, not as added);
+- ``fresh``: the served version plus the final labels of the walks that ended before the client started
+  and that the version does not hold: the freshness of ``ended`` without its hindsight on the older
+  walks (``serve --slam-grow-map`` serves those walks as added, not at their final positions);
+- ``fresh-grown``: ``fresh`` with only the walks an ``eval crowd --grow-map`` run served as added
+  (``map_grown`` in clients.jsonl): the same walks as the live run's, at their final positions.
 
-Usage: python scripts/probe_learning.py OUT_DIR SITE_DIR [--variants served,survey,oracle,clean10,next]
+Usage: python scripts/probe_learning.py OUT_DIR SITE_DIR [--variants served,survey,oracle,clean10,next,ended,fresh,fresh-grown]
 (OUT_DIR: an ``hybridloc eval crowd --out OUT_DIR`` run: server.db and clients.jsonl). A line per
 variant; the last line is one JSON object."""
 
@@ -30,10 +35,10 @@ from hybridloc import geo
 from hybridloc.crowd_eval import plan_crowd, replay_offline, thirds
 from hybridloc.io.msft import read_ilc_site
 from hybridloc.radio.radiomap import RadioMap
-from hybridloc.server.locate_pool import make_locator
+from hybridloc.server.locate_pool import KnnOne, make_locator
 from hybridloc.server.store import Store
 
-VARIANTS = ("served", "survey", "oracle", "clean10", "next", "ended")
+VARIANTS = ("served", "survey", "oracle", "clean10", "next", "ended", "fresh", "fresh-grown")
 _STATE: dict = {}
 
 
@@ -95,6 +100,31 @@ def _map(version: int, variant: str, own: set[str]):
     return loc
 
 
+def _fresh(version: int, last: int, ended: set[str]):
+    """``fresh``: map ``version`` as served, plus the last version's labels of the walks in ``ended`` that
+    it does not hold (at their final positions): what a map grown at every added walk serves, with
+    hindsight positions for the walks added since ``version`` only."""
+    served = _map(version, "served", set())
+    if served is None:
+        return None
+    held = {r.source for r in served.knn.refs}
+    if _STATE.get("last_refs", (None,))[0] != last:
+        store = Store(_STATE["db"], migrate=False)
+        try:
+            data = store.map_version(_STATE["site"], last)
+        finally:
+            store.close()
+        _STATE["last_refs"] = (last, RadioMap.load(io.BytesIO(data)).references if data is not None else [])
+    extra = [r for r in _STATE["last_refs"][1] if r.source in ended and r.source not in held]
+    key = ("fresh", version, tuple(sorted(r.source for r in extra)))
+    cache = _STATE.setdefault("fresh", {})
+    if key not in cache:
+        if len(cache) >= 3:
+            cache.pop(next(iter(cache)))
+        cache[key] = KnnOne(served.knn.extended(extra)) if extra else served
+    return cache[key]
+
+
 def _init(db: str, site: str, clients: list, axes: dict) -> None:
     _STATE.update(db=db, site=site, truth=_truth(clients), axes=axes, clients=clients)
 
@@ -109,10 +139,13 @@ def _one(job) -> list:
         loc = _map(survey_v, "served", own)
     elif variant == "next":
         loc = _map(min(v + 1, last_v), "next", own)
-    elif variant == "ended":
+    elif variant in ("ended", "fresh", "fresh-grown"):
         t0 = c["waypoints"][0]["t"]
-        ended = {str(w) for d in _STATE["clients"] if d["waypoints"] and d["waypoints"][-1]["t"] < t0 for w in d["walk_ids"]}
-        loc = _map(last_v, "ended", ended)
+        mine = [d for d in _STATE["clients"] if d["waypoints"] and d["waypoints"][-1]["t"] < t0]
+        if variant == "fresh-grown":  # only the walks a --grow-map run served as added
+            mine = [d for d in mine if d.get("map_grown")]
+        ended = {str(w) for d in mine for w in d["walk_ids"]}
+        loc = _map(last_v, "ended", ended) if variant == "ended" else _fresh(v, last_v, ended)
     else:
         loc = _map(v, variant, own)
     wp = c["waypoints"]

@@ -97,6 +97,8 @@ class Server:
         #: added since that version (``SlamOptions.grow_map``: :meth:`add_labels`), which the served
         #: locator holds on top of it
         self._grown: dict[str, tuple[object, list[LabelledScan]]] = {}
+        #: per site: every walk (label source) whose labels were ever served that way
+        self.grown_walks: dict[str, set[str]] = {}
         self._entities: list = []
         self._worker: threading.Thread | None = None
         self._locate_worker: threading.Thread | None = None
@@ -277,7 +279,8 @@ class Server:
             self.locators[site] = (cur[0], loc, cur[2])
             if self._pool is not None:
                 self._pool.add_labels(site, cur[0], grown)
-            self.counts["map-walks-grown"] += len(mine)
+            self.counts["map-walks-grown"] += len(mine - self.grown_walks.setdefault(site, set()))
+            self.grown_walks[site] |= mine
             return len(grown)
 
     def answer(self, site: str, scan: RfScan) -> Fix:

@@ -280,6 +280,21 @@ def test_the_command_prints_its_figures_and_ends_with_one_json_line(tmp_path, ca
     assert (tmp_path / "server.db").is_file()
 
 
+def test_the_grown_map_run_counts_the_walks_it_served(tmp_path, capsys):
+    """--grow-map: the server serves each added crowd walk's labels on top of its map version; the
+    report says how many walks it grew the map by (crowd walks only: never more than the clients),
+    and the JSON line says the run grew it."""
+    argv = ["eval", "crowd", str(ILC_SITE1_F1), "--survey-fraction", "0.6", "--floors", "F1", "--grow-map"]
+    rc = main([*argv, "--out", str(tmp_path), "--concurrency", "4"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    fig = json.loads(out.strip().splitlines()[-1])
+    assert fig["grow_map"] is True and "the served map grown at every added walk (--grow-map)" in out
+    assert isinstance(fig["walks_grown"], int) and 1 <= fig["walks_grown"] <= fig["clients"] == 14
+    assert f"{fig['walks_grown']} walks' labels served on top of the map versions" in out
+    assert set(ISSUE_KEYS) <= set(fig) and math.isfinite(fig["live_mean_m"])
+
+
 def test_double_site_copies_walks_later_under_other_ids(tmp_path):
     """scripts/double_site.py (the 500-walk load test): every chosen walk is copied under another id with
     every time shifted by the same amount; lines the reader skips are copied as they are; ``--copies N``
