@@ -34,6 +34,7 @@ import logging
 import threading
 import time
 from collections import Counter, deque
+from dataclasses import dataclass
 
 import zenoh
 
@@ -50,10 +51,21 @@ from . import db as m
 from .ingest import IngestResult, Stopping, ingest_group, with_database
 from .ingest_pool import IngestPool, resolve_ingest_workers
 from .locate_pool import KnnOne, LocatePool, PoolBroken, answers, make_locator
+from .slam_store import CORRECTED
 from .slam_worker import SlamOptions, SlamWorker
 from .store import Store
 
 log = logging.getLogger("hybridloc.server")
+
+
+@dataclass
+class _Grown:
+    """A site's map version as served with ``SlamOptions.grow_map``: the version's own kNN locator, the
+    labels grown on top of it (in the order they came) and the walks (label sources) it holds."""
+
+    base: KnnOne
+    labels: list[LabelledScan]
+    held: set[str]
 
 
 class Server:
@@ -96,7 +108,7 @@ class Server:
         #: per site: the served version's own locator (kNN) and the labels of the walks the SLAM worker
         #: added since that version (``SlamOptions.grow_map``: :meth:`add_labels`), which the served
         #: locator holds on top of it
-        self._grown: dict[str, tuple[object, list[LabelledScan]]] = {}
+        self._grown: dict[str, _Grown] = {}
         #: per site: every walk (label source) whose labels were ever served that way
         self.grown_walks: dict[str, set[str]] = {}
         self._entities: list = []
@@ -239,49 +251,61 @@ class Server:
         version, blob = got
         rmap = RadioMap.load(io.BytesIO(blob))
         loc = make_locator(rmap, self.method)
-        if self._pool is not None:
-            self._pool.add_map(site, version, blob)
         with self._lock:
+            cur = self.locators.get(site)
+            if cur is not None and cur[0] > version:
+                return cur[0]  # another thread installed a newer version meanwhile
+            if self._pool is not None:
+                self._pool.add_map(site, version, blob)
             kept: list[LabelledScan] = []
             if isinstance(loc, KnnOne):
                 # a walk added after the version's labels were taken keeps its own until a version holds it
                 held = {r.source for r in rmap.references}
-                kept = [ls for ls in self._grown.get(site, (None, []))[1] if ls.source not in held]
-                self._grown[site] = (loc, [])
+                old = self._grown.get(site)
+                kept = [ls for ls in (old.labels if old is not None else []) if ls.source not in held]
+                self._grown[site] = _Grown(loc, [], held)
             else:
                 self._grown.pop(site, None)
             self.locators[site] = (version, loc, blob)
         if kept:
-            self.add_labels(site, kept)
+            # ... unless a batch since made it relative or put it aside: its labels are then no position
+            placed = {str(w) for w, st in self.store.slam.walk_states(site).items() if st.status == CORRECTED and st.anchored != "relative"}
+            kept = [ls for ls in kept if ls.source in placed]
+            if kept:
+                self.add_labels(site, kept)
         return version
 
     def add_labels(self, site: str, labels: list[LabelledScan]) -> int:
         """Serve ``site``'s scans from its map version plus ``labels`` (a walk the SLAM worker just added:
         its scans at their corrected positions, ``SlamOptions.grow_map``), which replace any earlier
         labels of the same walks (``source``). Held in memory only, on top of the version: a new
-        version takes over the labels of the walks it holds and keeps the others'; the map key still
-        serves the stored version. kNN only (the default ``--method``): the cell likelihood is built
-        from the whole map. Returns the labels served on top of the version (0: none taken)."""
+        version takes over the labels of the walks it holds and keeps the others' while their walks
+        stay placed (corrected, absolute); the map key still serves the stored version. kNN only (the
+        default ``--method``): the cell likelihood is built from the whole map. Labels of a walk the
+        version holds, or of another technology than the map's, are not taken. Returns the number of
+        walks whose labels were taken (0: none; no map, or a map without kNN references)."""
         with self._lock:
-            got = self._grown.get(site)
+            g = self._grown.get(site)
             cur = self.locators.get(site)
-            if got is None or cur is None or not labels:
-                return 0 if got is None else len(got[1])
-            base, grown = got
-            tech = base.knn.refs[0].scan.technology
-            new = [ls for ls in labels if ls.scan.technology == tech]
+            if g is None or cur is None:
+                return 0
+            tech = g.base.knn.refs[0].scan.technology
+            new = [ls for ls in labels if ls.scan.technology == tech and ls.source not in g.held]
             if not new:
-                return len(grown)
+                return 0
             mine = {ls.source for ls in new}
-            grown = [ls for ls in grown if ls.source not in mine] + new
-            loc = KnnOne(base.knn.extended(grown))
-            self._grown[site] = (base, grown)
-            self.locators[site] = (cur[0], loc, cur[2])
+            again = any(ls.source in mine for ls in g.labels)
+            grown = [ls for ls in g.labels if ls.source not in mine] + new
+            # the served locator is the base extended by g.labels: extend it by the new walk alone, or
+            # the base by every label when a walk's labels are replaced
+            knn = g.base.knn.extended(grown) if again else cur[1].knn.extended(new)
+            self._grown[site] = _Grown(g.base, grown, g.held)
+            self.locators[site] = (cur[0], KnnOne(knn), cur[2])
             if self._pool is not None:
                 self._pool.add_labels(site, cur[0], grown)
             self.counts["map-walks-grown"] += len(mine - self.grown_walks.setdefault(site, set()))
             self.grown_walks[site] |= mine
-            return len(grown)
+            return len(mine)
 
     def answer(self, site: str, scan: RfScan) -> Fix:
         """The answer to one scan, pushed after a batch and replied to a locate query alike: a fix with

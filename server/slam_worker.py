@@ -369,8 +369,8 @@ class SlamWorker:
         # served before the walk counts as added: whoever waits for the count finds its labels in service
         if out.get("labels") and self.on_labels is not None:
             try:
-                self.on_labels(self.site, out["labels"])
-                self._bump("map_walks_grown", 1)
+                if self.on_labels(self.site, out["labels"]):
+                    self._bump("map_walks_grown", 1)
             except Exception:  # noqa: BLE001 - the map version stays in service
                 self._bump("map_grow_errors", 1)
                 log.exception("site %s: serving walk %d's labels failed", self.site, walk_id)

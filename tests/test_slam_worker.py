@@ -21,6 +21,7 @@ child process, ``hybridloc serve`` and ``hybridloc slam rebuild`` as real subpro
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
 import io
 import json
 import logging
@@ -642,7 +643,7 @@ def test_the_served_map_grows_at_every_added_walk(tmp_path, walks):
         states = st.slam.walk_states(SITE)
         crowd = {wid for wid, w in zip(late_ids, late) if not w.marks and states[wid].status == CORRECTED and states[wid].anchored != "relative"}
         assert crowd, "no late crowd walk was placed on the map: nothing to serve"
-        base, grown = srv._grown[SITE]
+        base, grown = srv._grown[SITE].base, srv._grown[SITE].labels
         assert {ls.source for ls in grown} == {str(w) for w in crowd}
         assert srv.counts["map-walks-grown"] == len(crowd) == srv.slam_workers[SITE].counts["map_walks_grown"]
         # the labels are the stored tracks' (what a batch's map would take from them)
@@ -668,14 +669,32 @@ def test_the_served_map_grows_at_every_added_walk(tmp_path, walks):
         from_pool = pool.answer(SITE, [ls.scan for ls in probe])
         assert from_pool is not None and len(from_pool) == len(fixes)
         np.testing.assert_array_equal([a.pos_enu for _, a in from_pool], [fx.fix.pos_enu for fx in fixes])
-        # a batch's version holds the added walks: their labels leave the grown set
+        # a walk's labels served again replace its own; the version's own walks are not taken
+        one = [ls for ls in grown if ls.source == got[0].source]
+        assert srv.add_labels(SITE, one) == 1 and len(srv._grown[SITE].labels) == len(grown)
+        held1 = next(iter(srv._grown[SITE].held))
+        assert srv.add_labels(SITE, [dataclasses.replace(one[0], source=held1)]) == 0
+        np.testing.assert_array_equal(
+            srv.locators[SITE][1].knn.pos, loc.knn.pos[: len(base.knn.refs)].tolist() + [ls.pos_enu for ls in srv._grown[SITE].labels]
+        )
+        # a batch's version holds the added walks: their labels leave the grown set, and so do those of
+        # walks the batch made relative or put aside
         srv.request_batch(SITE)
         _wait(lambda: srv.locators[SITE][0] == 2, 240, "map version 2")
         v2 = RadioMap.load(io.BytesIO(srv.locators[SITE][2]))
         held = {r.source for r in v2.references}
-        left = srv._grown[SITE][1]
-        assert {ls.source for ls in left} == {str(w) for w in crowd} - held
+        states = st.slam.walk_states(SITE)
+        placed = {str(w) for w in crowd if states[w].status == CORRECTED and states[w].anchored != "relative"}
+        left = srv._grown[SITE].labels
+        assert {ls.source for ls in left} == (placed - held)
         assert len(srv.locators[SITE][1].knn.refs) == len(v2.references) + len(left)
+        # a version read before the newer one came (another thread's load, installing late) never
+        # replaces the newer one in service
+        srv.store.load_map = lambda site: (1, blob)  # what that thread read
+        try:
+            assert srv.load_map(SITE) == 2 and srv.locators[SITE][0] == 2
+        finally:
+            del srv.store.load_map
     finally:
         pool.close()
         srv.stop()

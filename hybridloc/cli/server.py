@@ -104,7 +104,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         if args.slam_processes < 0:
             raise BadInput(f"--slam-processes must be >= 0 (0: the usable cores), got {args.slam_processes}")
         if args.slam_grow_map and args.method == "prob":
-            raise BadInput("--slam-grow-map serves walks' labels to the kNN locator; the cell likelihood (--method prob) is built from a whole map")
+            raise BadInput(
+                "--slam-grow-map ([slam] grow_map) serves walks' labels to the kNN locator; the cell likelihood (--method prob) is built from a whole map"
+            )
         slam_sites = list(args.site)
         slam_options = SlamOptions(
             idle_timeout_s=args.slam_idle,
@@ -372,7 +374,7 @@ def register(sub) -> None:
     )
     sv.add_argument(
         "--slam-grow-map",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
         default=None,
         help="the served map grows at every added walk: its scans at their corrected positions answer scans on top of the map version "
         "until a batch's version holds them (kNN only; default off: docs/slam.md)",
