@@ -613,7 +613,7 @@ def test_server_killed_during_a_batch_run_resumes_and_loses_nothing(tmp_path, wa
 
 
 # ------------------------------------------------------------------------------------------ grown map
-def test_the_served_map_grows_at_every_added_walk(tmp_path, walks):
+def test_the_served_map_grows_at_every_added_walk(tmp_path, walks, capsys):
     """``SlamOptions.grow_map``: a map version from a batch over 27 walks, then 8 more walks stored and
     added one by one by the worker. Each added crowd walk with an absolute track is served on top of
     the version - its WiFi scans at the stored track's positions, so a scan of it is located onto its
@@ -646,6 +646,11 @@ def test_the_served_map_grows_at_every_added_walk(tmp_path, walks):
         base, grown = srv._grown[SITE].base, srv._grown[SITE].labels
         assert {ls.source for ls in grown} == {str(w) for w in crowd}
         assert srv.counts["map-walks-grown"] == len(crowd) == srv.slam_workers[SITE].counts["map_walks_grown"]
+        from hybridloc.cli import main as cli_main
+
+        capsys.readouterr()
+        assert cli_main(["status", "--endpoint", ep]) == 0
+        assert f"grown into the served map {len(crowd)}" in capsys.readouterr().out
         # the labels are the stored tracks' (what a batch's map would take from them)
         walks_of = [st.read_walk(w) for w in sorted(crowd)]
         expect = [ls for ls in labels_from_tracks(walks_of, st.slam.tracks(SITE, walk_ids=crowd)) if ls.scan.technology.value == "wifi"]

@@ -255,6 +255,7 @@ def _print_status(st: dict) -> None:
         print(
             f"  worker: added {c.get('walks_added', 0)}, quarantined {c.get('walks_quarantined', 0)}, errors {c.get('walk_errors', 0) + c.get('errors', 0)}, "
             f"batch runs {c.get('batch_runs', 0)}"
+            + (f", grown into the served map {c['map_walks_grown']}" if c.get("map_walks_grown") else "")
             + (f", busy: {w['busy']}" if w.get("busy") else "")
             + (f"; last error{' (walk ' + str(err['walk']) + ')' if err.get('walk') is not None else ''}: {err['error']}" if err else "")
         )
