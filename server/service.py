@@ -257,23 +257,39 @@ class Server:
                 return cur[0]  # another thread installed a newer version meanwhile
             if self._pool is not None:
                 self._pool.add_map(site, version, blob)
-            kept: list[LabelledScan] = []
+            held: set[str] = set()
             if isinstance(loc, KnnOne):
-                # a walk added after the version's labels were taken keeps its own until a version holds it
                 held = {r.source for r in rmap.references}
-                old = self._grown.get(site)
-                kept = [ls for ls in (old.labels if old is not None else []) if ls.source not in held]
                 self._grown[site] = _Grown(loc, [], held)
             else:
                 self._grown.pop(site, None)
             self.locators[site] = (version, loc, blob)
-        if kept:
-            # ... unless a batch since made it relative or put it aside: its labels are then no position
-            placed = {str(w) for w, st in self.store.slam.walk_states(site).items() if st.status == CORRECTED and st.anchored != "relative"}
-            kept = [ls for ls in kept if ls.source in placed]
-            if kept:
-                self.add_labels(site, kept)
+        if site in self._grow_sites and isinstance(loc, KnnOne):
+            # the walks added since the version's labels were taken keep theirs until a version holds them
+            self.add_labels(site, self._placed_walk_labels(site, held))
         return version
+
+    @property
+    def _grow_sites(self) -> set[str]:
+        """The sites whose served map grows at every added walk (``SlamOptions.grow_map``)."""
+        o = self.slam_options
+        return set(self.slam_sites) if o is not None and o.grow_map else set()
+
+    def _placed_walk_labels(self, site: str, held: set[str]) -> list[LabelledScan]:
+        """The labels a grown map serves on top of a version that holds the walks ``held``: those of every
+        crowd walk (no survey marks) whose stored track is corrected and absolute and that the version does
+        not hold - read from the database, so a restarted server serves them too, and a walk a batch made
+        relative or put aside since it was added has none."""
+        from hybridloc.slam.online import labels_from_tracks  # the SLAM library only where a map grows
+
+        states = self.store.slam.walk_states(site)
+        ids = [w for w, st in states.items() if st.status == CORRECTED and st.anchored != "relative" and str(w) not in held]
+        if not ids:
+            return []
+        marked = {w.walk_id for w in self.store.walks(site) if w.n_marks}
+        ids = [w for w in ids if w not in marked]
+        tracks = self.store.slam.tracks(site, walk_ids=ids)
+        return labels_from_tracks([self.store.read_walk(w) for w in ids if w in tracks], tracks)
 
     def add_labels(self, site: str, labels: list[LabelledScan]) -> int:
         """Serve ``site``'s scans from its map version plus ``labels`` (a walk the SLAM worker just added:

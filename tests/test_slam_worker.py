@@ -703,3 +703,25 @@ def test_the_served_map_grows_at_every_added_walk(tmp_path, walks, capsys):
     finally:
         pool.close()
         srv.stop()
+    # a restarted server serves the labels of the walks its version does not hold, from the database
+    st = Store(db)
+    ws = st.slam.walk_states(SITE)
+    with Session(st.engine) as ss:
+        ss.execute(m.RadioMapVersion.__table__.delete().where(m.RadioMapVersion.version == 2))
+        ss.commit()
+    st.close()
+    placed = {str(w) for w in crowd if ws[w].status == CORRECTED and ws[w].anchored != "relative"}
+    again = Server(f"unixsock-stream/{tmp_path}/g2.sock", db, slam_sites=[SITE], slam_options=dataclasses.replace(opts, poll_s=30.0))
+    try:
+        assert again.load_map(SITE) == 1
+        assert {ls.source for ls in again._grown[SITE].labels} == placed
+        assert len(again.locators[SITE][1].knn.refs) == len(again._grown[SITE].base.knn.refs) + len(again._grown[SITE].labels)
+    finally:
+        again.stop()
+    pool = LocatePool(1)
+    srv = Server(f"unixsock-stream/{tmp_path}/g3.sock", db)  # the option off: nothing grown
+    try:
+        assert srv.load_map(SITE) == 1 and srv._grown[SITE].labels == [] and srv.counts["map-walks-grown"] == 0
+    finally:
+        pool.close()
+        srv.stop()
