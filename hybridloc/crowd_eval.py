@@ -577,8 +577,8 @@ def run_crowd(
                 c.corrected, c.slam_status = _corrected_errors(c, tracks, states)
         run.summary = slam.summary()
         if run.grow_map:
-            run.walks_grown = int(server.counts.get("map-walks-grown", 0))
             grown = server.grown_walks.get(plan.site, set())
+            run.walks_grown = len(grown)
             for c in scores:
                 c.map_grown = any(str(w) in grown for w in c.walk_ids)
         loc = server.locators.get(plan.site)

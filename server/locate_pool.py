@@ -13,10 +13,11 @@ Maps reach the workers as files: each map version the server loads is written on
 folder, and a request names (site, version, path); a worker loads a version the first time it is asked
 for it. A version's file is removed only when no request can still name it (at the next call: the
 locate thread is the only caller, and it waits for each call's answers). Labels grown on top of a
-version (:meth:`LocatePool.add_labels`) reach them the same way, as a file of every such label. A worker that dies (killed,
-out of memory), fails (a map it cannot read) or takes longer than ``timeout_s``: :class:`PoolBroken`
-tells the server, which answers that group in-process; a dead or stuck pool is replaced for the next
-group. After :meth:`LocatePool.close` every group is answered in-process.
+version (:meth:`LocatePool.add_labels`) reach them the same way, as a file of every such label. A
+worker that dies (killed, out of memory), fails (a map it cannot read) or takes longer than
+``timeout_s``: :class:`PoolBroken` tells the server, which answers that group in-process; a dead or
+stuck pool is replaced for the next group. After :meth:`LocatePool.close` every group is answered
+in-process.
 
 Workers are spawned (never forked: the server has Zenoh's threads), run one BLAS thread at a lower CPU
 priority than ingest (an acknowledgement never waits on a fix), and exit when the server is gone.

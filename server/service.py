@@ -184,7 +184,7 @@ class Server:
                 self.slam_options,
                 on_map=self.load_map,
                 online=self._online_now,
-                on_labels=self.add_labels,
+                on_added=self.grow_walk,
             ).start()
         return self
 
@@ -275,15 +275,26 @@ class Server:
         o = self.slam_options
         return set(self.slam_sites) if o is not None and o.grow_map else set()
 
-    def _placed_walk_labels(self, site: str, held: set[str]) -> list[LabelledScan]:
+    def grow_walk(self, site: str, walk_id: int) -> int:
+        """Serve walk ``walk_id``, just added by the site's SLAM worker, on top of the map version
+        (``SlamOptions.grow_map``): its labels by :meth:`_placed_walk_labels`' rule. Returns the walks
+        taken (0 or 1)."""
+        g = self._grown.get(site)
+        return self.add_labels(site, self._placed_walk_labels(site, g.held, [walk_id])) if g is not None else 0
+
+    def _placed_walk_labels(self, site: str, held: set[str], walk_ids: list[int] | None = None) -> list[LabelledScan]:
         """The labels a grown map serves on top of a version that holds the walks ``held``: those of every
-        crowd walk (no survey marks) whose stored track is corrected and absolute and that the version does
-        not hold - read from the database, so a restarted server serves them too, and a walk a batch made
-        relative or put aside since it was added has none."""
+        crowd walk (or of ``walk_ids``) whose stored track is corrected and absolute and that the version
+        does not hold, each scan at its track's position (:func:`~hybridloc.slam.online.labels_from_tracks`,
+        as a batch's crowd map labels it) - read from the database, so a restarted server serves them too,
+        and a walk a batch made relative or put aside since it was added has none. A survey walk (with
+        marks) has none either: its marks label it in the next ``map rebuild`` or batch map, and a survey
+        map names its labels by device, so they could not be told from the map's own."""
         from hybridloc.slam.online import labels_from_tracks  # the SLAM library only where a map grows
 
         states = self.store.slam.walk_states(site)
-        ids = [w for w, st in states.items() if st.status == CORRECTED and st.anchored != "relative" and str(w) not in held]
+        want = states if walk_ids is None else {w: states[w] for w in walk_ids if w in states}
+        ids = [w for w, st in want.items() if st.status == CORRECTED and st.anchored != "relative" and str(w) not in held]
         if not ids:
             return []
         marked = {w.walk_id for w in self.store.walks(site) if w.n_marks}
@@ -292,8 +303,8 @@ class Server:
         return labels_from_tracks([self.store.read_walk(w) for w in ids if w in tracks], tracks)
 
     def add_labels(self, site: str, labels: list[LabelledScan]) -> int:
-        """Serve ``site``'s scans from its map version plus ``labels`` (a walk the SLAM worker just added:
-        its scans at their corrected positions, ``SlamOptions.grow_map``), which replace any earlier
+        """Serve ``site``'s scans from its map version plus ``labels`` (walks the SLAM worker added: their
+        scans at their corrected positions, ``SlamOptions.grow_map``), which replace any earlier
         labels of the same walks (``source``). Held in memory only, on top of the version: a new
         version takes over the labels of the walks it holds and keeps the others' while their walks
         stay placed (corrected, absolute); the map key still serves the stored version. kNN only (the

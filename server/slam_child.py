@@ -29,14 +29,13 @@ from typing import Any
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from hybridloc.slam.online import CrowdSlam, labels_from_tracks
+from hybridloc.slam.online import CrowdSlam
 from hybridloc.wire.codecs import TRACK
 from hybridloc.wire.messages import Track
 
 from . import db as m
 from .child_process import yield_to_server
 from .slam_batch import load_radio_map, load_site, result_of, run_batch
-from .slam_store import CORRECTED
 from .store import Store
 
 log = logging.getLogger("hybridloc.server.slam")
@@ -96,14 +95,9 @@ def _track_message(site: str, device: str, walk_id: int, run: int, track, map_ve
 
 
 # ------------------------------------------------------------------------------------------ calls
-def add_walk(store: Store, site: str, walk_id: int, progress=None, labels: bool = False) -> dict:
+def add_walk(store: Store, site: str, walk_id: int, progress=None) -> dict:
     """Add one ended walk incrementally (its own variables solved, its neighbours held) and store the
-    outcome: corrected, relative, or quarantined with the reason (not held, the map untouched). With
-    ``labels``: also the walk's WiFi scans at their corrected positions when its track is absolute
-    (:func:`~hybridloc.slam.online.labels_from_tracks`, as a batch's crowd map labels them; the server
-    serves them on top of its map version, ``SlamOptions.grow_map``), else an empty list. A survey
-    walk (with marks) gives none: its marks label it in the next ``map rebuild`` or batch map, and a
-    survey map names its labels by device, so the server could not tell them from its own."""
+    outcome: corrected, relative, or quarantined with the reason (not held, the map untouched)."""
     walk = store.read_walk(walk_id)
     _hook("walk", site, walk)
     slam = site_slam(store, site)
@@ -113,9 +107,6 @@ def add_walk(store: Store, site: str, walk_id: int, progress=None, labels: bool 
     store.slam.drop_live_runs(int(walk_id), run)
     mv = _map_version(store, site)
     loops = list(out.loops)
-    grown = []
-    if labels and out.track is not None and res.status == CORRECTED and not walk.marks:
-        grown = [ls for ls in labels_from_tracks([walk], {int(walk_id): out.track}, slam.cfg) if ls.scan.technology.value == "wifi"]
     return {
         "walk_id": int(walk_id),
         "device": walk.device,
@@ -126,7 +117,6 @@ def add_walk(store: Store, site: str, walk_id: int, progress=None, labels: bool 
         "loops": len(loops),
         "loops_accepted": sum(bool(lp.accepted) for lp in loops),
         "track": _track_message(site, walk.device, walk_id, run, out.track, mv) if out.track is not None and res.status != "quarantined" else None,
-        "labels": grown,
     }
 
 

@@ -52,7 +52,7 @@ from hybridloc.wire.protocol import key_map_version, key_progress, key_track
 
 from . import db as m
 from .slam_batch import LEASE_S
-from .slam_store import FAILED
+from .slam_store import CORRECTED, FAILED
 from .store import WALK_IDLE_GAP_S, Store
 
 log = logging.getLogger("hybridloc.server.slam")
@@ -202,8 +202,9 @@ class SlamWorker:
 
     ``publish(key, payload, encoding)`` sends a message (the server's session); ``on_map(site)`` makes
     the server use the site's newest stored map and returns its version; ``online()`` lists the devices
-    online (live corrections and the tracks sent after a batch run); ``on_labels(site, labels)`` serves
-    an added walk's labels on top of the map version (``SlamOptions.grow_map``)."""
+    online (live corrections and the tracks sent after a batch run); ``on_added(site, walk_id)`` serves
+    a walk just added (corrected) on top of the map version and returns how many walks it took
+    (``SlamOptions.grow_map``)."""
 
     def __init__(
         self,
@@ -213,12 +214,12 @@ class SlamWorker:
         options: SlamOptions | None = None,
         on_map: Callable[[str], int | None] | None = None,
         online: Callable[[], set[str]] | None = None,
-        on_labels: Callable[[str, list], int] | None = None,
+        on_added: Callable[[str, int], int] | None = None,
     ):
         self.db_url, self.site, self.publish = db_url, site, publish
         self.options = options or SlamOptions()
         self.on_map = on_map
-        self.on_labels = on_labels
+        self.on_added = on_added
         self.online = online or (lambda: set())
         self.store = Store(db_url, migrate=False)
         self.counts: Counter = Counter()
@@ -356,8 +357,7 @@ class SlamWorker:
         self.busy = f"walk {walk_id}"
         t0 = time.monotonic()
         try:
-            grow = self.options.grow_map and self.on_labels is not None
-            out = self._call("add_walk", site=self.site, walk_id=walk_id, labels=grow)
+            out = self._call("add_walk", site=self.site, walk_id=walk_id)
         except (ChildError, ChildCrashed) as exc:
             self._walk_failed(walk_id, exc)
             return
@@ -367,9 +367,9 @@ class SlamWorker:
             self.add_seconds.append(time.monotonic() - t0)
         self._attempts.pop(walk_id, None)
         # served before the walk counts as added: whoever waits for the count finds its labels in service
-        if out.get("labels") and self.on_labels is not None:
+        if self.options.grow_map and out["status"] == CORRECTED and self.on_added is not None:
             try:
-                if self.on_labels(self.site, out["labels"]):
+                if self.on_added(self.site, walk_id):
                     self._bump("map_walks_grown", 1)
             except Exception:  # noqa: BLE001 - the map version stays in service
                 self._bump("map_grow_errors", 1)
